@@ -1,0 +1,122 @@
+"""Attitude: rotations between the ICRS and the camera frame, and Wahba's problem.
+
+``R`` (a "rotation_matrix" everywhere in this project) maps ICRS unit
+vectors to camera-frame unit vectors: ``v_cam = R @ v_icrs``.  Its rows are
+the camera axes expressed in ICRS; row 2 is the boresight.
+
+RA, Dec and roll of an attitude
+-------------------------------
+RA and Dec are the boresight's (+z).  Roll is the position angle of the
+image's "up" direction (-y, towards smaller row numbers) measured from
+celestial north through east.  At roll 0, north is up and east is to the
+left (-x), as on a sky chart seen from inside the sphere.
+
+Quaternions are scalar-last ``[x, y, z, w]`` with ``w >= 0`` (scipy's
+convention), representing the same rotation as ``R``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def rotation_from_radec_roll(ra_deg: float, dec_deg: float, roll_deg: float) -> np.ndarray:
+    """The ICRS -> camera rotation for a boresight (RA, Dec) and a roll, all in degrees."""
+    ra, dec, roll = np.radians([ra_deg, dec_deg, roll_deg])
+    z = np.array([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)])
+    east = np.array([-np.sin(ra), np.cos(ra), 0.0])
+    north = np.cross(z, east)
+    up = np.cos(roll) * north + np.sin(roll) * east  # = -y
+    y = -up
+    x = np.cross(y, z)
+    return np.vstack([x, y, z])
+
+
+def radec_roll_from_rotation(R: np.ndarray) -> tuple[float, float, float]:
+    """Inverse of :func:`rotation_from_radec_roll`: (ra, dec, roll) in degrees.
+
+    RA in [0, 360), roll in [0, 360).  At the celestial poles, where north is
+    undefined, RA is taken as 0 and roll is measured from the ICRS +y axis.
+    """
+    R = np.asarray(R, dtype=float)
+    z = R[2]
+    dec = np.degrees(np.arcsin(np.clip(z[2], -1.0, 1.0)))
+    ra = np.degrees(np.arctan2(z[1], z[0])) % 360.0
+    ra_r = np.radians(ra)
+    east = np.array([-np.sin(ra_r), np.cos(ra_r), 0.0])
+    north = np.cross(z, east)
+    up = -R[1]
+    roll = np.degrees(np.arctan2(up @ east, up @ north)) % 360.0
+    return float(ra), float(dec), float(roll)
+
+
+def quaternion_from_rotation(R: np.ndarray) -> np.ndarray:
+    """Scalar-last unit quaternion of ``R`` with a non-negative scalar part."""
+    q = Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat()
+    return -q if q[3] < 0 else q
+
+
+def rotation_from_quaternion(q) -> np.ndarray:
+    """Scalar-last quaternion -> rotation matrix."""
+    return Rotation.from_quat(np.asarray(q, dtype=float)).as_matrix()
+
+
+def angle_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Angle (radians) between unit vectors, row by row; accurate for tiny angles."""
+    u = np.asarray(u, dtype=float)
+    v = np.asarray(v, dtype=float)
+    return np.arctan2(np.linalg.norm(np.cross(u, v), axis=-1), np.sum(u * v, axis=-1))
+
+
+def rotation_angle_between(R1: np.ndarray, R2: np.ndarray) -> float:
+    """Angle (radians) of the rotation that takes attitude ``R1`` to ``R2``."""
+    c = (np.trace(R1 @ np.asarray(R2).T) - 1.0) / 2.0
+    return float(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def boresight_and_roll_error(R_est: np.ndarray, R_true: np.ndarray) -> tuple[float, float]:
+    """(boresight error, roll error about the boresight), both in radians.
+
+    Boresight error is the angle between the two +z axes; roll error the
+    angle between the two +x axes after the boresight difference is removed.
+    """
+    bore = float(angle_between(R_est[2], R_true[2]))
+    dR = R_est @ np.asarray(R_true).T  # true camera frame -> estimated camera frame
+    roll = float(abs(np.arctan2(dR[0, 1] - dR[1, 0], dR[0, 0] + dR[1, 1])))
+    return bore, roll
+
+
+def solve_wahba(body: np.ndarray, ref: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """The rotation R minimising sum w_i |body_i - R ref_i|^2 (SVD method, Markley 1988).
+
+    ``body`` are unit vectors in the camera frame, ``ref`` the matching ICRS
+    unit vectors, both (N, 3) with N >= 2.  With B = sum w_i body_i ref_i^T =
+    U S V^T the optimum is R = U diag(1, 1, det U det V) V^T.
+    """
+    body = np.asarray(body, dtype=float)
+    ref = np.asarray(ref, dtype=float)
+    w = np.ones(len(body)) if weights is None else np.asarray(weights, dtype=float)
+    B = (body * w[:, None]).T @ ref
+    U, _, Vt = np.linalg.svd(B)
+    d = np.linalg.det(U) * np.linalg.det(Vt)
+    return U @ np.diag([1.0, 1.0, d]) @ Vt
+
+
+def rotation_from_pair(b1: np.ndarray, b2: np.ndarray, r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
+    """The rotation mapping r1 exactly onto b1 and the great circle r1-r2 onto b1-b2.
+
+    The seed's construction (004, "Numerical Problems"): build an orthonormal
+    triad from each pair as (u, n, w) with n = normalize(u x v) and w = n x u,
+    avoiding the unstable v - u (u.v) for the small angles between stars.
+    Works on stacks: b1, b2, r1, r2 may be (N, 3), giving (N, 3, 3).
+    """
+    def triad(u, v):
+        n = np.cross(u, v)
+        n = n / np.linalg.norm(n, axis=-1, keepdims=True)
+        w = np.cross(n, u)
+        return np.stack([u, n, w], axis=-1)  # columns u, n, w
+
+    Tb = triad(np.asarray(b1, float), np.asarray(b2, float))
+    Tr = triad(np.asarray(r1, float), np.asarray(r2, float))
+    return Tb @ np.swapaxes(Tr, -1, -2)

@@ -1,0 +1,149 @@
+"""The star camera model: pixels <-> unit vectors in the camera frame.
+
+Conventions (used everywhere in this project):
+
+* pixel x = column to the right, y = row downward, (0, 0) is the centre of
+  the top-left pixel;
+* camera frame: +x along +column, +y along +row, +z along the boresight out
+  of the camera (so x, y, z is right-handed);
+* pinhole with optional radial distortion on the normalised coordinates::
+
+      a = X/Z, b = Y/Z, r^2 = a^2 + b^2
+      d = 1 + k1 r^2 + k2 r^4
+      u = cx + f * a * d,  v = cy + f * b * d
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole star camera with optional radial distortion."""
+
+    width: int
+    height: int
+    focal_length_px: float
+    cx: float
+    cy: float
+    k1: float = 0.0
+    k2: float = 0.0
+    name: str | None = None
+    # Faintest magnitude (Hipparcos Hp) the sensor detects; None: derive one.
+    mag_limit: float | None = None
+
+    # --- derived figures -------------------------------------------------
+    @property
+    def pixel_scale_rad(self) -> float:
+        """Angle subtended by one pixel at the centre of the field."""
+        return 1.0 / self.focal_length_px
+
+    @property
+    def pixel_scale_arcsec(self) -> float:
+        return math.degrees(self.pixel_scale_rad) * 3600.0
+
+    @property
+    def fov_deg(self) -> tuple[float, float]:
+        """Full horizontal and vertical field of view (pinhole, degrees)."""
+        return (
+            2 * math.degrees(math.atan(self.width / 2 / self.focal_length_px)),
+            2 * math.degrees(math.atan(self.height / 2 / self.focal_length_px)),
+        )
+
+    @property
+    def diagonal_fov_rad(self) -> float:
+        """Largest angle between two points of the sensor."""
+        corners = np.array([[-0.5, -0.5], [self.width - 0.5, self.height - 0.5],
+                            [self.width - 0.5, -0.5], [-0.5, self.height - 0.5]])
+        v = self.pixels_to_vectors(corners)
+        return max(float(np.arccos(np.clip(v[0] @ v[1], -1, 1))),
+                   float(np.arccos(np.clip(v[2] @ v[3], -1, 1))))
+
+    @property
+    def limiting_magnitude(self) -> float:
+        """The configured limit, or one derived from the field of view.
+
+        A TUBSAT-class sensor reports the ~10 brightest sources, so the limit
+        that matters is the magnitude at which a field this size holds a few
+        dozen stars: 30 deg -> 4.5 (Liebe's imager), 20 deg -> 5.5,
+        12 deg -> 6.5.  Linear in log(field area), clipped to the catalogue.
+        """
+        if self.mag_limit is not None:
+            return float(self.mag_limit)
+        fx, fy = self.fov_deg
+        area = fx * fy
+        # 30x31 deg ~ 930 deg^2 -> 4.5, 12x12 deg ~ 144 deg^2 -> 6.5
+        limit = 4.5 + (math.log10(930.0) - math.log10(area)) * (2.0 / math.log10(930.0 / 144.0))
+        return float(min(6.5, max(3.5, round(limit, 1))))
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        return {k: v for k, v in d.items() if v is not None and not (k in ("k1", "k2") and v == 0.0)}
+
+    # --- projection ------------------------------------------------------
+    def _distort(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r2 = a * a + b * b
+        d = 1.0 + self.k1 * r2 + self.k2 * r2 * r2
+        return a * d, b * d
+
+    def _undistort(self, ad: np.ndarray, bd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self.k1 == 0.0 and self.k2 == 0.0:
+            return ad, bd
+        a, b = ad.copy(), bd.copy()
+        for _ in range(20):  # fixed-point iteration; converges for |k r^2| << 1
+            r2 = a * a + b * b
+            d = 1.0 + self.k1 * r2 + self.k2 * r2 * r2
+            a, b = ad / d, bd / d
+        return a, b
+
+    def pixels_to_vectors(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) pixel coordinates -> (N, 3) unit vectors in the camera frame."""
+        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        ad = (xy[:, 0] - self.cx) / self.focal_length_px
+        bd = (xy[:, 1] - self.cy) / self.focal_length_px
+        a, b = self._undistort(ad, bd)
+        v = np.column_stack([a, b, np.ones_like(a)])
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    def vectors_to_pixels(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 3) camera-frame vectors -> ((N, 2) pixels, (N,) in-front mask).
+
+        Points behind the camera (z <= 0) get NaN pixels and False.
+        """
+        v = np.asarray(v, dtype=float).reshape(-1, 3)
+        front = v[:, 2] > 1e-9
+        z = np.where(front, v[:, 2], np.nan)
+        a, b = self._distort(v[:, 0] / z, v[:, 1] / z)
+        xy = np.column_stack([self.cx + self.focal_length_px * a,
+                              self.cy + self.focal_length_px * b])
+        return xy, front
+
+    def on_sensor(self, xy: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """True for pixel positions inside the sensor (shrunk by ``margin``)."""
+        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        with np.errstate(invalid="ignore"):
+            return ((xy[:, 0] >= -0.5 + margin) & (xy[:, 0] <= self.width - 0.5 - margin)
+                    & (xy[:, 1] >= -0.5 + margin) & (xy[:, 1] <= self.height - 0.5 - margin))
+
+
+def _camera_for_fov(name: str, width: int, height: int, hfov_deg: float, mag_limit: float) -> Camera:
+    f = (width / 2) / math.tan(math.radians(hfov_deg / 2))
+    return Camera(width=width, height=height, focal_length_px=round(f, 1),
+                  cx=(width - 1) / 2, cy=(height - 1) / 2, name=name, mag_limit=mag_limit)
+
+
+#: Named camera models; the first is the default camera used when a
+#: telemetry file carries no camera block.
+CAMERAS: dict[str, Camera] = {
+    c.name: c
+    for c in (
+        _camera_for_fov("tubsat-752x582-20deg", 752, 582, 20.0, 5.5),
+        _camera_for_fov("liebe-576x604-30deg", 576, 604, 30.0, 4.5),
+        _camera_for_fov("narrow-1024x1024-12deg", 1024, 1024, 12.0, 6.5),
+    )
+}
+DEFAULT_CAMERA_NAME = "tubsat-752x582-20deg"

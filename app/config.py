@@ -1,0 +1,49 @@
+"""Configuration in one place: limits, paths and the astropy set-up.
+
+Every value can be overridden by an environment variable named in
+:class:`Settings`; the CLI and the server read the same settings.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+
+def _cache_dir() -> Path:
+    base = os.environ.get("STARID_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "starid")
+    return Path(base)
+
+
+@dataclass(frozen=True)
+class Settings:
+    #: Largest telemetry file accepted (STARID_MAX_UPLOAD_BYTES).
+    max_upload_bytes: int = int(os.environ.get("STARID_MAX_UPLOAD_BYTES", 5 * 1024 * 1024))
+    #: Where the bright-pair index and other derived data are cached (STARID_CACHE_DIR).
+    cache_dir: Path = _cache_dir()
+    #: Camera used for files without a camera block (STARID_DEFAULT_CAMERA).
+    default_camera: str = os.environ.get("STARID_DEFAULT_CAMERA", "tubsat-752x582-20deg")
+
+
+MAX_SNAPSHOTS = 64
+MAX_SOURCES_PER_SNAPSHOT = 64
+
+
+def settings() -> Settings:
+    return Settings()
+
+
+@functools.lru_cache(maxsize=1)
+def configure_astropy() -> None:
+    """No network here or at ground stations: never let astropy download.
+
+    Uses the IERS tables bundled with astropy and the `builtin` ephemeris.
+    """
+    from astropy.utils import iers
+
+    iers.conf.auto_download = False
+    iers.conf.auto_max_age = None
+    iers.conf.iers_degraded_accuracy = "warn"

@@ -1,0 +1,81 @@
+"""In-memory form of a validated TUBSAT snapshot sequence.
+
+Everything downstream (extraction, identification, storage) works on these
+immutable objects; the parsers in :mod:`app.telemetry.formats` are the only
+way to build one from untrusted bytes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from datetime import datetime
+
+import numpy as np
+
+from app.camera import Camera
+
+FORMAT_NAME = "tubsat-snapshots/1"
+
+
+@dataclass(frozen=True, eq=False)
+class Snapshot:
+    """One snapshot: the light sources the sensor reported at one instant.
+
+    ``xy`` is (n, 2) pixel positions, ``brightness`` (n,), both in the order
+    of the input file (sources are not sorted).
+    """
+
+    index: int
+    time: datetime  # timezone-aware, UTC
+    xy: np.ndarray
+    brightness: np.ndarray
+
+    @property
+    def n_sources(self) -> int:
+        return int(self.xy.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
+class Sequence:
+    """A "picture": a time-ordered sequence of snapshots from one camera."""
+
+    sequence_id: str
+    spacecraft: str | None
+    camera: Camera
+    snapshots: tuple[Snapshot, ...]
+    # Optional spacecraft velocity w.r.t. the Earth's centre in GCRS, km/s,
+    # used for the orbital part of stellar aberration.
+    velocity_km_s: tuple[float, float, float] | None = None
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def times(self) -> list[datetime]:
+        return [s.time for s in self.snapshots]
+
+    def to_json_dict(self) -> dict:
+        """The `tubsat-snapshots/1` JSON form of this sequence."""
+        doc = {
+            "format": FORMAT_NAME,
+            "sequence_id": self.sequence_id,
+            "spacecraft": self.spacecraft,
+            "camera": self.camera.to_dict(),
+            "snapshots": [
+                {
+                    "index": s.index,
+                    "time": format_time(s.time),
+                    "sources": [
+                        {"x": float(x), "y": float(y), "brightness": float(b)}
+                        for (x, y), b in zip(s.xy, s.brightness)
+                    ],
+                }
+                for s in self.snapshots
+            ],
+        }
+        if self.velocity_km_s is not None:
+            doc["velocity_km_s"] = list(self.velocity_km_s)
+        return doc
+
+
+def format_time(t: datetime) -> str:
+    """ISO 8601 UTC with milliseconds and a Z, as in the format's examples."""
+    return t.strftime("%Y-%m-%dT%H:%M:%S.") + f"{t.microsecond // 1000:03d}Z"
