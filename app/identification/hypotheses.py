@@ -1,0 +1,129 @@
+"""Attitude hypotheses from the bright-pair index (seed 004, "The Query").
+
+1. Triangulate the pattern in the image plane (Delaunay), after a tiny
+   deterministic perturbation: integer pixels make co-circular points common,
+   and the degeneracy is an artefact of the grid, not of the sky.
+2. Edges of triangles whose circumcircle lies inside the sensor "surely" are
+   bright pairs: that circle holds no pattern point, and the pattern holds the
+   brightest sources of the field.  They are tried first; the other Delaunay
+   edges and then the remaining pairs follow, so a pattern polluted by a
+   planet or a missed star still finds a clean edge.
+3. Each edge is looked up by length in the index (tolerance from the pixel
+   scale and the points' noise), both orientations of every catalogue pair
+   give one rotation (the seed's two-vector construction).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import Delaunay, QhullError
+
+from app.attitude import angle_between, rotation_from_pair
+from app.camera import Camera
+from app.index import BrightPairIndex
+
+
+@dataclass(frozen=True, eq=False)
+class Hypotheses:
+    """A stack of candidate rotations (ICRS -> camera) and where each came from."""
+
+    rotations: np.ndarray  # (H, 3, 3)
+    pattern_edge: np.ndarray  # (H, 2) pattern rows i, j
+    catalogue_pair: np.ndarray  # (H, 2) index rows mapped onto i, j
+    edge_number: np.ndarray  # (H,) position of the generating edge in the edge list
+
+    def __len__(self) -> int:
+        return int(self.rotations.shape[0])
+
+
+def perturbed(xy: np.ndarray) -> np.ndarray:
+    """Deterministic sub-milli-pixel perturbation that breaks grid degeneracies."""
+    i = np.arange(len(xy))
+    return xy + 1e-4 * np.column_stack([np.sin(1.0 + 2.3999 * i), np.cos(0.5 + 1.6180 * i)])
+
+
+def ordered_pattern_edges(xy: np.ndarray, camera: Camera) -> list[tuple[int, int]]:
+    """Pattern edges, the surest bright pairs first.
+
+    Order: edges of Delaunay triangles whose circumcircle lies inside the
+    sensor; other Delaunay edges; all remaining pairs.  Within each group
+    shorter edges come first (fewer catalogue pairs share a short length).
+    """
+    m = len(xy)
+    # Points closer than 2 pixels give no usable direction (and may be one star twice).
+    all_pairs = [(i, j) for i in range(m) for j in range(i + 1, m)
+                 if np.hypot(*(np.asarray(xy[i], float) - np.asarray(xy[j], float))) >= 2.0]
+    if m < 3:
+        return all_pairs
+    p = perturbed(np.asarray(xy, dtype=float))
+    try:
+        tri = Delaunay(p).simplices
+    except (QhullError, ValueError):  # all points on a line
+        return all_pairs
+    sure: set[tuple[int, int]] = set()
+    delaunay: set[tuple[int, int]] = set()
+    for t in tri:
+        a, b, c = p[t]
+        centre, radius = _circumcircle(a, b, c)
+        inside = (centre[0] - radius >= -0.5 and centre[0] + radius <= camera.width - 0.5
+                  and centre[1] - radius >= -0.5 and centre[1] + radius <= camera.height - 0.5)
+        edges = {tuple(sorted((int(t[u]), int(t[v])))) for u, v in ((0, 1), (0, 2), (1, 2))}
+        (sure if inside else delaunay).update(edges)
+    usable = set(all_pairs)
+    sure &= usable
+    delaunay = (delaunay - sure) & usable
+    rest = usable - sure - delaunay
+
+    def by_length(edges):
+        return sorted(edges, key=lambda e: (np.hypot(*(p[e[0]] - p[e[1]])), e))
+
+    return by_length(sure) + by_length(delaunay) + by_length(rest)
+
+
+def _circumcircle(a, b, c) -> tuple[np.ndarray, float]:
+    d = 2 * (a[0] * (b[1] - c[1]) + b[0] * (c[1] - a[1]) + c[0] * (a[1] - b[1]))
+    if abs(d) < 1e-12:
+        return np.array([np.inf, np.inf]), np.inf
+    a2, b2, c2 = a @ a, b @ b, c @ c
+    ux = (a2 * (b[1] - c[1]) + b2 * (c[1] - a[1]) + c2 * (a[1] - b[1])) / d
+    uy = (a2 * (c[0] - b[0]) + b2 * (a[0] - c[0]) + c2 * (b[0] - a[0])) / d
+    centre = np.array([ux, uy])
+    return centre, float(np.linalg.norm(a - centre))
+
+
+def bright_pair_hypotheses(pattern_vectors: np.ndarray, edges: list[tuple[int, int]],
+                           edge_tolerance_rad: np.ndarray, index: BrightPairIndex,
+                           star_mask: np.ndarray | None = None) -> Hypotheses:
+    """Rotations mapping each catalogue pair of matching length onto each pattern edge.
+
+    ``edge_tolerance_rad[e]`` is the half-width of the length window of edge
+    ``e``; ``star_mask`` (n_stars,) restricts the catalogue pairs to stars the
+    camera can see.
+    """
+    rot, pe, cp, en = [], [], [], []
+    for e, (i, j) in enumerate(edges):
+        length = float(angle_between(pattern_vectors[i], pattern_vectors[j]))
+        rows = index.pairs_with_length(length - edge_tolerance_rad[e], length + edge_tolerance_rad[e])
+        a = index.star_a[rows]
+        b = index.star_b[rows]
+        if star_mask is not None:
+            keep = star_mask[a] & star_mask[b]
+            a, b = a[keep], b[keep]
+        if len(a) == 0:
+            continue
+        # Both orientations: (a -> i, b -> j) and (b -> i, a -> j).
+        r1 = np.concatenate([a, b])
+        r2 = np.concatenate([b, a])
+        R = rotation_from_pair(np.broadcast_to(pattern_vectors[i], (len(r1), 3)),
+                               np.broadcast_to(pattern_vectors[j], (len(r1), 3)),
+                               index.vectors[r1], index.vectors[r2])
+        rot.append(R)
+        pe.append(np.broadcast_to([i, j], (len(r1), 2)))
+        cp.append(np.column_stack([r1, r2]))
+        en.append(np.full(len(r1), e))
+    if not rot:
+        return Hypotheses(np.empty((0, 3, 3)), np.empty((0, 2), int), np.empty((0, 2), int), np.empty(0, int))
+    return Hypotheses(np.concatenate(rot), np.concatenate(pe).astype(int), np.concatenate(cp).astype(int),
+                      np.concatenate(en))

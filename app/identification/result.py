@@ -1,0 +1,101 @@
+"""What identification returns: ranked, distinct attitude candidates and a status."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from app.attitude import quaternion_from_rotation, radec_roll_from_rotation
+
+#: Status values of a solved sequence.
+IDENTIFIED = "identified"  # one candidate, false-match probability below the threshold
+AMBIGUOUS = "ambiguous"  # candidates exist, an operator must decide
+NO_MATCH = "no_match"  # nothing resembling the pattern in the catalogue
+
+
+@dataclass(frozen=True)
+class StarMatch:
+    pattern_index: int  # row of the pattern
+    track: int | None  # the pattern point's track id (None: picked by hand)
+    hip: int
+    name: str | None
+    residual_arcsec: float
+
+
+@dataclass(frozen=True)
+class PlanetMatch:
+    pattern_index: int
+    track: int | None
+    name: str  # "jupiter", ...
+    residual_arcsec: float
+
+
+@dataclass(frozen=True, eq=False)
+class Candidate:
+    """One distinct attitude hypothesis, refined over all its matched stars."""
+
+    rank: int
+    rotation_matrix: np.ndarray  # ICRS -> camera at the reference snapshot's time
+    deviation_arcsec: float  # seed's deviation: sum over pattern points of the angle to the nearest star
+    deviation_px_per_point: float
+    rms_arcsec: float  # RMS residual of the matched points
+    false_match_probability: float
+    matches: tuple[StarMatch, ...]
+    planets: tuple[PlanetMatch, ...] = ()
+    # The pattern edge (two pattern rows) and the catalogue pair (HIP numbers)
+    # that generated this hypothesis first.
+    generating_edge: tuple[int, int] = (-1, -1)
+    generating_pair_hip: tuple[int, int] = (-1, -1)
+    n_hypotheses_merged: int = 1
+    sigma_cross_boresight_arcsec: float | None = None
+    sigma_roll_arcsec: float | None = None
+
+    @property
+    def n_matched(self) -> int:
+        return len(self.matches)
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        return quaternion_from_rotation(self.rotation_matrix)
+
+    @property
+    def radec_roll_deg(self) -> tuple[float, float, float]:
+        return radec_roll_from_rotation(self.rotation_matrix)
+
+    def to_json(self) -> dict:
+        ra, dec, roll = self.radec_roll_deg
+        doc = {
+            "rank": self.rank,
+            "deviation_arcsec": round(self.deviation_arcsec, 3),
+            "deviation_px_per_point": round(self.deviation_px_per_point, 4),
+            "rms_arcsec": round(self.rms_arcsec, 3),
+            "false_match_probability": float(f"{self.false_match_probability:.3g}"),
+            "ra_deg": round(ra, 7),
+            "dec_deg": round(dec, 7),
+            "roll_deg": round(roll, 6),
+            "quaternion": [round(float(x), 10) for x in self.quaternion],
+            "rotation_matrix": [[round(float(x), 10) for x in row] for row in self.rotation_matrix],
+            "matches": [{"track": m.track, "hip": m.hip, "name": m.name,
+                         "residual_arcsec": round(m.residual_arcsec, 3)} for m in self.matches],
+            "planets": [{"track": p.track, "name": p.name,
+                         "residual_arcsec": round(p.residual_arcsec, 3)} for p in self.planets],
+            "generating_edge": list(self.generating_edge),
+            "generating_pair_hip": list(self.generating_pair_hip),
+        }
+        if self.sigma_cross_boresight_arcsec is not None:
+            doc["sigma_cross_boresight_arcsec"] = round(self.sigma_cross_boresight_arcsec, 3)
+            doc["sigma_roll_arcsec"] = round(self.sigma_roll_arcsec, 3)
+        return doc
+
+
+@dataclass(frozen=True, eq=False)
+class Solution:
+    status: str
+    candidates: tuple[Candidate, ...]
+    elapsed_s: float = 0.0
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def best(self) -> Candidate | None:
+        return self.candidates[0] if self.candidates else None

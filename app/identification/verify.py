@@ -1,0 +1,146 @@
+"""Checking, refining and scoring attitude hypotheses.
+
+* Check (seed 004): map the whole pattern onto the sky with a hypothesis and
+  find each point's nearest catalogue star (KD-tree on unit vectors).
+* Refine: least squares over every matched pair (Wahba's problem, SVD),
+  re-matching with a tolerance that shrinks as the attitude improves, and
+  rejecting points whose residual stays beyond it (planets, ghosts, a
+  misidentified neighbour); each catalogue star takes at most one point.
+* Score: the seed's deviation (sum of the angles to the nearest star) and a
+  false-match probability: the expected number of hypotheses, among the
+  ``N`` tried, that would match ``k`` of ``m`` points by chance.  A point
+  lands within ``r`` of one of the visible stars (density ``rho`` per
+  steradian) with probability ``p = 1 - exp(-rho pi r^2)``; the two points
+  of the generating edge match by construction, so::
+
+      P_false = min(1, N * P[Binomial(m - 2, p) >= k - 2])
+
+  (the reasoning of astrometry.net's and tetra3's match statistics).
+  ``r`` is the tolerance with which the hypothesis *collected* its extra
+  matches before the least-squares fit pulled them in, not the final,
+  tighter one (the fit has three degrees of freedom to make chance
+  coincidences look good; using the final tolerance underestimated the
+  chance matches of random patterns a hundredfold).  A second factor then
+  asks how likely chance points would fit as tightly as the matched ones
+  do (see :func:`false_match_probability`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.stats import binom, chi2
+
+from app.attitude import solve_wahba
+
+
+@dataclass(frozen=True, eq=False)
+class StarField:
+    """The catalogue as seen at one time: apparent unit vectors and a KD-tree."""
+
+    vectors: np.ndarray  # (n, 3) apparent places, ICRS axes
+    rows: np.ndarray  # (n,) catalogue/index rows of these stars
+    tree: cKDTree
+
+    @classmethod
+    def from_vectors(cls, vectors: np.ndarray, rows: np.ndarray) -> "StarField":
+        return cls(vectors=vectors, rows=rows, tree=cKDTree(vectors))
+
+    @property
+    def density_per_sr(self) -> float:
+        return len(self.vectors) / (4 * np.pi)
+
+
+def chord(angle_rad):
+    return 2 * np.sin(np.asarray(angle_rad) / 2)
+
+
+def chord_to_angle(c):
+    return 2 * np.arcsin(np.clip(np.asarray(c) / 2, 0, 1))
+
+
+def check_hypotheses(rotations: np.ndarray, pattern_vectors: np.ndarray, field: StarField,
+                     tolerance_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Matches and capped deviation of every hypothesis.
+
+    Returns (n_matched (H,), deviation (H,) = sum over points of
+    min(angle to nearest star, tolerance)).
+    """
+    H, m = len(rotations), len(pattern_vectors)
+    sky = np.matmul(pattern_vectors[None], rotations)  # rows R^T p
+    cap = float(np.max(tolerance_rad)) if H else 0.0
+    d, _ = field.tree.query(sky.reshape(-1, 3), k=1, distance_upper_bound=float(chord(cap)))
+    ang = chord_to_angle(np.where(np.isfinite(d), d, 2.0)).reshape(H, m)
+    tol = np.asarray(tolerance_rad).reshape(-1, 1)
+    matched = ang <= tol
+    return matched.sum(axis=1), np.minimum(ang, tol).sum(axis=1)
+
+
+@dataclass(frozen=True, eq=False)
+class Refined:
+    rotation: np.ndarray
+    star_of_point: np.ndarray  # (m,) field row matched to each pattern point, -1 if none
+    residual_rad: np.ndarray  # (m,) angle to the matched star (nan if none)
+    nearest_rad: np.ndarray  # (m,) angle to the nearest star, matched or not
+
+    @property
+    def n_matched(self) -> int:
+        return int((self.star_of_point >= 0).sum())
+
+
+def match_points(rotation: np.ndarray, pattern_vectors: np.ndarray, field: StarField,
+                 tolerance_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One-to-one nearest-star matching under one rotation.
+
+    Returns (star_of_point, residual, nearest angle); a star claimed by two
+    points goes to the closer one.
+    """
+    sky = pattern_vectors @ rotation  # rows: R^T p
+    d, idx = field.tree.query(sky, k=1)
+    ang = chord_to_angle(d)
+    star = np.where(ang <= tolerance_rad, idx, -1)
+    for s in np.unique(star[star >= 0]):
+        claim = np.flatnonzero(star == s)
+        if len(claim) > 1:
+            star[claim[claim != claim[np.argmin(ang[claim])]]] = -1
+    return star, np.where(star >= 0, ang, np.nan), ang
+
+
+def refine(rotation: np.ndarray, pattern_vectors: np.ndarray, weights: np.ndarray, field: StarField,
+           final_tolerance_rad: np.ndarray, start_tolerance_rad: float, iterations: int = 4) -> Refined:
+    """Iterated Wahba fit with a tolerance shrinking to ``final_tolerance_rad``."""
+    R = rotation
+    for it in range(iterations):
+        f = it / max(1, iterations - 1)
+        tol = np.maximum(final_tolerance_rad, start_tolerance_rad * (1 - f) + final_tolerance_rad * f)
+        star, _, _ = match_points(R, pattern_vectors, field, tol)
+        ok = star >= 0
+        if ok.sum() < 2:
+            break
+        R = solve_wahba(pattern_vectors[ok], field.vectors[star[ok]], weights[ok])
+    star, resid, nearest = match_points(R, pattern_vectors, field, final_tolerance_rad)
+    return Refined(rotation=R, star_of_point=star, residual_rad=resid, nearest_rad=nearest)
+
+
+def false_match_probability(n_points: int, n_matched: int, capture_tolerance_rad: float,
+                            density_per_sr: float, n_hypotheses: int, sum_sq_residual_rad2: float) -> float:
+    """Expected number of chance matches as good as this one (capped at 1); see the module doc.
+
+    Two factors: enough points captured, ``N * P[Binomial(m - 2, p) >= k - 2]``,
+    and, given that, a least-squares fit as tight as the one found.  A chance
+    point captured within ``r`` sits uniformly in that disc (variance r^2/4
+    per axis); after the fit has absorbed 3 degrees of freedom, the sum of
+    squared residuals of ``k`` such points is at most ~ (r^2/4) chi^2(2k - 3),
+    so ``P[fit this tight] = chi2.cdf(4 S / r^2, 2k - 3)``.  (The Gaussian
+    has twice the uniform disc's density at zero, so this errs on the safe,
+    larger side.)
+    """
+    if n_matched < 3 or n_points < 3:
+        return 1.0
+    r = float(capture_tolerance_rad)
+    p = 1.0 - np.exp(-density_per_sr * np.pi * r * r)
+    capture = float(binom.sf(n_matched - 3, n_points - 2, p))  # P[X >= k - 2]
+    tight = float(chi2.cdf(4.0 * sum_sq_residual_rad2 / (r * r), 2 * n_matched - 3))
+    return float(min(1.0, max(1, n_hypotheses) * capture * tight))
