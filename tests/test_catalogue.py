@@ -1,0 +1,55 @@
+"""Catalogue places against astropy's full astrometry, and the bundled star names."""
+
+from __future__ import annotations
+
+from datetime import datetime, timezone
+
+import numpy as np
+
+from app.catalogue import constellations, load_catalogue, radec_to_vectors, star_names
+from app.config import configure_astropy
+
+
+def test_brightest_first_and_known_stars():
+    cat = load_catalogue()
+    assert np.all(np.diff(cat.mag) >= 0)
+    assert int(cat.hip[0]) == 32349  # Sirius
+    row = cat.index_of_hip()[54061]  # Dubhe
+    ra, dec = np.degrees(cat.ra_rad[row]), np.degrees(cat.dec_rad[row])
+    assert abs(ra - 165.93) < 0.01 and abs(dec - 61.75) < 0.01
+
+
+def test_apparent_places_agree_with_astropy_gcrs():
+    """Proper motion + annual aberration vs astropy (ICRS -> GCRS, which adds light deflection)."""
+    configure_astropy()
+    import astropy.units as u
+    from astropy.coordinates import GCRS, SkyCoord
+    from astropy.time import Time
+
+    cat = load_catalogue().brighter_than(3.0)
+    t = datetime(1994, 3, 12, 21, 4, 10, tzinfo=timezone.utc)
+    ours = cat.apparent_vectors(t)
+    c = SkyCoord(ra=cat.ra_rad * u.rad, dec=cat.dec_rad * u.rad, pm_ra_cosdec=cat.pm_ra_cosdec_mas_yr * u.mas / u.yr,
+                 pm_dec=cat.pm_dec_mas_yr * u.mas / u.yr, distance=1e6 * u.pc,  # no parallax: star places only
+                 radial_velocity=0 * u.km / u.s, obstime=Time(1991.25, format="jyear", scale="tcb"), frame="icrs")
+    g = c.apply_space_motion(new_obstime=Time(t)).transform_to(GCRS(obstime=Time(t)))
+    theirs = radec_to_vectors(g.ra.rad, g.dec.rad)
+    sep = np.degrees(np.arccos(np.clip(np.sum(ours * theirs, axis=1), -1, 1))) * 3600
+    # Gravitational light deflection (< 0.05" away from the Sun) and the
+    # hour-rounded Earth velocity are all that differ.
+    assert np.max(sep) < 0.1
+    # And aberration itself is the ~20" effect that makes this test meaningful:
+    mean = cat.mean_vectors(1994.2)
+    shift = np.degrees(np.arccos(np.clip(np.sum(mean * theirs, axis=1), -1, 1))) * 3600
+    assert np.max(shift) > 15
+
+
+def test_star_names_are_in_their_constellations_and_bright():
+    cat = load_catalogue()
+    names = star_names()
+    assert names[54061][0] == "Dubhe"
+    index = cat.index_of_hip()
+    rows = [index[h] for h in names]
+    assert all(cat.mag[r] < 4.5 for r in rows)
+    vectors = cat.mean_vectors(2000.0)[rows]
+    assert constellations(vectors) == [names[h][1] for h in names]
