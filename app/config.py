@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import functools
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 
@@ -26,6 +26,20 @@ class Settings:
     cache_dir: Path = _cache_dir()
     #: Camera used for files without a camera block (STARID_DEFAULT_CAMERA).
     default_camera: str = os.environ.get("STARID_DEFAULT_CAMERA", "tubsat-752x582-20deg")
+    # The server's settings are read when Settings() is made (not at import),
+    # so a test or a launcher can set the environment first.
+    #: Database path or URL for `serve` (STARID_DB, else DATABASE_URL); None: the storage default.
+    database: str | None = field(
+        default_factory=lambda: os.environ.get("STARID_DB") or os.environ.get("DATABASE_URL") or None)
+    #: Bearer tokens "token1=alice,token2=bob" (STARID_TOKENS).
+    tokens: str = field(default_factory=lambda: os.environ.get("STARID_TOKENS", ""))
+    #: File of "token operator" lines (STARID_TOKENS_FILE); None: no file.
+    tokens_file: str | None = field(default_factory=lambda: os.environ.get("STARID_TOKENS_FILE") or None)
+    #: Wall-clock budget of one identification run, seconds (STARID_SEARCH_TIMEOUT_S).
+    search_timeout_s: float = field(
+        default_factory=lambda: float(os.environ.get("STARID_SEARCH_TIMEOUT_S", "5.0")))
+    #: Searches run at once; more wait in line (STARID_SEARCH_WORKERS).
+    search_workers: int = field(default_factory=lambda: int(os.environ.get("STARID_SEARCH_WORKERS", "2")))
 
 
 MAX_SNAPSHOTS = 64

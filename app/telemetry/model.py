@@ -8,7 +8,7 @@ way to build one from untrusted bytes.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from datetime import datetime
+from datetime import datetime, timezone
 
 import numpy as np
 
@@ -53,7 +53,11 @@ class Sequence:
         return [s.time for s in self.snapshots]
 
     def to_json_dict(self) -> dict:
-        """The `tubsat-snapshots/1` JSON form of this sequence."""
+        """The `tubsat-snapshots/1` JSON form of this sequence.
+
+        Unknown top-level keys kept in ``extra`` are written back after the
+        format's own keys, which always win.
+        """
         doc = {
             "format": FORMAT_NAME,
             "sequence_id": self.sequence_id,
@@ -73,9 +77,18 @@ class Sequence:
         }
         if self.velocity_km_s is not None:
             doc["velocity_km_s"] = list(self.velocity_km_s)
+        for key, value in self.extra.items():
+            doc.setdefault(key, value)
         return doc
 
 
 def format_time(t: datetime) -> str:
-    """ISO 8601 UTC with milliseconds and a Z, as in the format's examples."""
-    return t.strftime("%Y-%m-%dT%H:%M:%S.") + f"{t.microsecond // 1000:03d}Z"
+    """ISO 8601 UTC with milliseconds and a Z, as in the format's examples.
+
+    Microseconds are written only when the time has sub-millisecond digits,
+    so that parsing the text gives back exactly the same time.
+    """
+    if t.tzinfo is not None:
+        t = t.astimezone(timezone.utc)
+    fraction = f"{t.microsecond // 1000:03d}" if t.microsecond % 1000 == 0 else f"{t.microsecond:06d}"
+    return t.strftime("%Y-%m-%dT%H:%M:%S.") + fraction + "Z"

@@ -1,0 +1,132 @@
+"""The application context: everything the server builds once at start-up.
+
+One :class:`AppContext` holds the archive (:class:`app.storage.Storage`), the
+identification context (:class:`app.identification.Sky`, ~3 s to load), the
+access policy, the search thread pool and a small cache of parsed and
+extracted sequences.  Routes receive it through ``request.app.state.context``;
+nothing here is a module-level global, so tests build as many as they like.
+
+The ``viewer`` slot is the hook for the 3D viser view of the console issue:
+whoever starts it stores the object there, and :meth:`AppContext.close`
+calls its ``stop()`` if it has one.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+from app.api.security import AccessPolicy
+from app.config import Settings, settings as default_settings
+from app.extraction import Extraction, extract
+from app.storage import Storage
+from app.telemetry import Sequence, parse_telemetry
+
+log = logging.getLogger(__name__)
+
+#: Parsed sequences kept in memory (a 16 x 10 sequence and its extraction are a few kB).
+SEQUENCE_CACHE_SIZE = 256
+
+
+@dataclass(frozen=True, eq=False)
+class LoadedSequence:
+    """A stored upload parsed again and extracted (both are deterministic)."""
+
+    sequence: Sequence
+    extraction: Extraction
+
+
+class SequenceCache:
+    """Thread-safe LRU of :class:`LoadedSequence` by database id.
+
+    Uploads are never changed, so an entry never goes stale.
+    """
+
+    def __init__(self, size: int = SEQUENCE_CACHE_SIZE) -> None:
+        self._size = size
+        self._items: OrderedDict[int, LoadedSequence] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, seq_id: int) -> LoadedSequence | None:
+        with self._lock:
+            item = self._items.get(seq_id)
+            if item is not None:
+                self._items.move_to_end(seq_id)
+            return item
+
+    def put(self, seq_id: int, item: LoadedSequence) -> None:
+        with self._lock:
+            self._items[seq_id] = item
+            self._items.move_to_end(seq_id)
+            while len(self._items) > self._size:
+                self._items.popitem(last=False)
+
+
+@dataclass(eq=False)
+class AppContext:
+    storage: Storage
+    sky: Any  # app.identification.Sky
+    settings: Settings = field(default_factory=default_settings)
+    access: AccessPolicy = field(default_factory=AccessPolicy)
+    cache: SequenceCache = field(default_factory=SequenceCache)
+    #: The 3D view of the console issue (issue 5) once started; None until then.
+    viewer: Any = None
+    _executor: ThreadPoolExecutor | None = None
+
+    @property
+    def search_executor(self) -> ThreadPoolExecutor:
+        """Searches run here, at most ``settings.search_workers`` at once (CPU-bound work)."""
+        if self._executor is None:
+            self._executor = ThreadPoolExecutor(max_workers=max(1, self.settings.search_workers),
+                                                thread_name_prefix="search")
+        return self._executor
+
+    def load_sequence(self, seq_id: int, raw_text: str, filename: str | None) -> LoadedSequence:
+        """The stored upload as Sequence + Extraction, from the cache when possible."""
+        item = self.cache.get(seq_id)
+        if item is None:
+            # Stored text passed validation once; the size limit may have shrunk since, so none here.
+            sequence = parse_telemetry(raw_text, filename=filename, max_bytes=len(raw_text.encode("utf-8")))
+            item = LoadedSequence(sequence, extract(sequence))
+            self.cache.put(seq_id, item)
+        return item
+
+    def close(self) -> None:
+        if self.viewer is not None and hasattr(self.viewer, "stop"):
+            try:
+                self.viewer.stop()
+            except Exception:  # a viewer failing to stop must not lose the database close
+                log.exception("the 3D view did not stop cleanly")
+        if self._executor is not None:
+            self._executor.shutdown(wait=False, cancel_futures=True)
+        self.storage.close()
+
+
+def build_context(*, database: str | None = None, host: str = "127.0.0.1",
+                  config: Settings | None = None, sky=None) -> AppContext:
+    """Open the archive, load the catalogue and index (logging their counts), set the access policy.
+
+    Raises :class:`app.api.security.TokenConfigError` (bad or missing tokens)
+    or :class:`app.storage.StorageError` (database unusable) with a message.
+    """
+    from app.api.security import load_tokens
+
+    config = config or default_settings()
+    access = AccessPolicy.for_host(host, load_tokens(config.tokens, config.tokens_file))
+    storage = Storage.open(database or config.database)
+    try:
+        if sky is None:
+            from app.identification import Sky
+
+            log.info("loading the star catalogue and the bright-pair index...")
+            sky = Sky()
+            log.info("catalogue ready: %d stars to Hp %.1f, %d bright pairs", sky.index.n_stars,
+                     sky.index.mag_limit, sky.index.n_pairs)
+    except BaseException:
+        storage.close()
+        raise
+    return AppContext(storage=storage, sky=sky, settings=config, access=access)

@@ -1,0 +1,109 @@
+"""Every error the API returns is ``{"detail": "<a sentence a person understands>"}``.
+
+422 responses add ``"problems": [{"location": ..., "message": ...}, ...]``
+(telemetry validation and request validation alike), so a client can show
+each problem next to the field or line it concerns.  Exception handlers here
+turn FastAPI's own errors (request validation, unknown routes, wrong
+methods) and any unexpected exception into that shape; an unexpected
+exception is logged with its traceback and answered 500 without internals.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from app.storage import StorageError
+from app.telemetry.errors import TelemetryError
+
+log = logging.getLogger(__name__)
+
+
+class ApiError(Exception):
+    """An expected failure with its HTTP status and message (raised by the service layer)."""
+
+    def __init__(self, status_code: int, detail: str, problems: list[dict] | None = None,
+                 headers: dict[str, str] | None = None) -> None:
+        super().__init__(detail)
+        self.status_code = status_code
+        self.detail = detail
+        self.problems = problems
+        self.headers = headers
+
+
+def error_body(detail: str, problems: list[dict] | None = None) -> dict:
+    body: dict = {"detail": detail}
+    if problems is not None:
+        body["problems"] = problems
+    return body
+
+
+def _location(loc) -> str:
+    """FastAPI's ("body", "manual_points", 0, "x") -> "body.manual_points[0].x"."""
+    text = ""
+    for part in loc:
+        if isinstance(part, int):
+            text += f"[{part}]"
+        else:
+            text += ("." if text else "") + str(part)
+    return text or "request"
+
+
+def validation_problems(errors) -> list[dict]:
+    problems = []
+    for error in errors:
+        message = str(error.get("msg", "invalid value"))
+        if error.get("type") == "json_invalid":
+            message = "the body is not valid JSON" + (f" ({error['ctx']['error']})"
+                                                       if error.get("ctx", {}).get("error") else "")
+        problems.append({"location": _location(error.get("loc", ())), "message": message})
+    return problems
+
+
+def summary_of(problems: list[dict]) -> str:
+    if len(problems) == 1:
+        return f"invalid request: {problems[0]['location']}: {problems[0]['message']}"
+    return f"invalid request: {len(problems)} problems: " + "; ".join(
+        f"{p['location']}: {p['message']}" for p in problems[:5]) + ("; ..." if len(problems) > 5 else "")
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    @app.exception_handler(ApiError)
+    async def api_error(_: Request, exc: ApiError) -> JSONResponse:
+        return JSONResponse(error_body(exc.detail, exc.problems), status_code=exc.status_code,
+                            headers=exc.headers)
+
+    @app.exception_handler(TelemetryError)
+    async def telemetry_error(_: Request, exc: TelemetryError) -> JSONResponse:
+        doc = exc.to_dict()
+        return JSONResponse(error_body(doc["message"], doc["problems"]), status_code=422)
+
+    @app.exception_handler(RequestValidationError)
+    async def request_invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
+        problems = validation_problems(exc.errors())
+        return JSONResponse(error_body(summary_of(problems), problems), status_code=422)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+        detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+        if exc.status_code == 404 and detail == "Not Found":
+            detail = "no such endpoint; the API is described at /docs"
+        elif exc.status_code == 405:
+            detail = "this endpoint does not accept that method; see /docs"
+        return JSONResponse(error_body(detail), status_code=exc.status_code,
+                            headers=getattr(exc, "headers", None))
+
+    @app.exception_handler(StorageError)
+    async def storage_error(_: Request, exc: StorageError) -> JSONResponse:
+        log.error("storage error: %s", exc)
+        return JSONResponse(error_body(f"the archive is not available: {exc}"), status_code=503)
+
+    @app.exception_handler(Exception)
+    async def unexpected(request: Request, exc: Exception) -> JSONResponse:
+        log.exception("unexpected error on %s %s", request.method, request.url.path)
+        return JSONResponse(error_body("internal server error; the server log has the details"),
+                            status_code=500)

@@ -1,0 +1,65 @@
+"""Request bodies of the API (pydantic): their limits are the API's input contract.
+
+Unknown fields are refused (``extra="forbid"``) so that a typo such as
+``"exclude_track"`` is an error rather than an edit silently ignored.
+Responses are plain JSON documents described in :mod:`app.api.service`.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+#: Largest list an edit may carry (a sequence has at most 64 x 64 sources).
+MAX_LIST = 4096
+#: Longest operator name and comment.
+MAX_OPERATOR = 100
+MAX_COMMENT = 2000
+#: Ids and ranks fit a 64-bit database integer.
+MAX_ID = 2**63 - 1
+
+
+#: A track id as the extraction numbers them (0..tracks-1; bounded so nothing overflows).
+TrackId = Annotated[int, Field(ge=0, le=1_000_000)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ManualPoint(_Strict):
+    """A point picked by hand in snapshot ``snapshot`` (0-based position in the file)."""
+
+    snapshot: int = Field(ge=0, le=10_000)
+    x: float = Field(allow_inf_nan=False)
+    y: float = Field(allow_inf_nan=False)
+
+
+class PatternEdit(_Strict):
+    """The operator's pattern: tracks out, tracks in (null: every track), hand-picked points."""
+
+    exclude_tracks: list[TrackId] = Field(default_factory=list, max_length=MAX_LIST)
+    include_tracks: list[TrackId] | None = Field(default=None, max_length=MAX_LIST)
+    manual_points: list[ManualPoint] = Field(default_factory=list, max_length=256)
+    operator: str | None = Field(default=None, max_length=MAX_OPERATOR)
+
+    def definition(self) -> dict:
+        return {"exclude_tracks": sorted(set(self.exclude_tracks)),
+                "include_tracks": None if self.include_tracks is None else sorted(set(self.include_tracks)),
+                "manual_points": [p.model_dump() for p in self.manual_points]}
+
+
+class PatternReset(_Strict):
+    operator: str | None = Field(default=None, max_length=MAX_OPERATOR)
+
+
+class SearchRequest(_Strict):
+    method: Literal["bright_pair"] = "bright_pair"
+    max_candidates: int | None = Field(default=None, ge=1, le=50)
+
+
+class ConfirmRequest(_Strict):
+    rank: int = Field(ge=1, le=MAX_ID)
+    operator: str | None = Field(default=None, max_length=MAX_OPERATOR)
+    comment: str | None = Field(default=None, max_length=MAX_COMMENT)

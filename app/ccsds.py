@@ -1,0 +1,572 @@
+"""CCSDS Attitude Data Messages, ADM 2.0 (CCSDS 504.0-B-2, January 2024), KVN form.
+
+Two writers and one reader:
+
+* :func:`apm_kvn` - an Attitude Parameter Message: one attitude at one epoch.
+* :func:`aem_kvn` - an Attitude Ephemeris Message: one attitude per epoch
+  (here: one per snapshot of a confirmed sequence).
+* :func:`parse_kvn` - a small, independent reader for both, used by the tests
+  to check structure, keyword order and values.
+
+Keywords, their order and the blocks follow the standard's tables 3-1..3-3
+(APM) and 4-2..4-4 (AEM); only version 2.0 keywords are written.  In 2.0 the
+APM has no META_START/META_STOP and no Q_DIR, the AEM has no ATTITUDE_DIR and
+no QUATERNION_TYPE: the quaternion always goes from REF_FRAME_A to
+REF_FRAME_B and its scalar part QC is always written last (APM ``Q1 Q2 Q3 QC``
+block, AEM data line ``EPOCH Q1 Q2 Q3 QC``).
+
+Frames and the direction of the quaternion
+------------------------------------------
+REF_FRAME_A = ``ICRF``; REF_FRAME_B = :data:`CAMERA_FRAME` (``SENSOR_1``, a
+spacecraft-body frame name of the SANA registry that annex B3 points to).
+``SENSOR_1`` is *our camera frame*: +x along increasing pixel column, +y along
+increasing pixel row, +z the boresight (see :mod:`app.camera`).  It is not the
+spacecraft body frame: the camera's mounting on the bus is not known here.
+
+Annex F2 defines the quaternion "from frame A to frame B" as the rotation
+that carries the basis vectors of A onto those of B, and gives the matrix
+that transforms coordinates, ``X_B = M_BA(q) X_A``.  With A = ICRF and
+B = camera, ``M_BA`` is exactly this project's ``rotation_matrix`` R
+(``v_cam = R @ v_icrs``).  Our messages therefore describe ICRF -> camera.
+
+Careful: the project's scalar-last quaternion (:func:`app.attitude.quaternion_from_rotation`,
+scipy's convention) is the quaternion whose *active* rotation matrix is R,
+while the standard's ``M_BA(q)`` is the transpose of the active matrix of q.
+So the file holds the conjugate: ``(Q1, Q2, Q3, QC) = (-x, -y, -z, w)`` of
+the project's ``[x, y, z, w]``.  :func:`ccsds_quaternion_from_rotation` and
+:func:`rotation_from_ccsds_quaternion` implement annex F2 directly so that
+this never has to be remembered by callers: the writers take the project's
+quaternion and convert.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import unicodedata
+from collections.abc import Iterable, Sequence
+from datetime import datetime, timedelta, timezone
+
+import numpy as np
+
+#: REF_FRAME_A of every message we write: the International Celestial Reference Frame.
+ICRF = "ICRF"
+#: REF_FRAME_B: our camera frame (+x column, +y row, +z boresight); see the module docstring.
+CAMERA_FRAME = "SENSOR_1"
+#: Times in our messages are UTC (annex B2 value).
+TIME_SYSTEM = "UTC"
+#: Longest line the standard allows in an APM or AEM (6.6.1), line terminator excluded.
+MAX_LINE_LENGTH = 254
+
+_APM_VERSION_KEYWORD = "CCSDS_APM_VERS"
+_AEM_VERSION_KEYWORD = "CCSDS_AEM_VERS"
+_VERSION = "2.0"
+
+
+class KvnError(ValueError):
+    """Malformed input to a writer, or a KVN text that does not follow ADM 2.0."""
+
+
+# ---------------------------------------------------------------------------
+# Quaternions (annex F2)
+# ---------------------------------------------------------------------------
+
+def rotation_from_ccsds_quaternion(q1: float, q2: float, q3: float, qc: float) -> np.ndarray:
+    """Annex F2's ``M_BA``: the matrix with ``X_B = M_BA @ X_A`` for the quaternion A -> B.
+
+    Written out term by term as in the standard (not via a library) so that
+    the tests check our files against the standard's own formula.
+    """
+    n = math.sqrt(q1 * q1 + q2 * q2 + q3 * q3 + qc * qc)
+    q1, q2, q3, qc = q1 / n, q2 / n, q3 / n, qc / n
+    return np.array([
+        [q1 * q1 - q2 * q2 - q3 * q3 + qc * qc, 2 * (q1 * q2 + q3 * qc), 2 * (q1 * q3 - q2 * qc)],
+        [2 * (q1 * q2 - q3 * qc), -q1 * q1 + q2 * q2 - q3 * q3 + qc * qc, 2 * (q2 * q3 + q1 * qc)],
+        [2 * (q1 * q3 + q2 * qc), 2 * (q2 * q3 - q1 * qc), -q1 * q1 - q2 * q2 + q3 * q3 + qc * qc],
+    ])
+
+
+def ccsds_quaternion_from_project(quaternion_xyzw: Sequence[float]) -> tuple[float, float, float, float]:
+    """(Q1, Q2, Q3, QC) of the file from the project's scalar-last quaternion of R.
+
+    The project's ``[x, y, z, w]`` has active matrix R; the standard's M_BA is
+    the transpose of the active matrix, so the file's quaternion is the
+    conjugate ``(-x, -y, -z, w)``.  The input is normalised; it must be
+    finite and of unit norm to 1e-6 (anything else is a caller's bug).
+    """
+    q = np.asarray(quaternion_xyzw, dtype=float)
+    if q.shape != (4,) or not np.all(np.isfinite(q)):
+        raise KvnError("a quaternion needs four finite numbers [x, y, z, w]")
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > 1e-6:
+        raise KvnError(f"quaternion is not of unit norm (|q| = {norm:.9g})")
+    x, y, z, w = q / norm
+    if w < 0:  # same rotation, conventional sign: scalar part >= 0
+        x, y, z, w = -x, -y, -z, -w
+    return (float(-x), float(-y), float(-z), float(w))
+
+
+def ccsds_quaternion_from_rotation(rotation_matrix: np.ndarray) -> tuple[float, float, float, float]:
+    """(Q1, Q2, Q3, QC) with ``M_BA(q) = rotation_matrix``, QC >= 0 (Shepperd's method)."""
+    m = np.asarray(rotation_matrix, dtype=float)
+    # Invert the F2 matrix: the trace gives QC, the antisymmetric part the
+    # vector part; pick the largest diagonal term for numerical stability.
+    t = np.trace(m)
+    candidates = [t, m[0, 0], m[1, 1], m[2, 2]]
+    k = int(np.argmax(candidates))
+    if k == 0:
+        qc = 0.5 * math.sqrt(max(1.0 + t, 0.0))
+        q1 = (m[1, 2] - m[2, 1]) / (4 * qc)
+        q2 = (m[2, 0] - m[0, 2]) / (4 * qc)
+        q3 = (m[0, 1] - m[1, 0]) / (4 * qc)
+    elif k == 1:
+        q1 = 0.5 * math.sqrt(max(1.0 + 2 * m[0, 0] - t, 0.0))
+        qc = (m[1, 2] - m[2, 1]) / (4 * q1)
+        q2 = (m[0, 1] + m[1, 0]) / (4 * q1)
+        q3 = (m[0, 2] + m[2, 0]) / (4 * q1)
+    elif k == 2:
+        q2 = 0.5 * math.sqrt(max(1.0 + 2 * m[1, 1] - t, 0.0))
+        qc = (m[2, 0] - m[0, 2]) / (4 * q2)
+        q1 = (m[0, 1] + m[1, 0]) / (4 * q2)
+        q3 = (m[1, 2] + m[2, 1]) / (4 * q2)
+    else:
+        q3 = 0.5 * math.sqrt(max(1.0 + 2 * m[2, 2] - t, 0.0))
+        qc = (m[0, 1] - m[1, 0]) / (4 * q3)
+        q1 = (m[0, 2] + m[2, 0]) / (4 * q3)
+        q2 = (m[1, 2] + m[2, 1]) / (4 * q3)
+    q = np.array([q1, q2, q3, qc])
+    q /= np.linalg.norm(q)
+    if q[3] < 0:
+        q = -q
+    return tuple(float(v) for v in q)
+
+
+# ---------------------------------------------------------------------------
+# Value formatting (section 6.8)
+# ---------------------------------------------------------------------------
+
+def format_epoch(t: datetime) -> str:
+    """6.8.9 ``YYYY-MM-DDThh:mm:ss.dddddd`` in UTC; naive datetimes are refused."""
+    if not isinstance(t, datetime) or t.tzinfo is None or t.utcoffset() is None:
+        raise KvnError("epochs must be timezone-aware datetimes")
+    return t.astimezone(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%f")
+
+
+def format_quaternion_component(v: float) -> str:
+    """Fixed point with 15 decimals: 16 digits, the most 6.8.4.1 allows, ~1e-15 resolution.
+
+    "-0" is not a supported value (6.8.5), so a negative zero after rounding
+    is written without its sign.
+    """
+    s = f"{v:.15f}"
+    if s.startswith("-") and float(s) == 0.0:
+        s = s[1:]
+    return s
+
+
+def _ascii_text(text: str) -> str:
+    """Printable ASCII only (6.6.3): accents dropped, other characters become '?'."""
+    decomposed = unicodedata.normalize("NFKD", str(text))
+    out = []
+    for ch in decomposed:
+        if unicodedata.combining(ch):
+            continue
+        out.append(ch if 32 <= ord(ch) < 127 else ("?" if not ch.isspace() else " "))
+    return "".join(out)
+
+
+def text_value(text: str, keyword: str) -> str:
+    """A text value as 6.8.6/6.8.8 want it: printable ASCII, upper case, single blanks."""
+    value = re.sub(r"\s+", " ", _ascii_text(text)).strip().upper()
+    if not value:
+        raise KvnError(f"{keyword} needs a non-empty value")
+    if len(keyword) + 3 + len(value) > MAX_LINE_LENGTH:
+        raise KvnError(f"{keyword} value is too long for a {MAX_LINE_LENGTH}-character line")
+    return value
+
+
+def comment_lines(comments: Iterable[str]) -> list[str]:
+    """COMMENT lines (6.10.1): ASCII, one per input line, long ones wrapped at 254 characters."""
+    width = MAX_LINE_LENGTH - len("COMMENT ")
+    lines: list[str] = []
+    for comment in comments:
+        for part in _ascii_text(str(comment).replace("\r", "\n")).split("\n"):
+            part = part.rstrip()
+            chunks = [part[i:i + width] for i in range(0, len(part), width)] or [""]
+            lines.extend(f"COMMENT {chunk}".rstrip() for chunk in chunks)
+    return lines
+
+
+def _kv(keyword: str, value: str) -> str:
+    return f"{keyword} = {value}"
+
+
+def _header(version_keyword: str, *, originator: str, creation_date: datetime | None,
+            message_id: str | None, header_comments: Iterable[str]) -> list[str]:
+    """Tables 3-1 / 4-2: version, comments, CREATION_DATE, ORIGINATOR, MESSAGE_ID."""
+    created = creation_date if creation_date is not None else datetime.now(timezone.utc)
+    lines = [_kv(version_keyword, _VERSION)]
+    lines += comment_lines(header_comments)
+    lines.append(_kv("CREATION_DATE", format_epoch(created)))
+    lines.append(_kv("ORIGINATOR", text_value(originator, "ORIGINATOR")))
+    if message_id is not None:
+        lines.append(_kv("MESSAGE_ID", text_value(message_id, "MESSAGE_ID")))
+    return lines
+
+
+def _finish(lines: list[str]) -> str:
+    for line in lines:
+        if len(line) > MAX_LINE_LENGTH:  # only reachable through a bug above
+            raise KvnError(f"line longer than {MAX_LINE_LENGTH} characters: {line[:40]}...")
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------------
+# Writers
+# ---------------------------------------------------------------------------
+
+def apm_kvn(*, epoch: datetime, quaternion_xyzw: Sequence[float], originator: str,
+            object_name: str, object_id: str, ref_frame_a: str = ICRF,
+            ref_frame_b: str = CAMERA_FRAME, center_name: str | None = "EARTH",
+            comments: Iterable[str] = (), header_comments: Iterable[str] = (),
+            quaternion_comments: Iterable[str] = (), message_id: str | None = None,
+            creation_date: datetime | None = None) -> str:
+    """An APM 2.0 in KVN holding one attitude quaternion at ``epoch``.
+
+    ``quaternion_xyzw`` is the project's scalar-last quaternion of the
+    ICRS -> camera rotation R (as :attr:`Candidate.quaternion`); the file gets
+    the annex-F2 quaternion from ``ref_frame_a`` to ``ref_frame_b`` (its
+    conjugate, see the module docstring), so ``M_BA(Q) = R``.
+
+    Layout (tables 3-1, 3-2, 3-3; no META_START in an APM):
+    header (CCSDS_APM_VERS, COMMENT*, CREATION_DATE, ORIGINATOR, MESSAGE_ID?),
+    metadata (OBJECT_NAME, OBJECT_ID, CENTER_NAME?, TIME_SYSTEM),
+    data (COMMENT*, EPOCH, QUAT_START, COMMENT*, REF_FRAME_A, REF_FRAME_B,
+    Q1, Q2, Q3, QC, QUAT_STOP).  ``comments`` go before EPOCH (they describe
+    the attitude: deviation, false-match probability, operator...).
+    Output is deterministic for equal inputs when ``creation_date`` is given;
+    without it the current UTC time is used.  Text values are upper-cased and
+    reduced to ASCII as 6.6.3/6.8.6 require.  Raises :class:`KvnError`.
+    """
+    q1, q2, q3, qc = ccsds_quaternion_from_project(quaternion_xyzw)
+    lines = _header(_APM_VERSION_KEYWORD, originator=originator, creation_date=creation_date,
+                    message_id=message_id, header_comments=header_comments)
+    lines.append("")
+    lines.append(_kv("OBJECT_NAME", text_value(object_name, "OBJECT_NAME")))
+    lines.append(_kv("OBJECT_ID", text_value(object_id, "OBJECT_ID")))
+    if center_name is not None:
+        lines.append(_kv("CENTER_NAME", text_value(center_name, "CENTER_NAME")))
+    lines.append(_kv("TIME_SYSTEM", TIME_SYSTEM))
+    lines.append("")
+    lines += comment_lines(comments)
+    lines.append(_kv("EPOCH", format_epoch(epoch)))
+    lines.append("")
+    lines.append("QUAT_START")
+    lines += comment_lines(quaternion_comments)
+    lines.append(_kv("REF_FRAME_A", text_value(ref_frame_a, "REF_FRAME_A")))
+    lines.append(_kv("REF_FRAME_B", text_value(ref_frame_b, "REF_FRAME_B")))
+    for keyword, value in zip(("Q1", "Q2", "Q3", "QC"), (q1, q2, q3, qc)):
+        lines.append(_kv(keyword, format_quaternion_component(value)))
+    lines.append("QUAT_STOP")
+    return _finish(lines)
+
+
+def aem_kvn(*, epochs: Sequence[datetime], quaternions_xyzw: Sequence[Sequence[float]],
+            originator: str, object_name: str, object_id: str, ref_frame_a: str = ICRF,
+            ref_frame_b: str = CAMERA_FRAME, center_name: str | None = "EARTH",
+            comments: Iterable[str] = (), header_comments: Iterable[str] = (),
+            data_comments: Iterable[str] = (), message_id: str | None = None,
+            creation_date: datetime | None = None) -> str:
+    """An AEM 2.0 in KVN: one segment, ATTITUDE_TYPE = QUATERNION, one line per epoch.
+
+    Quaternions are the project's scalar-last quaternions of R, converted as
+    in :func:`apm_kvn`; each data line is ``EPOCH Q1 Q2 Q3 QC`` (table 4-4).
+    Epochs must be strictly increasing (4.2.4.8.1); START_TIME and STOP_TIME
+    are the first and last epoch.  ``comments`` go at the start of the
+    metadata (after META_START), ``data_comments`` right after DATA_START
+    (6.10.3).  No INTERPOLATION_METHOD is given: the snapshots are the data.
+    Raises :class:`KvnError`.
+    """
+    epochs = list(epochs)
+    quats = list(quaternions_xyzw)
+    if not epochs:
+        raise KvnError("an AEM needs at least one epoch")
+    if len(epochs) != len(quats):
+        raise KvnError(f"{len(epochs)} epochs but {len(quats)} quaternions")
+    stamps = [format_epoch(t) for t in epochs]
+    for earlier, later in zip(epochs, epochs[1:]):
+        if later - earlier <= timedelta(0):
+            raise KvnError("AEM epochs must be strictly increasing")
+    rows = [ccsds_quaternion_from_project(q) for q in quats]
+
+    lines = _header(_AEM_VERSION_KEYWORD, originator=originator, creation_date=creation_date,
+                    message_id=message_id, header_comments=header_comments)
+    lines.append("")
+    lines.append("META_START")
+    lines += comment_lines(comments)
+    lines.append(_kv("OBJECT_NAME", text_value(object_name, "OBJECT_NAME")))
+    lines.append(_kv("OBJECT_ID", text_value(object_id, "OBJECT_ID")))
+    if center_name is not None:
+        lines.append(_kv("CENTER_NAME", text_value(center_name, "CENTER_NAME")))
+    lines.append(_kv("REF_FRAME_A", text_value(ref_frame_a, "REF_FRAME_A")))
+    lines.append(_kv("REF_FRAME_B", text_value(ref_frame_b, "REF_FRAME_B")))
+    lines.append(_kv("TIME_SYSTEM", TIME_SYSTEM))
+    lines.append(_kv("START_TIME", stamps[0]))
+    lines.append(_kv("STOP_TIME", stamps[-1]))
+    lines.append(_kv("ATTITUDE_TYPE", "QUATERNION"))
+    lines.append("META_STOP")
+    lines.append("")
+    lines.append("DATA_START")
+    lines += comment_lines(data_comments)
+    for stamp, q in zip(stamps, rows):
+        lines.append(" ".join([stamp, *(format_quaternion_component(v) for v in q)]))
+    lines.append("DATA_STOP")
+    return _finish(lines)
+
+
+# ---------------------------------------------------------------------------
+# Reader
+# ---------------------------------------------------------------------------
+
+_APM_HEADER = ("CLASSIFICATION", "CREATION_DATE", "ORIGINATOR", "MESSAGE_ID")
+_APM_METADATA = ("OBJECT_NAME", "OBJECT_ID", "CENTER_NAME", "TIME_SYSTEM")
+_AEM_METADATA = ("OBJECT_NAME", "OBJECT_ID", "CENTER_NAME", "REF_FRAME_A", "REF_FRAME_B",
+                 "TIME_SYSTEM", "START_TIME", "USEABLE_START_TIME", "USEABLE_STOP_TIME",
+                 "STOP_TIME", "ATTITUDE_TYPE", "EULER_ROT_SEQ", "ANGVEL_FRAME",
+                 "INTERPOLATION_METHOD", "INTERPOLATION_DEGREE")
+_APM_BLOCKS = {"QUAT", "EULER", "ANGVEL", "SPIN", "INERTIA", "MAN"}
+_REAL = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
+_EPOCH = re.compile(r"^(\d{4})-(?:(\d{2})-(\d{2})|(\d{3}))T(\d{2}):(\d{2}):(\d{2})(\.\d+)?Z?$")
+
+
+def parse_epoch(text: str) -> datetime:
+    """A 6.8.9 time tag (calendar or day-of-year form) as an aware UTC datetime.
+
+    Fractions beyond microseconds are truncated; a leap second (ss = 60) is
+    refused because datetime cannot represent it.
+    """
+    m = _EPOCH.match(text.strip())
+    if not m:
+        raise KvnError(f"not a CCSDS epoch: {text!r}")
+    year, month, day, doy, hh, mm, ss, frac = m.groups()
+    micro = int((frac[1:] + "000000")[:6]) if frac else 0
+    try:
+        if doy is not None:
+            base = datetime(int(year), 1, 1, tzinfo=timezone.utc) + timedelta(days=int(doy) - 1)
+            if base.year != int(year):
+                raise ValueError("day of year out of range")
+            return base.replace(hour=int(hh), minute=int(mm), second=int(ss), microsecond=micro)
+        return datetime(int(year), int(month), int(day), int(hh), int(mm), int(ss), micro,
+                        tzinfo=timezone.utc)
+    except ValueError as exc:
+        raise KvnError(f"not a valid epoch: {text!r} ({exc})") from None
+
+
+def _number(text: str, where: str) -> float:
+    value = re.sub(r"\s*\[[^\]]*\]\s*$", "", text).strip()  # drop optional "[unit]" (6.9.1)
+    if not _REAL.match(value):
+        raise KvnError(f"{where}: not a number: {text!r}")
+    return float(value)
+
+
+def _tokens(text: str) -> list[tuple[int, str, str | None]]:
+    """(line number, keyword, value) for each non-blank line; value None for markers/data."""
+    out = []
+    for number, raw in enumerate(re.split(r"\r\n|\n\r|\r|\n", text), start=1):
+        if len(raw) > MAX_LINE_LENGTH:
+            raise KvnError(f"line {number}: longer than {MAX_LINE_LENGTH} characters")
+        if any(not (32 <= ord(ch) < 127) for ch in raw):
+            raise KvnError(f"line {number}: characters other than printable ASCII")
+        line = raw.strip()
+        if not line:
+            continue
+        if line == "COMMENT" or line.startswith("COMMENT "):
+            out.append((number, "COMMENT", line[len("COMMENT"):].strip()))
+        elif "=" in line:
+            keyword, value = (part.strip() for part in line.split("=", 1))
+            if not re.fullmatch(r"[A-Z0-9_]+", keyword):
+                raise KvnError(f"line {number}: keyword {keyword!r} is not upper case without blanks")
+            if not value:
+                raise KvnError(f"line {number}: {keyword} has an empty value")
+            out.append((number, keyword, value))
+        else:
+            out.append((number, line, None))
+    if not out:
+        raise KvnError("empty message")
+    return out
+
+
+def parse_kvn(text: str) -> dict:
+    """Read an ADM 2.0 APM or AEM in KVN into plain Python values.
+
+    Returns ``{"type": "APM"|"AEM", "version": str, "keywords": [...],
+    "header": {...}, ...}`` where ``keywords`` lists every keyword, marker
+    (``QUAT_START``...) and ``<DATA>`` line in file order, and section dicts
+    map keywords to values with their comments under ``"COMMENT"``.
+
+    * APM: ``"metadata"``, ``"data"`` = {"COMMENT", "EPOCH", "blocks": [{"block":
+      "QUAT", "COMMENT": [...], "REF_FRAME_A": ..., "Q1": float, ...}]}.
+    * AEM: ``"segments"`` = [{"metadata": {...}, "data": {"COMMENT": [...],
+      "lines": [[epoch_str, float, ...], ...]}}].
+
+    Epoch values are kept as strings (see :func:`parse_epoch`); values in
+    quaternion, Euler, rate and inertia blocks become floats.  Raises
+    :class:`KvnError` when the text does not follow the layout of the
+    standard's tables (keyword in the wrong section, unknown keyword, missing
+    mandatory keyword, block not closed...).
+    """
+    tokens = _tokens(text)
+    number, keyword, version = tokens[0]
+    if keyword == _APM_VERSION_KEYWORD:
+        kind = "APM"
+    elif keyword == _AEM_VERSION_KEYWORD:
+        kind = "AEM"
+    else:
+        raise KvnError(f"line {number}: the first line must be CCSDS_APM_VERS or CCSDS_AEM_VERS")
+    result: dict = {"type": kind, "version": version, "keywords": [keyword]}
+    rest = _parse_header(tokens[1:], result)
+    if kind == "APM":
+        _parse_apm_body(rest, result)
+    else:
+        _parse_aem_body(rest, result)
+    return result
+
+
+def _parse_header(tokens, result) -> list:
+    header: dict = {"COMMENT": []}
+    i = 0
+    # Header comments come straight after the version line, before any keyword.
+    while i < len(tokens) and tokens[i][1] == "COMMENT":
+        header["COMMENT"].append(tokens[i][2])
+        result["keywords"].append("COMMENT")
+        i += 1
+    last = -1
+    while i < len(tokens) and tokens[i][1] in _APM_HEADER:
+        number, keyword, value = tokens[i]
+        position = _APM_HEADER.index(keyword)
+        if position <= last:
+            raise KvnError(f"line {number}: {keyword} out of order or repeated in the header")
+        last = position
+        header[keyword] = value
+        result["keywords"].append(keyword)
+        i += 1
+    for mandatory in ("CREATION_DATE", "ORIGINATOR"):
+        if mandatory not in header:
+            raise KvnError(f"header lacks {mandatory}")
+    result["header"] = header
+    return tokens[i:]
+
+
+def _take_section(tokens, i, allowed, result, mandatory) -> tuple[dict, int]:
+    """Leading COMMENTs then keywords of ``allowed`` in table order."""
+    section: dict = {"COMMENT": []}
+    while i < len(tokens) and tokens[i][1] == "COMMENT":
+        section["COMMENT"].append(tokens[i][2])
+        result["keywords"].append("COMMENT")
+        i += 1
+    last = -1
+    while i < len(tokens) and tokens[i][1] in allowed:
+        number, keyword, value = tokens[i]
+        position = allowed.index(keyword)
+        if position <= last:
+            raise KvnError(f"line {number}: {keyword} out of order or repeated")
+        last = position
+        section[keyword] = value
+        result["keywords"].append(keyword)
+        i += 1
+    for keyword in mandatory:
+        if keyword not in section:
+            raise KvnError(f"section lacks mandatory {keyword}")
+    return section, i
+
+
+def _parse_apm_body(tokens, result) -> None:
+    metadata, i = _take_section(tokens, 0, _APM_METADATA, result,
+                                ("OBJECT_NAME", "OBJECT_ID", "TIME_SYSTEM"))
+    result["metadata"] = metadata
+    data, i = _take_section(tokens, i, ("EPOCH",), result, ("EPOCH",))
+    data["blocks"] = []
+    while i < len(tokens):
+        number, marker, value = tokens[i]
+        if value is not None or not marker.endswith("_START") or marker[:-6] not in _APM_BLOCKS:
+            raise KvnError(f"line {number}: expected the start of an APM data block, got {marker!r}")
+        name = marker[:-6]
+        result["keywords"].append(marker)
+        block: dict = {"block": name, "COMMENT": []}
+        i += 1
+        while i < len(tokens) and tokens[i][1] == "COMMENT":
+            block["COMMENT"].append(tokens[i][2])
+            result["keywords"].append("COMMENT")
+            i += 1
+        while i < len(tokens) and tokens[i][1] != f"{name}_STOP":
+            number, keyword, value = tokens[i]
+            if value is None or keyword == "COMMENT":
+                raise KvnError(f"line {number}: {keyword!r} inside {name} block (comments only at its start)")
+            if keyword in block:
+                raise KvnError(f"line {number}: {keyword} repeated in {name} block")
+            textual = keyword.startswith("REF_FRAME") or keyword.endswith("FRAME") \
+                or keyword in ("EULER_ROT_SEQ", "MAN_EPOCH_START")
+            block[keyword] = value if textual else _number(value, f"line {number}")
+            result["keywords"].append(keyword)
+            i += 1
+        if i == len(tokens):
+            raise KvnError(f"{name}_START without {name}_STOP")
+        result["keywords"].append(f"{name}_STOP")
+        i += 1
+        if name == "QUAT":
+            order = [k for k in block if k not in ("block", "COMMENT")]
+            expected = ["REF_FRAME_A", "REF_FRAME_B", "Q1", "Q2", "Q3", "QC"]
+            if order[:6] != expected:
+                raise KvnError(f"QUAT block keywords {order} are not in the order {expected}")
+        data["blocks"].append(block)
+    if not data["blocks"]:
+        raise KvnError("an APM needs at least one data block")
+    result["data"] = data
+
+
+def _parse_aem_body(tokens, result) -> None:
+    segments = []
+    i = 0
+    while i < len(tokens):
+        number, marker, value = tokens[i]
+        if marker != "META_START" or value is not None:
+            raise KvnError(f"line {number}: expected META_START, got {marker!r}")
+        result["keywords"].append("META_START")
+        metadata, i = _take_section(tokens, i + 1, _AEM_METADATA, result,
+                                    ("OBJECT_NAME", "OBJECT_ID", "REF_FRAME_A", "REF_FRAME_B",
+                                     "TIME_SYSTEM", "START_TIME", "STOP_TIME", "ATTITUDE_TYPE"))
+        for expected in ("META_STOP", "DATA_START"):
+            if i == len(tokens) or tokens[i][1] != expected or tokens[i][2] is not None:
+                got = tokens[i][1] if i < len(tokens) else "end of text"
+                raise KvnError(f"expected {expected}, got {got!r}")
+            result["keywords"].append(expected)
+            i += 1
+        data: dict = {"COMMENT": [], "lines": []}
+        while i < len(tokens) and tokens[i][1] == "COMMENT":
+            data["COMMENT"].append(tokens[i][2])
+            result["keywords"].append("COMMENT")
+            i += 1
+        n_values = {"QUATERNION": 4, "QUATERNION/DERIVATIVE": 8, "QUATERNION/ANGVEL": 7,
+                    "EULER_ANGLE": 3, "EULER_ANGLE/DERIVATIVE": 6, "EULER_ANGLE/ANGVEL": 6,
+                    "SPIN": 4, "SPIN/NUTATION": 7, "SPIN/NUTATION_MOM": 7}.get(metadata["ATTITUDE_TYPE"])
+        if n_values is None:
+            raise KvnError(f"unknown ATTITUDE_TYPE {metadata['ATTITUDE_TYPE']!r}")
+        while i < len(tokens) and tokens[i][1] != "DATA_STOP":
+            number, line, value = tokens[i]
+            if value is not None:
+                raise KvnError(f"line {number}: keyword {line} inside the data section")
+            fields = line.split()
+            if len(fields) != 1 + n_values:
+                raise KvnError(f"line {number}: {len(fields) - 1} values, {n_values} expected")
+            parse_epoch(fields[0])
+            data["lines"].append([fields[0], *(_number(f, f"line {number}") for f in fields[1:])])
+            result["keywords"].append("<DATA>")
+            i += 1
+        if i == len(tokens):
+            raise KvnError("DATA_START without DATA_STOP")
+        result["keywords"].append("DATA_STOP")
+        i += 1
+        segments.append({"metadata": metadata, "data": data})
+    if not segments:
+        raise KvnError("an AEM needs at least one segment")
+    result["segments"] = segments

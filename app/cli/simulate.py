@@ -1,0 +1,82 @@
+"""`python -m app simulate OUTDIR --n N --seed S`: simulated telemetry with truth files.
+
+Writes ``<id>.json`` (tubsat-snapshots/1) or, with ``--csv``, ``<id>.csv``,
+and ``<id>.truth.json`` for each sequence; prints the paths written.
+The same arguments give the same files byte for byte.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+
+from app.camera import CAMERAS
+from app.planets import PLANETS
+from app.simulate import SCENARIOS
+
+
+def _start_time(text: str) -> datetime:
+    try:
+        t = datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"not an ISO 8601 time: {text!r}") from exc
+    return t.replace(tzinfo=timezone.utc) if t.tzinfo is None else t.astimezone(timezone.utc)
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from exc
+    if value < 1:
+        raise argparse.ArgumentTypeError("must be at least 1")
+    return value
+
+
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from exc
+    if value < 0:
+        raise argparse.ArgumentTypeError("must be >= 0")
+    return value
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = "scenarios:\n" + "\n".join(f"  {k:<11} {v}" for k, v in SCENARIOS.items())
+    parser.add_argument("outdir", type=Path, help="directory to write into (created if missing)")
+    parser.add_argument("--n", type=_positive_int, default=1, help="number of sequences (default 1)")
+    parser.add_argument("--seed", type=_seed, default=0, help="random seed (default 0)")
+    parser.add_argument("--camera", choices=list(CAMERAS), default=None,
+                        help="camera model; default: cycle through " + ", ".join(CAMERAS))
+    parser.add_argument("--scenario", choices=list(SCENARIOS), default="nominal",
+                        help="what the sequence shows (default nominal; see below)")
+    parser.add_argument("--planet", choices=list(PLANETS), default=None,
+                        help="the planet of the 'planet' scenario (default: a bright one away from the Sun)")
+    parser.add_argument("--start-time", type=_start_time, default=None,
+                        help="UTC time of the first snapshot, ISO 8601 (default random in 1990-2030)")
+    parser.add_argument("--name", default=None,
+                        help="sequence id and file name (NAME.json, or NAME-0000.json ... when --n > 1)")
+    parser.add_argument("--csv", action="store_true", help="write the CSV form instead of JSON")
+
+
+def run(args: argparse.Namespace) -> int:
+    from app.simulate import write_simulation
+
+    try:
+        paths = write_simulation(args.outdir, args.n, args.seed, args.camera, args.scenario,
+                                 name=args.name, csv=args.csv, planet=args.planet,
+                                 start_time=args.start_time)
+    except ImportError:
+        print("error: the CSV writer (app.telemetry.formats.dump_csv) is not available", file=sys.stderr)
+        return 2
+    except (OSError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for path in paths:
+        print(path)
+    return 0

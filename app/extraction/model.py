@@ -1,0 +1,108 @@
+"""What extraction returns: tracks, per-source verdicts, inter-snapshot motion, patterns."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Rejection reasons of a source.
+GHOST = "ghost"  # no consistent partner in any other snapshot
+HOT_PIXEL = "hot_pixel"  # stays on the same pixel while the sky moves away from it
+OUTLIER = "outlier"  # linked to a track but inconsistent with it
+REASONS = (GHOST, HOT_PIXEL, OUTLIER)
+
+
+@dataclass(frozen=True)
+class ExtractionParameters:
+    """Tunable figures of :func:`app.extraction.extract`, in pixels unless stated.
+
+    Gates scale with the noise estimated from the data (``sigma``, the
+    1-sigma position error of one sighting per axis) but never drop below
+    the floors given here, so integer-pixel telemetry still links.
+    """
+
+    #: Chord agreement of two source pairs before they may be the same stars.
+    pair_tol_px: float = 3.0
+    #: Source pairs closer than this never generate a rotation hypothesis.
+    min_baseline_px: float = 40.0
+    #: Distance at which a rotated source stops counting for a hypothesis.
+    score_gate_px: float = 8.0
+    #: Mutual-neighbour gate of the first rotation fit (before the noise is known).
+    fit_gate_px: float = 5.0
+    #: Fewest matched sources for a snapshot-to-snapshot rotation.
+    min_inliers: int = 3
+    #: Hypotheses come from the K brightest sources of each snapshot.
+    hypothesis_sources: int = 20
+    #: A snapshot with no rotation to its predecessor is linked to up to this
+    #: many snapshots back (so one bad snapshot does not cut the sequence).
+    max_skip: int = 3
+    #: Association gate in the common frame: max(floor, k * sigma).
+    link_gate_floor_px: float = 3.5
+    link_gate_sigmas: float = 6.0
+    #: Two sightings of a hot pixel are this close: max(floor, k * sigma).
+    hot_tol_floor_px: float = 1.0
+    hot_tol_sigmas: float = 2.5
+    #: A tracked sighting is an outlier beyond max(floor, k * sigma * sqrt(1 + 1/(n-1)))
+    #: from the mean of the track's other n-1 sightings.
+    outlier_floor_px: float = 2.0
+    outlier_sigmas: float = 4.5
+    #: Bounds of the estimated single-sighting noise.
+    sigma_min_px: float = 0.3
+    sigma_max_px: float = 3.0
+    #: Noise assumed when nothing could be measured.
+    sigma_default_px: float = 0.7
+
+
+@dataclass(frozen=True, eq=False)
+class Track:
+    """One light source followed through the sequence."""
+
+    id: int  # 0..T-1, numbered in order of first appearance
+    snapshots: np.ndarray  # (k,) int: positions (0-based, file order) of snapshots where seen
+    source_indices: np.ndarray  # (k,) int: index of the source within that snapshot
+    xy: np.ndarray  # (k, 2) pixel positions
+    mean_brightness: float
+
+    @property
+    def n_sightings(self) -> int:
+        return int(self.snapshots.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
+class Pattern:
+    """The point pattern handed to identification, in the reference snapshot's frame."""
+
+    track_ids: np.ndarray  # (m,) int; -1 for a point picked by hand
+    xy: np.ndarray  # (m, 2) pixels in the REFERENCE snapshot's frame
+    vectors: np.ndarray  # (m, 3) camera-frame unit vectors (through sequence.camera)
+    brightness: np.ndarray  # (m,) mean brightness
+    sightings: np.ndarray  # (m,) int: number of snapshots averaged
+    sigma_px: np.ndarray  # (m,) estimated 1-sigma position error in pixels of each point
+
+    def __len__(self) -> int:
+        return int(self.track_ids.shape[0])
+
+    @staticmethod
+    def empty() -> "Pattern":
+        return Pattern(np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0),
+                       np.zeros(0, int), np.zeros(0))
+
+
+@dataclass(frozen=True, eq=False)
+class Extraction:
+    """Tracked stars vs the rest, for one sequence."""
+
+    reference: int  # position of the reference snapshot (most tracked sources)
+    track_of_source: tuple[np.ndarray, ...]  # per snapshot (n_i,) int, -1 where rejected
+    rejection: tuple[tuple[str | None, ...], ...]  # per snapshot per source: None or a REASONS member
+    tracks: tuple[Track, ...]
+    # (S, 3, 3): v_ref = motion[i] @ v_i; identity at the reference; NaN where unknown
+    motion: np.ndarray
+    pattern: Pattern  # every track carried into the reference frame and averaged
+    seed_pattern: Pattern  # the seed's: tracked sources of the reference snapshot as they are
+    #: Estimated 1-sigma position noise of one sighting, pixels per axis.
+    noise_px: float = math.nan
+    #: Human-readable remarks (single snapshot, sky not moving, ...).
+    notes: tuple[str, ...] = ()

@@ -1,0 +1,214 @@
+"""Robust rotation between two snapshots of the same sky, many snapshot pairs at once.
+
+Between two snapshots the satellite has turned, so the stars of snapshot
+``a`` reappear in snapshot ``b`` rotated by one rotation ``R`` (``v_b = R
+v_a`` for camera-frame unit vectors), while ghosts and hot pixels do not
+follow it.  ``R`` is found by a vectorised RANSAC:
+
+1. *Hypotheses.*  A rotation preserves angles, so a pair of sources
+   (a1, a2) of snapshot a can only be a pair of stars (b1, b2) of snapshot
+   b if their chord lengths ``|a1 - a2|`` and ``|b1 - b2|`` agree within
+   the position noise.  All agreeing (unordered pair of a) x (ordered pair
+   of b) combinations are found at once by sorting the chords of b and
+   searching the chords of a.  Each gives the rotation mapping a1 onto b1
+   and the great circle a1-a2 onto b1-b2
+   (:func:`app.attitude.rotation_from_pair`).
+2. *Score.*  Every hypothesis rotates all sources of a; each contributes
+   ``max(0, 1 - d^2 / g^2)`` where d is the chord to its nearest source of
+   b (a truncated quadratic, MSAC: near misses count less than exact hits,
+   which breaks ties between hypotheses with the same inlier count).
+3. *Refine.*  The few best hypotheses of each pair are refined by Wahba's
+   problem (SVD, :func:`app.attitude.solve_wahba`'s method, batched) on
+   mutual nearest neighbours within the fit gate; the refined one whose
+   matches fit best wins and is refined once more (with three or four common stars a wrong
+   hypothesis plus one chance match can tie in inlier count, never in fit).
+
+Everything is done for all snapshot pairs in a handful of numpy calls, no
+Python loop over hypotheses or pairs.  Chords stand in for angles: they
+are monotonic in the angle, accurate for small angles and need no arccos.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.attitude import rotation_from_pair
+
+#: Slot width separating the chords of different snapshot pairs in one
+#: sorted array; chords are at most 2.
+_SLOT = 10.0
+
+
+@dataclass(frozen=True, eq=False)
+class PairRotations:
+    """Result for L snapshot pairs (a, b)."""
+
+    rotation: np.ndarray  # (L, 3, 3) v_b = R v_a; NaN where no rotation was found
+    n_inliers: np.ndarray  # (L,) int, mutual nearest neighbours within the fit gate
+    matches: np.ndarray  # (L, N) int: source of b matched to each source of a, -1 if none
+    inlier_chord_sq: np.ndarray  # (n,) squared chords of all inliers of all valid pairs
+
+
+def _pair_chords(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Chords between all unordered pairs of points, per snapshot.
+
+    ``v`` is (S, K, 3), NaN-padded; returns (S, P) chords (NaN for padding)
+    and the (P,) index arrays i < j.
+    """
+    i, j = np.triu_indices(v.shape[1], 1)
+    return np.linalg.norm(v[:, i] - v[:, j], axis=-1), i, j
+
+
+def expand_ranges(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """All (k, i) with lo[k] <= i < hi[k], as two flat arrays, without a Python loop."""
+    counts = hi - lo
+    owner = np.repeat(np.arange(len(lo)), counts)
+    position = np.arange(int(counts.sum())) + np.repeat(lo - (np.cumsum(counts) - counts), counts)
+    return owner, position
+
+
+def _hypotheses(chords: np.ndarray, pi: np.ndarray, pj: np.ndarray, links: np.ndarray,
+                pair_tol: float, min_baseline: float):
+    """All (link, a-pair, b-pair) combinations whose chords agree within ``pair_tol``.
+
+    Returns (link, a1, a2, b1, b2) index arrays, grouped by link.
+    """
+    n_links, n_pairs = len(links), chords.shape[1]
+    # b side: both orientations of every pair; unusable chords are parked in
+    # the link's slot above any real chord so they never match.
+    chord_b = chords[links[:, 1]]
+    chord_b = np.where(np.isfinite(chord_b), chord_b, 5.0)
+    keys_b = np.concatenate([chord_b, chord_b], axis=1) + _SLOT * np.arange(n_links)[:, None]
+    b1 = np.concatenate([pi, pj])
+    b2 = np.concatenate([pj, pi])
+    keys_b = keys_b.ravel()
+    order_b = np.argsort(keys_b, kind="stable")
+    sorted_b = keys_b[order_b]
+
+    # a side: only pairs with a long enough baseline (a short pair fixes the
+    # rotation about its own axis badly).
+    chord_a = chords[links[:, 0]]
+    usable = np.isfinite(chord_a) & (chord_a >= min_baseline)
+    link_of_a, pair_of_a = np.nonzero(usable)
+    keys_a = chord_a[link_of_a, pair_of_a] + _SLOT * link_of_a
+    lo = np.searchsorted(sorted_b, keys_a - pair_tol, side="left")
+    hi = np.searchsorted(sorted_b, keys_a + pair_tol, side="right")
+    hyp_a, position = expand_ranges(lo, hi)
+    flat_b = order_b[position]
+    link = link_of_a[hyp_a]
+    pa = pair_of_a[hyp_a]
+    pb = flat_b % (2 * n_pairs)
+    return link, pi[pa], pj[pa], b1[pb], b2[pb]
+
+
+def _nearest_chord_sq(rotation: np.ndarray, va: np.ndarray, vb: np.ndarray) -> np.ndarray:
+    """(H, Na, Nb) squared chords between rotated a-points and b-points; padding -> inf."""
+    pred = np.matmul(va, np.swapaxes(rotation, -1, -2))  # (H, Na, 3) = (R v_a)^T
+    d2 = 2.0 - 2.0 * np.matmul(pred, np.swapaxes(vb, -1, -2))
+    return np.where(np.isnan(d2), np.inf, d2)
+
+
+def _mutual_matches(d2: np.ndarray, gate_sq: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mutual nearest neighbours within the gate: (match index in b per a, mask)."""
+    nearest_b = np.argmin(d2, axis=2)  # (L, Na)
+    nearest_a = np.argmin(d2, axis=1)  # (L, Nb)
+    back = np.take_along_axis(nearest_a, nearest_b, axis=1)
+    best = np.take_along_axis(d2, nearest_b[..., None], axis=2)[..., 0]
+    mutual = (back == np.arange(d2.shape[1])) & (best < gate_sq)
+    return nearest_b, mutual
+
+
+def batched_wahba(body: np.ndarray, ref: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Per batch item the rotation R minimising sum w |body - R ref|^2 (SVD method).
+
+    ``body``, ``ref`` are (L, N, 3) (NaN allowed where the weight is 0),
+    ``weights`` (L, N).  B = sum w body ref^T = U S V^T, R = U diag(1, 1, det U
+    det V) V^T, as :func:`app.attitude.solve_wahba` for one item.
+    """
+    w = weights[..., None]
+    body = np.where(w > 0, body, 0.0)
+    ref = np.where(w > 0, ref, 0.0)
+    b = np.matmul(np.swapaxes(body * w, -1, -2), ref)
+    u, _, vt = np.linalg.svd(b)
+    d = np.linalg.det(u) * np.linalg.det(vt)
+    u = u.copy()
+    u[:, :, 2] *= d[:, None]
+    return np.matmul(u, vt)
+
+
+def _refit(rotation: np.ndarray, va: np.ndarray, vb: np.ndarray, gate: float) -> np.ndarray:
+    """One Wahba re-solve of each rotation on its mutual matches within the gate (kept if < 2)."""
+    d2 = _nearest_chord_sq(rotation, va, vb)
+    match, mutual = _mutual_matches(d2, gate**2)
+    refined = batched_wahba(np.take_along_axis(vb, match[..., None], axis=1), va, mutual.astype(float))
+    return np.where((mutual.sum(axis=1) >= 2)[:, None, None], refined, rotation)
+
+
+def estimate_pair_rotations(vectors: np.ndarray, hypothesis_sources: np.ndarray, links: np.ndarray, *,
+                            pair_tol: float, min_baseline: float, score_gate: float,
+                            fit_gate: float, min_inliers: int, n_refine: int = 4) -> PairRotations:
+    """Robust rotation a -> b for every snapshot pair ``links[l] = (a, b)``.
+
+    ``vectors`` (S, N, 3) camera-frame unit vectors, NaN-padded;
+    ``hypothesis_sources`` (S, K) indices into the N sources (-1 padding) of
+    those allowed to generate hypotheses (the K brightest: brightness is
+    unreliable but a star is more often bright than a ghost, and K bounds
+    the (K^2)^2 growth of the pair combinations).  Tolerances are chords
+    (radians for small angles).  A pair gets a rotation only with at least
+    ``min_inliers`` mutual matches (two points always fit a pair hypothesis).
+    """
+    links = np.asarray(links, dtype=int).reshape(-1, 2)
+    n_links = len(links)
+    rotation = np.full((n_links, 3, 3), np.nan)
+    n_inliers = np.zeros(n_links, dtype=int)
+    if n_links == 0:
+        return PairRotations(rotation, n_inliers, np.full((n_links, vectors.shape[1]), -1), np.zeros(0))
+
+    padded = np.concatenate([vectors, np.full((vectors.shape[0], 1, 3), np.nan)], axis=1)
+    hyp_vectors = np.take_along_axis(padded, np.where(hypothesis_sources < 0, vectors.shape[1],
+                                                      hypothesis_sources)[..., None], axis=1)
+    chords, pi, pj = _pair_chords(hyp_vectors)
+    link, a1, a2, b1, b2 = _hypotheses(chords, pi, pj, links, pair_tol, min_baseline)
+    if len(link) == 0:
+        return PairRotations(rotation, n_inliers, np.full((n_links, vectors.shape[1]), -1), np.zeros(0))
+
+    sa, sb = links[link, 0], links[link, 1]
+    hyp_r = rotation_from_pair(hyp_vectors[sb, b1], hyp_vectors[sb, b2],
+                               hyp_vectors[sa, a1], hyp_vectors[sa, a2])
+    d2 = _nearest_chord_sq(hyp_r, vectors[sa], vectors[sb]).min(axis=2)
+    score = np.clip(1.0 - d2 / score_gate**2, 0.0, None).sum(axis=1)
+
+    # the best few hypotheses per link: sort by (link, -score), keep each group's head
+    order = np.lexsort((-score, link))
+    sorted_link = link[order]
+    group_start = np.flatnonzero(np.r_[True, sorted_link[1:] != sorted_link[:-1]])
+    rank = np.arange(len(order)) - np.repeat(group_start, np.diff(np.r_[group_start, len(order)]))
+    keep = order[rank < n_refine]
+    found = link[keep]
+    va, vb = vectors[links[found, 0]], vectors[links[found, 1]]
+    r = _refit(hyp_r[keep], va, vb, fit_gate)
+    # among a link's refined candidates the one whose matches fit best wins
+    # (truncated quadratic again): a chance match that made a wrong
+    # hypothesis tie in inliers leaves a visibly larger residual
+    d2 = _nearest_chord_sq(r, va, vb)
+    match, mutual = _mutual_matches(d2, fit_gate**2)
+    best_d2 = np.take_along_axis(d2, match[..., None], axis=2)[..., 0]
+    fit_score = np.where(mutual, 1.0 - best_d2 / fit_gate**2, 0.0).sum(axis=1)
+    order = np.lexsort((-fit_score, found))
+    winner = order[np.r_[True, found[order][1:] != found[order][:-1]]]
+    found, va, vb = found[winner], va[winner], vb[winner]
+    r = _refit(r[winner], va, vb, fit_gate)
+
+    d2 = _nearest_chord_sq(r, va, vb)
+    match, mutual = _mutual_matches(d2, fit_gate**2)
+    count = mutual.sum(axis=1)
+    ok = count >= min_inliers
+    rotation[found[ok]] = r[ok]
+    n_inliers[found] = count
+    matches = np.full((n_links, vectors.shape[1]), -1, dtype=int)
+    matches[found[ok]] = np.where(mutual[ok], match[ok], -1)
+    best = np.take_along_axis(d2, match[..., None], axis=2)[..., 0]
+    inlier_sq = best[ok][mutual[ok]]
+    return PairRotations(rotation, n_inliers, matches, inlier_sq)

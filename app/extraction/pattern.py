@@ -1,0 +1,191 @@
+"""Patterns for identification: tracks carried into the reference frame and averaged.
+
+A track's sightings are unit vectors in their own snapshots' camera frames;
+``motion[i]`` carries snapshot i's frame into the reference snapshot's
+(``v_ref = motion[i] v_i``).  The averaged point is the normalised sum of
+the carried vectors (the mean direction, which for the sub-degree spreads
+here equals the least-squares point on the sphere) projected through the
+camera.  Its noise falls as sigma / sqrt(k) for k sightings.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence as SequenceOf
+
+import numpy as np
+
+from app.camera import Camera
+from app.extraction.model import Extraction, Pattern, Track
+from app.telemetry.model import Sequence
+
+#: A hand-picked point takes the brightness of a reported source this close (pixels).
+MANUAL_BRIGHTNESS_RADIUS_PX = 3.0
+
+
+def average_into_reference(camera: Camera, motion: np.ndarray, snapshot_of: np.ndarray,
+                           vectors: np.ndarray, group: np.ndarray,
+                           n_groups: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean direction of each group of sightings in the reference frame.
+
+    ``vectors`` (K, 3) in their snapshots' frames, ``snapshot_of`` and
+    ``group`` (K,) ints.  Returns ((m, 3) unit vectors, (m, 2) reference
+    pixels; NaN for a direction behind the camera).
+    """
+    carried = np.einsum("kij,kj->ki", motion[snapshot_of], vectors)
+    sums = np.zeros((n_groups, 3))
+    np.add.at(sums, group, carried)
+    mean = sums / np.linalg.norm(sums, axis=1, keepdims=True)
+    xy, _ = camera.vectors_to_pixels(mean)
+    return mean, xy
+
+
+def tracks_pattern(camera: Camera, extraction_motion: np.ndarray, tracks: SequenceOf[Track],
+                   noise_px: float) -> Pattern:
+    """The averaged pattern of ``tracks`` (all must have finite motion)."""
+    if not tracks:
+        return Pattern.empty()
+    snapshot_of = np.concatenate([t.snapshots for t in tracks])
+    xy = np.concatenate([t.xy for t in tracks])
+    group = np.repeat(np.arange(len(tracks)), [t.n_sightings for t in tracks])
+    vectors, ref_xy = average_into_reference(camera, extraction_motion, snapshot_of,
+                                             camera.pixels_to_vectors(xy), group, len(tracks))
+    sightings = np.array([t.n_sightings for t in tracks], dtype=int)
+    return Pattern(track_ids=np.array([t.id for t in tracks], dtype=int), xy=ref_xy, vectors=vectors,
+                   brightness=np.array([t.mean_brightness for t in tracks]), sightings=sightings,
+                   sigma_px=noise_px / np.sqrt(sightings))
+
+
+def seed_pattern(camera: Camera, reference: int, tracks: SequenceOf[Track], noise_px: float) -> Pattern:
+    """The seed's pattern: the reference snapshot's tracked sources where they were seen."""
+    rows = [(t, int(np.flatnonzero(t.snapshots == reference)[0])) for t in tracks
+            if np.any(t.snapshots == reference)]
+    if not rows:
+        return Pattern.empty()
+    xy = np.array([t.xy[k] for t, k in rows])
+    n = len(rows)
+    return Pattern(track_ids=np.array([t.id for t, _ in rows], dtype=int), xy=xy,
+                   vectors=camera.pixels_to_vectors(xy),
+                   brightness=np.array([t.mean_brightness for t, _ in rows]),
+                   sightings=np.ones(n, dtype=int), sigma_px=np.full(n, noise_px))
+
+
+def _motion_known(motion: np.ndarray, snapshots: np.ndarray) -> bool:
+    return bool(np.all(np.isfinite(motion[snapshots])))
+
+
+def _select_tracks(extraction: Extraction, exclude_tracks: Iterable[int],
+                   include_tracks: Iterable[int] | None) -> list[Track]:
+    by_id = {t.id: t for t in extraction.tracks}
+    exclude = {int(i) for i in exclude_tracks}
+    if include_tracks is None:
+        # all tracks that can be carried into the reference frame
+        return [t for t in extraction.tracks if t.id not in exclude
+                and _motion_known(extraction.motion, t.snapshots)]
+    chosen = []
+    for raw in include_tracks:
+        track_id = int(raw)
+        if track_id not in by_id:
+            raise ValueError(f"track {track_id} does not exist (tracks are 0..{len(by_id) - 1})")
+        track = by_id[track_id]
+        if not _motion_known(extraction.motion, track.snapshots):
+            raise ValueError(f"track {track_id} cannot be carried into reference snapshot "
+                             f"{extraction.reference}: the motion between them could not be estimated")
+        if track_id not in exclude and track not in chosen:
+            chosen.append(track)
+    return sorted(chosen, key=lambda t: t.id)
+
+
+def _manual_pattern(sequence: Sequence, extraction: Extraction, manual_points) -> Pattern:
+    camera = sequence.camera
+    n_snapshots = len(sequence.snapshots)
+    rows = []
+    for k, point in enumerate(manual_points):
+        try:
+            position, x, y = point
+            position, x, y = int(position), float(x), float(y)
+        except (TypeError, ValueError):
+            raise ValueError(f"manual point {k}: expected (snapshot position, x, y), got {point!r}") from None
+        if not 0 <= position < n_snapshots:
+            raise ValueError(f"manual point {k}: snapshot position {position} is not in 0..{n_snapshots - 1}")
+        if not (math.isfinite(x) and math.isfinite(y)) or not camera.on_sensor(np.array([x, y]))[0]:
+            raise ValueError(f"manual point {k}: ({x}, {y}) is not a pixel of the "
+                             f"{camera.width}x{camera.height} sensor")
+        if not _motion_known(extraction.motion, np.array([position])):
+            raise ValueError(f"manual point {k}: the motion from snapshot {position} into reference "
+                             f"snapshot {extraction.reference} could not be estimated; pick the point "
+                             f"in a snapshot linked to the reference")
+        rows.append((position, x, y))
+    if not rows:
+        return Pattern.empty()
+    positions = np.array([r[0] for r in rows], dtype=int)
+    xy = np.array([[r[1], r[2]] for r in rows])
+    vectors, ref_xy = average_into_reference(camera, extraction.motion, positions,
+                                             camera.pixels_to_vectors(xy), np.arange(len(rows)), len(rows))
+    brightness = np.zeros(len(rows))
+    for k, (position, x, y) in enumerate(rows):
+        snapshot = sequence.snapshots[position]
+        if snapshot.n_sources:
+            d = np.hypot(snapshot.xy[:, 0] - x, snapshot.xy[:, 1] - y)
+            if d.min() <= MANUAL_BRIGHTNESS_RADIUS_PX:
+                brightness[k] = float(snapshot.brightness[np.argmin(d)])
+    noise = extraction.noise_px if math.isfinite(extraction.noise_px) else 1.0
+    return Pattern(track_ids=np.full(len(rows), -1, dtype=int), xy=ref_xy, vectors=vectors,
+                   brightness=brightness, sightings=np.ones(len(rows), dtype=int),
+                   sigma_px=np.full(len(rows), noise))
+
+
+def _concat(a: Pattern, b: Pattern) -> Pattern:
+    return Pattern(*(np.concatenate([getattr(a, f), getattr(b, f)]) for f in
+                     ("track_ids", "xy", "vectors", "brightness", "sightings", "sigma_px")))
+
+
+def build_pattern(sequence: Sequence, extraction: Extraction, *, exclude_tracks: Iterable[int] = (),
+                  include_tracks: Iterable[int] | None = None, manual_points=()) -> Pattern:
+    """The averaged pattern after an operator's edits.
+
+    ``include_tracks`` None keeps every track that can be carried into the
+    reference frame; otherwise exactly those ids (minus ``exclude_tracks``).
+    ``manual_points`` are ``(snapshot_position, x, y)`` picked by hand in any
+    snapshot; they are carried into the reference frame with ``motion`` and
+    get track id -1, one sighting, the brightness of a reported source within
+    3 px (else 0).  Raises ValueError, with the reason, for an unknown track,
+    a bad point, or a track/point whose snapshot has no estimated motion.
+    """
+    tracks = _select_tracks(extraction, exclude_tracks, include_tracks)
+    noise = extraction.noise_px if math.isfinite(extraction.noise_px) else 1.0
+    pattern = tracks_pattern(sequence.camera, extraction.motion, tracks, noise)
+    manual = _manual_pattern(sequence, extraction, list(manual_points))
+    return _concat(pattern, manual) if len(manual) else pattern
+
+
+def _finite_or_none(value: float, digits: int = 3):
+    return round(float(value), digits) if math.isfinite(value) else None
+
+
+def pattern_to_json(pattern: Pattern) -> list[dict]:
+    return [{"track": int(t) if t >= 0 else None, "x": _finite_or_none(xy[0]), "y": _finite_or_none(xy[1]),
+             "brightness": _finite_or_none(b), "sightings": int(n), "sigma_px": _finite_or_none(s)}
+            for t, xy, b, n, s in zip(pattern.track_ids, pattern.xy, pattern.brightness,
+                                      pattern.sightings, pattern.sigma_px)]
+
+
+def extraction_to_json(extraction: Extraction) -> dict:
+    """The extraction members of the `extract --json` object.
+
+    ``reference_snapshot`` and the tracks' ``snapshots`` are 0-based
+    positions in file order; ``sources`` holds the track id (or None) and
+    ``rejected`` the reason (or None) of every input source, in input order.
+    """
+    return {
+        "reference_snapshot": int(extraction.reference),
+        "sources": [[int(t) if t >= 0 else None for t in per] for per in extraction.track_of_source],
+        "rejected": [list(per) for per in extraction.rejection],
+        "tracks": [{"id": int(t.id), "snapshots": [int(s) for s in t.snapshots],
+                    "xy": [[round(float(x), 3), round(float(y), 3)] for x, y in t.xy],
+                    "mean_brightness": _finite_or_none(t.mean_brightness)} for t in extraction.tracks],
+        "pattern": pattern_to_json(extraction.pattern),
+        "seed_pattern": pattern_to_json(extraction.seed_pattern),
+        "noise_px": _finite_or_none(extraction.noise_px),
+        "notes": list(extraction.notes),
+    }

@@ -1,0 +1,475 @@
+"""Tracked stars vs ghosts, hot pixels and outliers in one snapshot sequence.
+
+The steps of :func:`extract`:
+
+1. **Motion between snapshots.**  The rotation between each snapshot and
+   the next is estimated robustly (:mod:`app.extraction.motion`).  Sources
+   sitting on the same pixel in three or more snapshots are kept out of
+   this while they are a minority: hot pixels would vote for "no
+   rotation".  Where a snapshot has no rotation to its predecessor (too few
+   common stars, the Earth in view, a burst of ghosts) it is linked to up
+   to ``max_skip`` snapshots back instead.  Composing the links puts every
+   snapshot of a connected run ("component") into one common frame:
+   ``v_c = A[i] v_i``.
+2. **Refinement.**  The links' matched sources, joined transitively, give
+   provisional tracks; each snapshot's rotation into the common frame is
+   re-solved (Wahba) against their mean directions, which removes the drift
+   of the composed links.
+3. **Noise.**  The single-sighting position noise sigma is estimated from
+   the matched sources' residuals (median based, so robust to the odd
+   mismatch); the gates scale with it.
+4. **Hot pixels.**  A source whose pixel is occupied (within ``hot_tol``)
+   in another snapshot by a source the sky could not have carried there
+   (the motion moves that sky point by more than the link gate) is
+   stationary evidence; a source with two such partners, or one and at
+   most one partner that moved with the sky, is a hot pixel, and so is
+   every source on the same pixel as a hot pixel.  When the sky moves less
+   than the link gate over the whole sequence a stationary source is
+   indistinguishable from a star: it is kept as a track and a note says so
+   (identification then finds it matches no star).
+5. **Association.**  In the common frame a star is a fixed direction.
+   Snapshots are visited in order; each one's sources are assigned to the
+   existing tracks' mean directions by ``linear_sum_assignment`` on the
+   angular distance, within the link gate; the rest start new tracks.  A
+   star missing from some snapshots simply rejoins its track later.  The
+   rotations are then re-solved once more against these fuller tracks.
+6. **Outliers.**  A sighting farther from the mean of its track's other
+   sightings than the noise allows (4.5 sigma, scaled for the other mean's
+   own noise) is an outlier; the worst one per track is removed, up to
+   three rounds.  Tracks left with one sighting lose it as an outlier too.
+7. **Verdicts.**  Tracks need two sightings; what is left unlinked is a
+   ghost (including every source of a snapshot linked to no other).  The
+   reference snapshot is the one with the most tracked sources.
+
+A sequence of one snapshot has nothing to track against: every source
+becomes a one-sighting track and pattern point, with a note.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from app.extraction.model import GHOST, HOT_PIXEL, OUTLIER, Extraction, ExtractionParameters, Track
+from app.extraction.motion import batched_wahba, estimate_pair_rotations, expand_ranges
+from app.extraction.pattern import seed_pattern, tracks_pattern
+from app.telemetry.model import Sequence
+
+DEFAULT_PARAMETERS = ExtractionParameters()
+#: Median of a chi-square variable with 2 degrees of freedom (2 ln 2).
+_CHI2_2_MEDIAN = 2.0 * math.log(2.0)
+
+
+def _rotate(rotations: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """Row-wise ``rotations[k] @ vectors[k]`` for (K, 3, 3) and (K, 3)."""
+    return np.matmul(rotations, vectors[:, :, None])[:, :, 0]
+
+
+def _normalized(v: np.ndarray) -> np.ndarray:
+    return v / np.sqrt((v * v).sum(axis=-1, keepdims=True))
+
+
+def _padded(sequence: Sequence) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(S, N, 2) pixels, (S, N) brightness, (S, N) validity, NaN/False padded."""
+    counts = np.array([s.n_sources for s in sequence.snapshots])
+    n_max = int(counts.max())
+    xy = np.full((len(counts), n_max, 2), np.nan)
+    brightness = np.full((len(counts), n_max), np.nan)
+    for i, snapshot in enumerate(sequence.snapshots):
+        xy[i, :counts[i]] = snapshot.xy
+        brightness[i, :counts[i]] = snapshot.brightness
+    valid = np.arange(n_max)[None, :] < counts[:, None]
+    return xy, brightness, valid
+
+
+def _chain_motions(vectors: np.ndarray, brightness: np.ndarray, valid: np.ndarray, chord_px: float,
+                   p: ExtractionParameters):
+    """Rotations into a common frame per connected run of snapshots.
+
+    Returns (A (S, 3, 3) with v_c = A[i] v_i, component (S,), the links used
+    as (a, b, matches (N,)) triples, squared chords of all link inliers).
+    """
+    n_snap = vectors.shape[0]
+    order = np.argsort(np.where(valid, -brightness, np.inf), axis=1, kind="stable")[:, :p.hypothesis_sources]
+    hyp = np.where(np.take_along_axis(valid, order, axis=1), order, -1)
+    kwargs = dict(pair_tol=p.pair_tol_px * chord_px, min_baseline=p.min_baseline_px * chord_px,
+                  score_gate=p.score_gate_px * chord_px, fit_gate=p.fit_gate_px * chord_px,
+                  min_inliers=p.min_inliers)
+    links = np.column_stack([np.arange(n_snap - 1), np.arange(1, n_snap)])
+    first = estimate_pair_rotations(vectors, hyp, links, **kwargs)
+    found = {(int(a), int(b)): (first.rotation[k], first.matches[k]) for k, (a, b) in enumerate(links)}
+    broken = [b for (a, b), (r, _) in found.items() if not np.isfinite(r[0, 0])]
+    skips = np.array([(b - d, b) for b in broken for d in range(2, p.max_skip + 1) if b - d >= 0],
+                     dtype=int).reshape(-1, 2)
+    second = estimate_pair_rotations(vectors, hyp, skips, **kwargs)
+    found.update({(int(a), int(b)): (second.rotation[k], second.matches[k]) for k, (a, b) in enumerate(skips)})
+
+    to_common = np.tile(np.eye(3), (n_snap, 1, 1))
+    component = np.zeros(n_snap, dtype=int)
+    used = []
+    n_components = 1
+    for b in range(1, n_snap):
+        for a in range(b - 1, max(-1, b - 1 - p.max_skip), -1):
+            r, matches = found.get((a, b), (None, None))
+            if r is not None and np.isfinite(r[0, 0]):
+                # v_b = R v_a and v_c = A_a v_a  =>  v_c = A_a R^T v_b
+                to_common[b] = to_common[a] @ r.T
+                component[b] = component[a]
+                used.append((a, b, matches))
+                break
+        else:
+            component[b] = n_components
+            n_components += 1
+    return to_common, component, used, np.concatenate([first.inlier_chord_sq, second.inlier_chord_sq])
+
+
+def _linked_groups(used_links, flat_of: np.ndarray, n_sources: int) -> np.ndarray:
+    """(M,) group label joining the sources matched by the used links transitively."""
+    rows, cols = [], []
+    for a, b, matches in used_links:
+        k = np.flatnonzero(matches >= 0)
+        rows.append(flat_of[a, k])
+        cols.append(flat_of[b, matches[k]])
+    if not rows:
+        return np.arange(n_sources)
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_sources, n_sources))
+    return connected_components(graph, directed=False)[1]
+
+
+def _refine_to_common(vectors: np.ndarray, snap: np.ndarray, label: np.ndarray,
+                      to_common: np.ndarray) -> np.ndarray:
+    """Each snapshot's rotation into the common frame re-solved against track means (Wahba).
+
+    Only labels with two or more sightings count; snapshots with fewer than
+    two such sightings keep their rotation.
+    """
+    n_snap = len(to_common)
+    size = _track_sizes(label)
+    in_track = size >= 2
+    if not np.any(in_track):
+        return to_common
+    common = _rotate(to_common[snap], vectors)
+    sums = _track_sums(np.where(in_track, label, -1), common)
+    means = _normalized(sums[label[in_track]])
+    rows = snap[in_track]  # nondecreasing: sources are flattened snapshot by snapshot
+    counts = np.bincount(rows, minlength=n_snap)
+    slots = np.arange(len(rows)) - np.repeat(np.cumsum(counts) - counts, counts)
+    width = int(counts.max())
+    body = np.zeros((n_snap, width, 3))
+    ref = np.zeros((n_snap, width, 3))
+    weight = np.zeros((n_snap, width))
+    body[rows, slots] = means
+    ref[rows, slots] = vectors[in_track]
+    weight[rows, slots] = 1.0
+    refined = batched_wahba(body, ref, weight)
+    return np.where((counts >= 2)[:, None, None], refined, to_common)
+
+
+def _same_pixel_pairs(xy: np.ndarray, snap: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (m, n), both orders, of sources of different snapshots within ``tol`` pixels.
+
+    Sorting by x and expanding the x-windows keeps this near-linear.
+    """
+    order = np.argsort(xy[:, 0], kind="stable")
+    xs = xy[order, 0]
+    lo = np.searchsorted(xs, xs - tol, side="left")
+    hi = np.searchsorted(xs, xs + tol, side="right")
+    i, j = expand_ranges(lo, hi)
+    a, b = order[i], order[j]
+    d = xy[a] - xy[b]
+    keep = (snap[a] != snap[b]) & ((d * d).sum(axis=1) < tol * tol)
+    return a[keep], b[keep]
+
+
+def _predicted_pixels(camera, to_common: np.ndarray, common: np.ndarray) -> np.ndarray:
+    """(M, S, 2): where each common-frame direction appears in every snapshot (A_s^T w)."""
+    local = np.matmul(common[None], to_common)  # (S, M, 3) rows w^T A_s
+    xy, _ = camera.vectors_to_pixels(local.reshape(-1, 3))
+    return xy.reshape(to_common.shape[0], common.shape[0], 2).transpose(1, 0, 2)
+
+
+def _hot_pixels(xy: np.ndarray, snap: np.ndarray, comp: np.ndarray, predicted: np.ndarray,
+                hot_tol: float, gate: float) -> np.ndarray:
+    """(M,) hot-pixel flags of the flattened sources (module docstring, step 4)."""
+    m = len(snap)
+    rows, cols = _same_pixel_pairs(xy, snap, hot_tol)
+    linked = comp[rows] == comp[cols]
+    rows, cols = rows[linked], cols[linked]
+    with np.errstate(invalid="ignore"):
+        # the row source's sky point, carried into the column source's snapshot
+        carried = np.hypot(*(predicted[rows, snap[cols]] - xy[cols]).T) < gate
+    n_fixed = np.bincount(rows[~carried], minlength=m)
+    hot = n_fixed >= 2
+    # one stationary partner: hot unless another partner moved with the sky
+    single = np.flatnonzero(n_fixed == 1)
+    if len(single):
+        pred = predicted[single][:, snap]  # (k, M, 2)
+        with np.errstate(invalid="ignore"):
+            moved = np.hypot(pred[..., 0] - xy[None, :, 0], pred[..., 1] - xy[None, :, 1]) < gate
+        moved &= (snap[single, None] != snap[None, :]) & (comp[single, None] == comp[None, :])
+        hot[single] = moved.sum(axis=1) <= 1
+    # a hot pixel's stationary companions are hot too (in the middle of a
+    # slow drift they have fewer partners the sky moved away from)
+    hot[rows[hot[cols]]] = True
+    return hot
+
+
+def _associate(common: np.ndarray, snap: np.ndarray, comp: np.ndarray, usable: np.ndarray,
+               gate_chord: float) -> np.ndarray:
+    """(M,) track label per flattened source (-1 unusable), snapshots visited in order.
+
+    Costs are 1 - cos(angle) = chord^2 / 2, monotonic in the angle.
+    """
+    label = np.full(len(snap), -1, dtype=int)
+    sums = np.zeros((len(snap), 3))
+    means = np.zeros((len(snap), 3))
+    track_comp = np.full(len(snap), -1)
+    n_tracks = 0
+    max_cost = gate_chord**2 / 2.0
+    too_far = 10.0
+    bounds = np.searchsorted(snap, np.arange(snap.max(initial=-1) + 2))
+    for s in range(len(bounds) - 1):
+        idx = np.arange(bounds[s], bounds[s + 1])[usable[bounds[s]:bounds[s + 1]]]
+        if len(idx) == 0:
+            continue
+        assigned = np.zeros(len(idx), dtype=bool)
+        candidates = np.flatnonzero(track_comp[:n_tracks] == comp[idx[0]])
+        if len(candidates):
+            cost = 1.0 - common[idx] @ means[candidates].T
+            cost[cost > max_cost] = too_far
+            rows, cols = linear_sum_assignment(cost)
+            keep = cost[rows, cols] < too_far
+            rows, tracks = rows[keep], candidates[cols[keep]]
+            label[idx[rows]] = tracks
+            sums[tracks] += common[idx[rows]]
+            means[tracks] = _normalized(sums[tracks])
+            assigned[rows] = True
+        new = idx[~assigned]
+        fresh = n_tracks + np.arange(len(new))
+        label[new] = fresh
+        sums[fresh] = means[fresh] = common[new]
+        track_comp[fresh] = comp[new]
+        n_tracks += len(new)
+    return label
+
+
+def _track_sizes(label: np.ndarray) -> np.ndarray:
+    """(M,) number of sightings of each source's track (0 when unlabelled)."""
+    if not np.any(label >= 0):
+        return np.zeros(len(label), dtype=int)
+    sizes = np.bincount(label[label >= 0])
+    return np.where(label >= 0, sizes[np.maximum(label, 0)], 0)
+
+
+def _track_sums(label: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """(T, 3) sum of the vectors of each label (rows of unused labels are 0)."""
+    sums = np.zeros((int(label.max(initial=-1)) + 1, 3))
+    np.add.at(sums, label[label >= 0], vectors[label >= 0])
+    return sums
+
+
+def _outliers(common: np.ndarray, label: np.ndarray, sigma_chord: float, p: ExtractionParameters,
+              chord_px: float) -> np.ndarray:
+    """(M,) outlier flags: sightings too far from the mean of their track's others."""
+    outlier = np.zeros(len(label), dtype=bool)
+    for _ in range(3):
+        live = np.where(outlier, -1, label)
+        size = _track_sizes(live)
+        candidates = np.flatnonzero(size >= 2)
+        if len(candidates) == 0:
+            break
+        sums = _track_sums(live, common)
+        others = _normalized(sums[live[candidates]] - common[candidates])
+        residual = np.linalg.norm(common[candidates] - others, axis=1)
+        k = size[candidates]
+        limit = np.maximum(p.outlier_floor_px * chord_px,
+                           p.outlier_sigmas * sigma_chord * np.sqrt(1.0 + 1.0 / (k - 1)))
+        excess = residual / limit
+        bad = excess > 1.0
+        if not np.any(bad):
+            break
+        # remove only the worst sighting of each track per round
+        worst = np.full(int(label.max()) + 1, -np.inf)
+        np.maximum.at(worst, live[candidates[bad]], excess[bad])
+        outlier[candidates[bad & (excess >= worst[live[candidates]])]] = True
+    live = np.where(outlier, -1, label)
+    # a track reduced to one sighting: that sighting was linked to an inconsistent one
+    lonely = (_track_sizes(live) == 1) & (_track_sizes(label) >= 2)
+    return outlier | lonely
+
+
+def _noise_sigma_px(residual_sq_px: np.ndarray, dof_factor: np.ndarray, p: ExtractionParameters) -> float:
+    """Per-axis sigma from 2D residuals r with E|r|^2 = 2 sigma^2 dof_factor (median based)."""
+    if len(residual_sq_px) < 5:
+        return p.sigma_default_px
+    sigma = math.sqrt(float(np.median(residual_sq_px / dof_factor)) / _CHI2_2_MEDIAN)
+    return float(np.clip(sigma, p.sigma_min_px, p.sigma_max_px))
+
+
+def _max_sky_motion_px(camera, to_common: np.ndarray, members: np.ndarray) -> float:
+    """Largest pixel shift of the field's centre and corners between two snapshots of ``members``."""
+    if len(members) < 2:
+        return 0.0
+    w, h = camera.width, camera.height
+    probe = camera.pixels_to_vectors(np.array([[camera.cx, camera.cy], [0, 0], [w - 1, 0],
+                                               [0, h - 1], [w - 1, h - 1]], dtype=float))
+    a = to_common[members]
+    relative = np.matmul(np.swapaxes(a, 1, 2)[:, None], a[None])  # A_i^T A_j: frame j -> frame i
+    moved = np.matmul(relative, probe.T)  # (n, n, 3, 5)
+    xy, _ = camera.vectors_to_pixels(np.swapaxes(moved, 2, 3).reshape(-1, 3))
+    home, _ = camera.vectors_to_pixels(probe)
+    shift = np.linalg.norm(xy.reshape(len(members), len(members), len(probe), 2) - home, axis=-1)
+    return float(np.nanmax(shift))
+
+
+def _single_snapshot(sequence: Sequence, p: ExtractionParameters) -> Extraction:
+    snapshot = sequence.snapshots[0]
+    n = snapshot.n_sources
+    tracks = tuple(Track(id=k, snapshots=np.array([0]), source_indices=np.array([k]),
+                         xy=np.asarray(snapshot.xy[k:k + 1], dtype=float),
+                         mean_brightness=float(snapshot.brightness[k])) for k in range(n))
+    motion = np.eye(3)[None]
+    return Extraction(reference=0, track_of_source=(np.arange(n),), rejection=((None,) * n,),
+                      tracks=tracks, motion=motion,
+                      pattern=tracks_pattern(sequence.camera, motion, tracks, p.sigma_default_px),
+                      seed_pattern=seed_pattern(sequence.camera, 0, tracks, p.sigma_default_px),
+                      noise_px=p.sigma_default_px,
+                      notes=("single snapshot: nothing to track against, every source is a pattern point",))
+
+
+def _no_sources(sequence: Sequence, p: ExtractionParameters) -> Extraction:
+    n_snap = len(sequence.snapshots)
+    motion = np.full((n_snap, 3, 3), np.nan)
+    motion[0] = np.eye(3)
+    empty = (np.zeros(0, dtype=int),) * n_snap
+    pattern = tracks_pattern(sequence.camera, motion, (), p.sigma_default_px)
+    return Extraction(reference=0, track_of_source=empty, rejection=((),) * n_snap, tracks=(),
+                      motion=motion, pattern=pattern, seed_pattern=pattern, noise_px=p.sigma_default_px,
+                      notes=("no sources in any snapshot",))
+
+
+def extract(sequence: Sequence, parameters: ExtractionParameters = DEFAULT_PARAMETERS) -> Extraction:
+    """Tell tracked stars from ghosts, hot pixels and outliers (see the module docstring).
+
+    Raises ValueError for a sequence without snapshots.
+    """
+    p = parameters
+    if not sequence.snapshots:
+        raise ValueError("a sequence needs at least one snapshot")
+    if len(sequence.snapshots) == 1:
+        return _single_snapshot(sequence, p)
+    if not any(s.n_sources for s in sequence.snapshots):
+        return _no_sources(sequence, p)
+    camera = sequence.camera
+    n_snap = len(sequence.snapshots)
+    chord_px = 1.0 / camera.focal_length_px  # chord of one pixel near the centre
+    xy_pad, bright_pad, valid = _padded(sequence)
+    snap, index = np.nonzero(valid)  # flattened sources, snapshot by snapshot
+    xy = xy_pad[snap, index]
+    vectors = camera.pixels_to_vectors(xy)
+    vectors_pad = np.full(xy_pad.shape[:2] + (3,), np.nan)
+    vectors_pad[snap, index] = vectors
+    flat_of = np.full(valid.shape, -1)
+    flat_of[snap, index] = np.arange(len(snap))
+
+    # 1. motion, without recurring sources while they are a minority
+    rows, _ = _same_pixel_pairs(xy, snap, p.hot_tol_floor_px)
+    recurring = np.bincount(rows, minlength=len(snap)) >= 2
+    motion_valid = valid.copy()
+    if 0 < recurring.sum() < 0.5 * len(snap):
+        motion_valid[snap[recurring], index[recurring]] = False
+    motion_vectors = np.where(motion_valid[..., None], vectors_pad, np.nan)
+    to_common, component, used, link_sq = _chain_motions(motion_vectors, bright_pad, motion_valid,
+                                                         chord_px, p)
+    comp = component[snap]
+
+    # 2. refinement against the provisional tracks of the links' matches
+    to_common = _refine_to_common(vectors, snap, _linked_groups(used, flat_of, len(snap)), to_common)
+    common = _rotate(to_common[snap], vectors)
+
+    # 3. noise; link residuals are differences of two sightings: E|r|^2 = 2 sigma^2 * 2
+    sigma = _noise_sigma_px(link_sq / chord_px**2, np.full(len(link_sq), 2.0), p)
+    gate = max(p.link_gate_floor_px, p.link_gate_sigmas * sigma)
+    hot_tol = max(p.hot_tol_floor_px, p.hot_tol_sigmas * sigma)
+
+    # 4. hot pixels, 5. association
+    hot = _hot_pixels(xy, snap, comp, _predicted_pixels(camera, to_common, common), hot_tol, gate)
+    linked_snapshot = np.bincount(component)[comp] >= 2  # a lone snapshot has nothing to track against
+    label = _associate(common, snap, comp, ~hot & linked_snapshot, gate * chord_px)
+    # the full tracks (gaps bridged, more stars per snapshot) pin the rotations better
+    to_common = _refine_to_common(vectors, snap, label, to_common)
+    common = _rotate(to_common[snap], vectors)
+
+    # 6. outliers, with the noise re-estimated from the tracks themselves
+    size = _track_sizes(label)
+    tracked = size >= 2
+    if np.any(tracked):
+        mean = _normalized(_track_sums(label, common)[label[tracked]])
+        residual_sq = ((common[tracked] - mean) ** 2).sum(axis=1) / chord_px**2
+        sigma = _noise_sigma_px(residual_sq, 1.0 - 1.0 / size[tracked], p)
+    outlier = _outliers(common, np.where(tracked, label, -1), sigma * chord_px, p, chord_px)
+    label = np.where(outlier, -1, label)
+    label = np.where(_track_sizes(label) >= 2, label, -1)
+
+    # 7. verdicts; the reference has the most tracked sources (first on ties)
+    per_snapshot = np.bincount(snap[label >= 0], minlength=n_snap)
+    reference = int(np.argmax(per_snapshot))
+    same = component == component[reference]
+    motion = np.full((n_snap, 3, 3), np.nan)
+    motion[same] = np.matmul(to_common[reference].T, to_common[same])
+    tracks, track_of_source, rejection = _verdicts(sequence, snap, index, label, hot, outlier, xy)
+
+    notes = []
+    sky_motion = _max_sky_motion_px(camera, to_common, np.flatnonzero(same))
+    if tracks and sky_motion < gate:
+        notes.append(f"the sky moved at most {sky_motion:.1f} px during the sequence: hot pixels cannot be "
+                     f"told from stars and stationary sources are kept as tracks")
+    if not tracks:
+        notes.append("no source was seen moving consistently with the sky in two snapshots: no tracks")
+    carried = [t for t in tracks if same[t.snapshots[0]]]
+    if len(carried) < len(tracks):
+        notes.append(f"{len(tracks) - len(carried)} track(s) in snapshots not linked to the reference "
+                     f"snapshot are left out of the pattern")
+    return Extraction(reference=reference, track_of_source=track_of_source, rejection=rejection,
+                      tracks=tracks, motion=motion, pattern=tracks_pattern(camera, motion, carried, sigma),
+                      seed_pattern=seed_pattern(camera, reference, tracks, sigma), noise_px=sigma,
+                      notes=tuple(notes))
+
+
+def _verdicts(sequence: Sequence, snap: np.ndarray, index: np.ndarray, label: np.ndarray,
+              hot: np.ndarray, outlier: np.ndarray, xy: np.ndarray):
+    """Tracks numbered by first appearance, and per-source track ids and reasons."""
+    # flattened order is (snapshot, source) order, so first occurrences number the tracks
+    labels_in_order = label[label >= 0]
+    _, first = np.unique(labels_in_order, return_index=True)
+    old_ids = labels_in_order[np.sort(first)]
+    new_id = np.full(int(label.max(initial=-1)) + 1, -1, dtype=int)
+    new_id[old_ids] = np.arange(len(old_ids))
+    track_id = np.where(label >= 0, new_id[np.maximum(label, 0)], -1)
+
+    brightness = np.concatenate([np.asarray(s.brightness, dtype=float) for s in sequence.snapshots])
+    by_track = np.argsort(np.where(track_id >= 0, track_id, len(old_ids)), kind="stable")
+    sizes = np.bincount(track_id[track_id >= 0], minlength=len(old_ids))
+    starts = np.cumsum(sizes) - sizes
+    tracks = []
+    for tid in range(len(old_ids)):
+        members = by_track[starts[tid]:starts[tid] + sizes[tid]]  # in snapshot order (stable sort)
+        tracks.append(Track(id=tid, snapshots=snap[members], source_indices=index[members],
+                            xy=xy[members], mean_brightness=float(brightness[members].mean())))
+
+    reason = np.full(len(label), GHOST, dtype=object)
+    reason[outlier] = OUTLIER
+    reason[hot] = HOT_PIXEL
+    reason[track_id >= 0] = None
+    bounds = np.searchsorted(snap, np.arange(len(sequence.snapshots) + 1))
+    track_of_source, rejection = [], []
+    for s, snapshot in enumerate(sequence.snapshots):
+        # every source of a snapshot is in the flattened list, in input order
+        track_of_source.append(track_id[bounds[s]:bounds[s + 1]].copy())
+        rejection.append(tuple(reason[bounds[s]:bounds[s + 1]]))
+    return tuple(tracks), tuple(track_of_source), tuple(rejection)

@@ -1,0 +1,96 @@
+"""Planets: where they are on the sky, for the simulator and for labelling.
+
+Planets move with the stars inside a snapshot sequence but are not in the
+star catalogue, so identification must tolerate them and the simulator must
+put them at their true places.  Directions come from astropy's ``builtin``
+ephemeris (no download): ``get_body(name, t)`` returns the apparent
+geocentric place in GCRS, whose axes are the ICRS axes; it includes light
+time and the aberration of the Earth's motion, like
+:meth:`app.catalogue.Catalogue.apparent_vectors` does for stars.
+
+Places are cached per whole minute: the fastest-moving planet, Mercury,
+shifts by at most ~5 arcsec per minute against the stars, so taking the
+place at the nearest minute errs by < 3 arcsec (a tenth of a pixel for the
+narrowest camera here).
+"""
+
+from __future__ import annotations
+
+import functools
+import warnings
+from datetime import datetime, timedelta, timezone
+from types import MappingProxyType
+
+import numpy as np
+
+from app.config import configure_astropy
+
+PLANETS = ("mercury", "venus", "mars", "jupiter", "saturn", "uranus", "neptune")
+
+#: Typical visual magnitudes (rough, fixed): a planet's real brightness varies
+#: with its distance and phase (Mars from -2.9 to +1.8), but a star sensor's
+#: brightness is unreliable anyway and only the rank among the ~10 brightest
+#: sources matters.  Mercury and Venus are only seen away from the Sun.
+TYPICAL_MAGNITUDES = MappingProxyType({
+    "mercury": 0.0,
+    "venus": -4.0,
+    "mars": 0.5,
+    "jupiter": -2.2,
+    "saturn": 0.7,
+    "uranus": 5.7,
+    "neptune": 7.8,
+})
+
+
+def planet_magnitudes() -> dict[str, float]:
+    """Rough visual magnitude of each planet (the fixed :data:`TYPICAL_MAGNITUDES`)."""
+    return dict(TYPICAL_MAGNITUDES)
+
+
+def _nearest_minute(t: datetime) -> datetime:
+    """``t`` (timezone-aware) rounded to the nearest whole minute, in UTC."""
+    t = t.astimezone(timezone.utc)
+    floor = t.replace(second=0, microsecond=0)
+    return floor + timedelta(minutes=1) if (t - floor) >= timedelta(seconds=30) else floor
+
+
+def _require_aware(t: datetime) -> None:
+    if not isinstance(t, datetime) or t.tzinfo is None:
+        raise ValueError("time must be a timezone-aware datetime (UTC)")
+
+
+@functools.lru_cache(maxsize=512)
+def _body_vectors_at_minute(t_minute: datetime, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    configure_astropy()
+    from astropy.coordinates import get_body
+    from astropy.time import Time
+
+    out = {}
+    with warnings.catch_warnings():
+        # Past the end of the bundled leap-second table ERFA warns of a
+        # "dubious year" and extrapolates UTC -> TT; an error of a second
+        # or two moves a planet by well under an arcsecond.
+        warnings.filterwarnings("ignore", message=".*dubious year")
+        when = Time(t_minute)
+        bodies = {name: get_body(name, when, ephemeris="builtin") for name in names}
+    for name, body in bodies.items():
+        xyz = body.cartesian.xyz.value.astype(float)
+        out[name] = xyz / np.linalg.norm(xyz)
+        out[name].setflags(write=False)  # shared through the cache: keep it immutable
+    return out
+
+
+def planet_vectors(t: datetime) -> dict[str, np.ndarray]:
+    """Apparent geocentric unit vector (ICRS/GCRS axes) of each planet at UTC ``t``.
+
+    Taken at the nearest whole minute (see the module docstring).  The
+    arrays are read-only; the dict is a fresh copy.
+    """
+    _require_aware(t)
+    return dict(_body_vectors_at_minute(_nearest_minute(t), PLANETS))
+
+
+def sun_vector(t: datetime) -> np.ndarray:
+    """Apparent geocentric unit vector of the Sun at UTC ``t`` (nearest minute)."""
+    _require_aware(t)
+    return _body_vectors_at_minute(_nearest_minute(t), ("sun",))["sun"]

@@ -1,0 +1,356 @@
+"""Storage: round trips, append-only audit trail, threads, and durability across SIGKILL."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import pytest
+
+from app.storage import (
+    MIGRATIONS,
+    Storage,
+    StorageError,
+    UnknownSequence,
+    content_sha256,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+T0 = datetime(2024, 5, 1, 10, 0, 0, tzinfo=timezone.utc)
+
+
+@pytest.fixture
+def db_path(tmp_path):
+    return tmp_path / "archive.sqlite3"
+
+
+@pytest.fixture
+def store(db_path):
+    with Storage.open(db_path) as storage:
+        yield storage
+
+
+def _upload(store, n, **overrides):
+    kwargs = dict(raw_text=f'{{"sequence_id": "seq-{n}", "payload": {n}}}', filename=f"seq{n}.json",
+                  sequence_id=f"seq-{n}", spacecraft="TUBSAT-N", camera={"name": "tubsat", "width": 752},
+                  first_time=T0 + timedelta(minutes=n), n_snapshots=16,
+                  extraction={"tracks": [[n, 1.5]], "pattern": {"included": [1, 2]}})
+    kwargs.update(overrides)
+    return store.add_sequence(**kwargs)
+
+
+def _confirm(store, seq_id, search_id=None, rank=1, operator="alice", apm="APM text\n", **overrides):
+    kwargs = dict(search_id=search_id, rank=rank, operator=operator, quaternion=[0.1, 0.2, 0.3, 0.927],
+                  rotation_matrix=[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+                  ra_deg=83.6, dec_deg=22.0, roll_deg=37.0, deviation_arcsec=12.5,
+                  false_match_probability=1e-9, pattern={"included": [1, 2, 3]},
+                  candidate={"rank": rank, "matches": [{"hip": 26727}]}, apm_text=apm)
+    kwargs.update(overrides)
+    return store.add_confirmation(seq_id, **kwargs)
+
+
+# -- round trips ----------------------------------------------------------------------
+
+def test_sequence_round_trip_and_same_content_returns_existing_row(store, db_path):
+    row, created = _upload(store, 1)
+    assert created and row.status == "new"
+    again, created_again = _upload(store, 1, filename="other-name.json")
+    assert not created_again and again.id == row.id and again.filename == "seq1.json"
+    assert row.content_sha256 == content_sha256(row.raw_text)
+    store.close()
+    with Storage.open(db_path) as reopened:
+        got = reopened.get_sequence(row.id)
+    assert got == row
+    assert got.camera == {"name": "tubsat", "width": 752}
+    assert got.first_time == T0 + timedelta(minutes=1) and got.first_time.tzinfo is not None
+    assert got.extraction["tracks"] == [[1, 1.5]]
+
+
+def test_unknown_ids_read_as_none_and_writes_to_them_fail(store):
+    assert store.get_sequence(99) is None
+    assert store.get_confirmation(99) is None
+    assert store.get_search(99) is None
+    assert store.current_pattern(99) is None
+    assert store.latest_search(99) is None
+    assert store.current_confirmation(99) is None
+    with pytest.raises(UnknownSequence):
+        store.add_pattern_version(99, {"included": []})
+    with pytest.raises(UnknownSequence):
+        store.add_search(99, pattern_version=1, method="m", options={}, result=[], status="no_match")
+    with pytest.raises(UnknownSequence):
+        _confirm(store, 99)
+    with pytest.raises(UnknownSequence):
+        store.set_status(99, "identified")
+
+
+def test_list_sequences_pages_and_filters_like_a_brute_force_filter(store):
+    statuses = ["new", "identified", "ambiguous", "no_match"]
+    made = []
+    for n in range(23):
+        row, _ = _upload(store, n, spacecraft="TUBSAT-N" if n % 3 else "DLR-TUBSAT")
+        store.set_status(row.id, statuses[n % 4])
+        made.append((row.id, row.spacecraft, statuses[n % 4]))
+    for spacecraft in (None, "TUBSAT-N", "DLR-TUBSAT", "NONE"):
+        for status in (None, "identified", "confirmed"):
+            expected = sorted((i for i, sc, s in made if spacecraft in (None, sc) and status in (None, s)),
+                              reverse=True)
+            got, total = [], None
+            for offset in range(0, 30, 7):
+                rows, total = store.list_sequences(offset, 7, spacecraft=spacecraft, status=status)
+                got += [r.id for r in rows]
+                assert all(r.raw_text is None and r.extraction is None for r in rows)
+            assert got == expected and total == len(expected)
+
+
+def test_bad_arguments_raise_value_error(store):
+    row, _ = _upload(store, 1)
+    for offset, limit in [(-1, 10), (0, 0), (0, 10_000), (0, 2.5)]:
+        with pytest.raises(ValueError):
+            store.list_sequences(offset, limit)
+        with pytest.raises(ValueError):
+            store.list_confirmations(offset, limit)
+    with pytest.raises(ValueError):
+        store.set_status(row.id, "done")
+    with pytest.raises(ValueError):
+        store.add_pattern_version(row.id, {}, kind="rewrite")
+    with pytest.raises(ValueError):
+        store.add_search(row.id, pattern_version=1, method="m", options={"x": float("nan")}, result=[],
+                         status="new")
+    assert store.latest_search(row.id) is None  # the failed write left nothing behind
+
+
+# -- patterns and searches ---------------------------------------------------------------
+
+def test_pattern_versions_are_appended_and_reset_is_a_new_version(store):
+    row, _ = _upload(store, 1)
+    automatic = {"excluded": [], "included": [1, 2, 3], "manual": []}
+    edited = {"excluded": [2], "included": [1, 3], "manual": [{"snapshot": 0, "x": 10.5, "y": 20.25}]}
+    v1 = store.add_pattern_version(row.id, automatic, kind="automatic")
+    v2 = store.add_pattern_version(row.id, edited, operator="alice")
+    assert store.current_pattern(row.id) == v2
+    v3 = store.add_pattern_version(row.id, automatic, kind="reset", operator="bob")
+    assert [v.version for v in (v1, v2, v3)] == [1, 2, 3]
+    assert store.current_pattern(row.id).pattern == automatic
+    assert store.current_pattern(row.id).kind == "reset"
+    assert store.pattern_history(row.id) == [v1, v2, v3]  # the edit is still there, unchanged
+
+
+def test_latest_search_is_the_newest(store):
+    row, _ = _upload(store, 1)
+    first = store.add_search(row.id, pattern_version=1, method="bright-pairs", options={"mag": 6},
+                             result=[{"rank": 1}], status="identified", elapsed_s=0.12)
+    second = store.add_search(row.id, pattern_version=2, method="bright-pairs", options={},
+                              result=[], status="no_match", elapsed_s=0.05)
+    assert store.latest_search(row.id) == second
+    assert store.get_search(first.id) == first and first.result == [{"rank": 1}]
+
+
+# -- confirmations: append-only audit trail ------------------------------------------------
+
+def test_a_newer_confirmation_supersedes_the_older_which_is_kept_unchanged(store):
+    row, _ = _upload(store, 1)
+    other, _ = _upload(store, 2)
+    search = store.add_search(row.id, pattern_version=1, method="m", options={}, result=[], status="ambiguous")
+    first = _confirm(store, row.id, search.id, rank=2, apm="CCSDS_APM_VERS = 2.0\nfirst\n", comment="maybe")
+    elsewhere = _confirm(store, other.id, operator="carol")
+    second = _confirm(store, row.id, search.id, rank=1, operator="bob", apm="CCSDS_APM_VERS = 2.0\nsecond\n")
+    assert store.get_sequence(row.id).status == "confirmed"
+    assert store.current_confirmation(row.id) == second
+    old = store.get_confirmation(first.id)
+    assert old.superseded_by == second.id and not old.is_current
+    # Apart from superseded_by, the old record is exactly what was stored.
+    assert {**old.__dict__, "superseded_by": None} == first.__dict__
+    assert old.apm_text == "CCSDS_APM_VERS = 2.0\nfirst\n"
+    assert store.get_confirmation(elsewhere.id).is_current  # another sequence is untouched
+    assert [c.id for c in store.confirmation_history(row.id)] == [first.id, second.id]
+    rows, total = store.list_confirmations(0, 2)
+    assert total == 3 and [c.id for c in rows] == [second.id, elsewhere.id]
+    assert [c.id for c in store.list_confirmations(2, 2)[0]] == [first.id]
+
+
+def test_the_schema_refuses_edits_and_deletes_of_the_audit_trail(store, db_path):
+    row, _ = _upload(store, 1)
+    store.add_pattern_version(row.id, {"included": [1]})
+    store.add_search(row.id, pattern_version=1, method="m", options={}, result=[], status="no_match")
+    first = _confirm(store, row.id)
+    second = _confirm(store, row.id)
+    raw = sqlite3.connect(db_path)  # a separate connection: the guard lives in the database
+    forbidden = [
+        ("UPDATE confirmations SET apm_text = 'forged' WHERE id = ?", (first.id,)),
+        ("UPDATE confirmations SET operator = 'mallory' WHERE id = ?", (second.id,)),
+        ("UPDATE confirmations SET superseded_by = NULL WHERE id = ?", (first.id,)),
+        ("UPDATE confirmations SET superseded_by = ? WHERE id = ?", (first.id, second.id)),
+        # The one permitted change (superseded_by NULL -> newer id) cannot carry a content change.
+        ("UPDATE confirmations SET superseded_by = 999, apm_text = 'forged' WHERE id = ?", (second.id,)),
+        ("UPDATE confirmations SET superseded_by = 999, ra_deg = 1.0 WHERE id = ?", (second.id,)),
+        ("DELETE FROM confirmations WHERE id = ?", (first.id,)),
+        ("UPDATE pattern_versions SET pattern_json = '{}' WHERE seq_id = ?", (row.id,)),
+        ("DELETE FROM searches WHERE seq_id = ?", (row.id,)),
+        ("UPDATE sequences SET raw_text = 'changed' WHERE id = ?", (row.id,)),
+        ("DELETE FROM sequences WHERE id = ?", (row.id,)),
+    ]
+    for sql, params in forbidden:
+        with pytest.raises(sqlite3.DatabaseError):
+            raw.execute(sql, params)
+    raw.execute("UPDATE sequences SET status = 'identified' WHERE id = ?", (row.id,))  # allowed
+    raw.commit()
+    raw.close()
+    assert store.get_confirmation(first.id).apm_text == "APM text\n"
+    assert store.get_sequence(row.id).status == "identified"
+
+
+# -- opening, schema versions, health --------------------------------------------------------
+
+def test_open_sets_wal_full_sync_foreign_keys_and_schema_version(store, db_path):
+    health = store.health()
+    assert health["ok"] and health["journal_mode"] == "wal"
+    assert health["schema_version"] == len(MIGRATIONS)
+    assert health["counts"] == {"sequences": 0, "pattern_versions": 0, "searches": 0, "confirmations": 0}
+    conn = store._conn
+    assert conn.execute("PRAGMA synchronous").fetchone()[0] == 2  # FULL
+    assert conn.execute("PRAGMA foreign_keys").fetchone()[0] == 1
+    raw = sqlite3.connect(db_path)
+    assert raw.execute("PRAGMA journal_mode").fetchone()[0] == "wal"  # persistent in the file
+    assert raw.execute("SELECT version FROM schema_version").fetchall() == [(len(MIGRATIONS),)]
+    raw.close()
+
+
+def test_reopening_does_not_migrate_twice_and_a_newer_schema_is_refused(db_path):
+    with Storage.open(f"sqlite:///{db_path}") as storage:
+        _upload(storage, 1)
+    with Storage.open(db_path) as storage:
+        assert storage.health()["counts"]["sequences"] == 1
+    raw = sqlite3.connect(db_path)
+    assert raw.execute("SELECT COUNT(*) FROM schema_version").fetchone()[0] == len(MIGRATIONS)
+    raw.execute("INSERT INTO schema_version VALUES (?, '2099-01-01')", (len(MIGRATIONS) + 1,))
+    raw.commit()
+    raw.close()
+    with pytest.raises(StorageError, match="newer"):
+        Storage.open(db_path)
+
+
+def test_database_url_from_environment(tmp_path, monkeypatch):
+    monkeypatch.setenv("DATABASE_URL", str(tmp_path / "env.sqlite3"))
+    with Storage.open() as storage:
+        assert storage.path == str(tmp_path / "env.sqlite3")
+    assert (tmp_path / "env.sqlite3").exists()
+
+
+@pytest.mark.parametrize("target", ["postgresql://user@host/db", "mysql://x", ":memory:", ""])
+def test_unsupported_targets_are_refused(target):
+    with pytest.raises(StorageError):
+        Storage.open(target)
+
+
+def test_a_file_that_is_not_a_database_is_refused(tmp_path):
+    path = tmp_path / "junk.sqlite3"
+    path.write_bytes(b"this is not sqlite" * 100)
+    with pytest.raises(StorageError, match="not a usable database"):
+        Storage.open(path)
+
+
+def test_closed_storage_refuses_work(db_path):
+    storage = Storage.open(db_path)
+    storage.close()
+    storage.close()  # idempotent
+    with pytest.raises(StorageError, match="closed"):
+        storage.get_sequence(1)
+
+
+# -- threads -----------------------------------------------------------------------------------
+
+def test_concurrent_writers_keep_numbering_and_supersession_consistent(store):
+    sequences = [_upload(store, n)[0].id for n in range(3)]
+    n_threads, per_thread = 8, 6
+    errors, created_flags = [], []
+    start = threading.Barrier(n_threads)
+
+    def work(worker):
+        try:
+            start.wait()
+            # Everyone uploads the same content too: exactly one must create it.
+            created_flags.append(_upload(store, 1000)[1])
+            for k in range(per_thread):
+                seq_id = sequences[(worker + k) % len(sequences)]
+                store.add_pattern_version(seq_id, {"worker": worker, "k": k}, operator=f"w{worker}")
+                search = store.add_search(seq_id, pattern_version=None, method="m",
+                                          options={"worker": worker}, result=[{"rank": 1}], status="identified")
+                _confirm(store, seq_id, search.id, operator=f"w{worker}")
+                store.list_sequences(0, 10)
+                store.current_confirmation(seq_id)
+        except Exception as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(w,)) for w in range(n_threads)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+    assert sorted(created_flags) == [False] * (n_threads - 1) + [True]
+    total_per_seq = {s: 0 for s in sequences}
+    for w in range(n_threads):
+        for k in range(per_thread):
+            total_per_seq[sequences[(w + k) % len(sequences)]] += 1
+    for seq_id, expected in total_per_seq.items():
+        assert [v.version for v in store.pattern_history(seq_id)] == list(range(1, expected + 1))
+        history = store.confirmation_history(seq_id)
+        assert len(history) == expected
+        # A single chain: each record superseded by the next one, only the last is current.
+        assert [c.superseded_by for c in history] == [c.id for c in history[1:]] + [None]
+    assert store.health()["counts"]["confirmations"] == n_threads * per_thread
+
+
+# -- durability ----------------------------------------------------------------------------------
+
+WRITER = r"""
+import sys
+from app.storage import Storage
+store = Storage.open(sys.argv[1])
+i = 0
+while True:
+    text = f"telemetry {i} " + "x" * (i % 97)
+    row, _ = store.add_sequence(raw_text=text, sequence_id=f"s{i}", spacecraft="TUBSAT-N")
+    conf = store.add_confirmation(row.id, search_id=None, rank=1, operator="op", quaternion=[0, 0, 0, 1],
+                                  rotation_matrix=[[1, 0, 0], [0, 1, 0], [0, 0, 1]], ra_deg=i, dec_deg=0,
+                                  roll_deg=0, deviation_arcsec=None, false_match_probability=None,
+                                  pattern={}, candidate={"i": i}, apm_text=f"APM {i}\n")
+    print(i, row.id, conf.id, flush=True)  # acknowledged: both commits have returned
+    i += 1
+"""
+
+
+def test_acknowledged_rows_survive_sigkill(db_path):
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    child = subprocess.Popen([sys.executable, "-c", WRITER, str(db_path)], stdout=subprocess.PIPE,
+                             text=True, env=env, cwd=ROOT)
+    acknowledged = []
+    deadline = time.monotonic() + 30
+    try:
+        while len(acknowledged) < 40 and time.monotonic() < deadline:
+            line = child.stdout.readline()
+            if not line:
+                break
+            acknowledged.append(tuple(int(v) for v in line.split()))
+    finally:
+        child.send_signal(signal.SIGKILL)  # mid-write, most likely
+        child.wait(timeout=10)
+    assert child.returncode == -signal.SIGKILL
+    assert len(acknowledged) >= 40, "writer did not acknowledge rows in time"
+    with Storage.open(db_path) as reopened:
+        for i, seq_id, conf_id in acknowledged:
+            row = reopened.get_sequence(seq_id)
+            assert row is not None and row.raw_text == f"telemetry {i} " + "x" * (i % 97)
+            conf = reopened.get_confirmation(conf_id)
+            assert conf is not None and conf.apm_text == f"APM {i}\n" and conf.candidate == {"i": i}
+        assert reopened.health()["ok"]
+    raw = sqlite3.connect(db_path)
+    assert raw.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+    raw.close()
