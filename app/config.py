@@ -21,13 +21,15 @@ def _cache_dir() -> Path:
 @dataclass(frozen=True)
 class Settings:
     #: Largest telemetry file accepted (STARID_MAX_UPLOAD_BYTES).
-    max_upload_bytes: int = int(os.environ.get("STARID_MAX_UPLOAD_BYTES", 5 * 1024 * 1024))
+    max_upload_bytes: int = field(
+        default_factory=lambda: int(os.environ.get("STARID_MAX_UPLOAD_BYTES", 5 * 1024 * 1024)))
     #: Where the bright-pair index and other derived data are cached (STARID_CACHE_DIR).
-    cache_dir: Path = _cache_dir()
+    cache_dir: Path = field(default_factory=_cache_dir)
     #: Camera used for files without a camera block (STARID_DEFAULT_CAMERA).
-    default_camera: str = os.environ.get("STARID_DEFAULT_CAMERA", "tubsat-752x582-20deg")
-    # The server's settings are read when Settings() is made (not at import),
-    # so a test or a launcher can set the environment first.
+    default_camera: str = field(
+        default_factory=lambda: os.environ.get("STARID_DEFAULT_CAMERA", "tubsat-752x582-20deg"))
+    # Every setting is read when Settings() is made (not at import), so a
+    # test or a launcher can set the environment first.
     #: Database path or URL for `serve` (STARID_DB, else DATABASE_URL); None: the storage default.
     database: str | None = field(
         default_factory=lambda: os.environ.get("STARID_DB") or os.environ.get("DATABASE_URL") or None)

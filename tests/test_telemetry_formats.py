@@ -8,14 +8,16 @@ from __future__ import annotations
 
 import copy
 import json
+import re
 from datetime import datetime, timedelta, timezone
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from app.camera import CAMERAS, Camera
 from app.config import MAX_SNAPSHOTS, MAX_SOURCES_PER_SNAPSHOT, Settings
-from app.telemetry import (Problem, Sequence, TelemetryError, dump_csv, dump_json,
+from app.telemetry import (Problem, Sequence, Snapshot, TelemetryError, dump_csv, dump_json,
                            load_telemetry_file, parse_telemetry)
 from app.telemetry import formats
 from app.telemetry.errors import MAX_PROBLEMS
@@ -81,7 +83,6 @@ def assert_same_sequence(a: Sequence, b: Sequence) -> None:
 
 def random_sequence(rng: np.random.Generator, camera: Camera, n_snapshots: int) -> Sequence:
     """A sequence with awkward floats (full precision, sub-ms times) on the sensor."""
-    from app.telemetry.model import Snapshot
     start = datetime(1994, 3, 12, 21, 4, 10, tzinfo=UTC)
     offsets = np.cumsum(rng.integers(1, 10**6, n_snapshots))
     snaps = []
@@ -563,8 +564,6 @@ def test_dumped_json_is_the_documented_form():
 
 def test_the_documented_examples_parse_to_the_same_sequence():
     """docs/formats.md: its JSON example and its CSV example are the same data."""
-    from pathlib import Path
-    import re
     doc_text = (Path(__file__).resolve().parents[1] / "docs" / "formats.md").read_text()
     blocks = re.findall(r"```(json|text)\n(.*?)```", doc_text, re.S)
     json_example = next(body for kind, body in blocks if kind == "json" and '"snapshots"' in body)

@@ -19,7 +19,7 @@ from app.camera import CAMERAS, Camera
 from app.config import MAX_SNAPSHOTS, MAX_SOURCES_PER_SNAPSHOT
 from app.telemetry import Sequence, TelemetryError, dump_csv, dump_json, parse_telemetry
 
-FAST = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+FAST = settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 UTC = timezone.utc
 CSV_HEADER = "snapshot,time,x,y,brightness"
 

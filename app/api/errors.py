@@ -17,7 +17,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from app.storage import StorageError
+from app.storage import StorageError, UnknownSequence
 from app.telemetry.errors import TelemetryError
 
 log = logging.getLogger(__name__)
@@ -96,6 +96,10 @@ def install_error_handlers(app: FastAPI) -> None:
             detail = "this endpoint does not accept that method; see /docs"
         return JSONResponse(error_body(detail), status_code=exc.status_code,
                             headers=getattr(exc, "headers", None))
+
+    @app.exception_handler(UnknownSequence)
+    async def unknown_sequence(_: Request, exc: UnknownSequence) -> JSONResponse:
+        return JSONResponse(error_body(str(exc)), status_code=404)
 
     @app.exception_handler(StorageError)
     async def storage_error(_: Request, exc: StorageError) -> JSONResponse:

@@ -28,7 +28,7 @@ import numpy as np
 from app.api.context import AppContext, LoadedSequence
 from app.api.errors import ApiError
 from app.attitude import quaternion_from_rotation
-from app.extraction import Pattern, build_pattern, extraction_to_json, pattern_to_json
+from app.extraction import Pattern, build_pattern, extract, extraction_to_json, pattern_to_json
 from app.storage import ConfirmationRow, PatternVersion, SearchRow, SequenceRow
 from app.telemetry import parse_telemetry
 from app.telemetry.model import format_time
@@ -92,8 +92,6 @@ def ingest_upload(ctx: AppContext, data: bytes, filename: str | None) -> tuple[d
     sequence = parse_telemetry(data, filename=filename, max_bytes=ctx.settings.max_upload_bytes)
     # parse_telemetry accepted the bytes as UTF-8; keep the text as sent.
     raw_text = bytes(data).decode("utf-8")
-    from app.extraction import extract
-
     extraction = extract(sequence)
     row, created = ctx.storage.add_sequence(
         raw_text=raw_text, filename=filename, sequence_id=sequence.sequence_id,
@@ -330,9 +328,11 @@ def confirm(ctx: AppContext, seq_id: int, rank: int, operator: str, comment: str
     confirmed_at = datetime.now(timezone.utc)
     apm = render_apm(row, candidate, epoch, operator, confirmed_at, comment)
     aem = render_aem(row, item, candidate, operator, confirmed_at)
-    pattern_used = {"version": search.result.get("pattern_version"), "points": search.result["pattern"],
-                    "definition": (current_pattern(ctx, seq_id).pattern if current_pattern(ctx, seq_id)
-                                   else automatic_definition())}
+    # The pattern of the search, which later edits may have replaced as the current one.
+    searched_version = search.result.get("pattern_version")
+    definition = next((v.pattern for v in ctx.storage.pattern_history(seq_id) if v.version == searched_version),
+                      automatic_definition())
+    pattern_used = {"version": searched_version, "points": search.result["pattern"], "definition": definition}
     stored = ctx.storage.add_confirmation(
         seq_id, search_id=search.id, rank=rank, operator=operator, comment=comment,
         quaternion=_unit(candidate["quaternion"]), rotation_matrix=candidate["rotation_matrix"],

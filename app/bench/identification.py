@@ -32,7 +32,7 @@ from app.extraction import extract
 from app.identification import IDENTIFIED, Sky, solve_sequence, identify
 from app.simulate import simulate_sequence
 
-SCENARIOS = ("nominal", "ghosts", "sparse", "single", "earth")
+SCENARIOS = ("nominal", "ghosts3", "sparse", "single", "earth")
 BORESIGHT_OK_DEG = 0.1
 ROLL_OK_DEG = 0.5
 

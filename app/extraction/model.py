@@ -31,8 +31,12 @@ class ExtractionParameters:
     score_gate_px: float = 8.0
     #: Mutual-neighbour gate of the first rotation fit (before the noise is known).
     fit_gate_px: float = 5.0
-    #: Fewest matched sources for a snapshot-to-snapshot rotation.
+    #: Fewest matched sources for a snapshot-to-snapshot rotation ...
     min_inliers: int = 3
+    #: ... and the most false alarms tolerated (see app.extraction.motion.false_alarms),
+    #: crediting every match with at least this residual.
+    max_false_alarms: float = 0.1
+    min_match_radius_px: float = 1.0
     #: Hypotheses come from the K brightest sources of each snapshot.
     hypothesis_sources: int = 20
     #: A snapshot with no rotation to its predecessor is linked to up to this

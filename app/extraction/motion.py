@@ -34,6 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from scipy.special import gammaln
+
 from app.attitude import rotation_from_pair
 
 #: Slot width separating the chords of different snapshot pairs in one
@@ -104,10 +106,12 @@ def _hypotheses(chords: np.ndarray, pi: np.ndarray, pj: np.ndarray, links: np.nd
 
 
 def _nearest_chord_sq(rotation: np.ndarray, va: np.ndarray, vb: np.ndarray) -> np.ndarray:
-    """(H, Na, Nb) squared chords between rotated a-points and b-points; padding -> inf."""
+    """(H, Na, Nb) squared chords |R v_a - v_b|^2 = 2 - 2 (R v_a).v_b.
+
+    Zero padding rows come out at 2 (a right angle), beyond every gate.
+    """
     pred = np.matmul(va, np.swapaxes(rotation, -1, -2))  # (H, Na, 3) = (R v_a)^T
-    d2 = 2.0 - 2.0 * np.matmul(pred, np.swapaxes(vb, -1, -2))
-    return np.where(np.isnan(d2), np.inf, d2)
+    return 2.0 - 2.0 * np.matmul(pred, np.swapaxes(vb, -1, -2))
 
 
 def _mutual_matches(d2: np.ndarray, gate_sq: float) -> tuple[np.ndarray, np.ndarray]:
@@ -123,19 +127,35 @@ def _mutual_matches(d2: np.ndarray, gate_sq: float) -> tuple[np.ndarray, np.ndar
 def batched_wahba(body: np.ndarray, ref: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """Per batch item the rotation R minimising sum w |body - R ref|^2 (SVD method).
 
-    ``body``, ``ref`` are (L, N, 3) (NaN allowed where the weight is 0),
-    ``weights`` (L, N).  B = sum w body ref^T = U S V^T, R = U diag(1, 1, det U
-    det V) V^T, as :func:`app.attitude.solve_wahba` for one item.
+    ``body``, ``ref`` are (L, N, 3) (finite: pad with zeros), ``weights``
+    (L, N).  B = sum w body ref^T = U S V^T, R = U diag(1, 1, det U det V)
+    V^T, as :func:`app.attitude.solve_wahba` for one item.  det U det V is
+    the sign of det B (the singular values are >= 0), one determinant call.
     """
-    w = weights[..., None]
-    body = np.where(w > 0, body, 0.0)
-    ref = np.where(w > 0, ref, 0.0)
-    b = np.matmul(np.swapaxes(body * w, -1, -2), ref)
+    b = np.matmul(np.swapaxes(body * weights[..., None], -1, -2), ref)
     u, _, vt = np.linalg.svd(b)
-    d = np.linalg.det(u) * np.linalg.det(vt)
-    u = u.copy()
-    u[:, :, 2] *= d[:, None]
+    u[:, :, 2] *= np.where(np.linalg.det(b) < 0.0, -1.0, 1.0)[:, None]
     return np.matmul(u, vt)
+
+
+def false_alarms(n_hypotheses, n_a, n_b, n_inliers, radius_sq, field_area) -> np.ndarray:
+    """Expected number of hypotheses as good as the winner in unrelated point sets (a contrario).
+
+    A hypothesis fixes two matches; each of the other ``n_a - 2`` rotated
+    points of a lands by chance within ``r`` of one of the ``n_b`` points of
+    b with probability ``p = n_b pi r^2 / area`` (r: the largest match
+    residual).  The chance of ``k - 2`` such extra matches is at most
+    ``C(n_a - 2, k - 2) p^(k - 2)``; times the number of hypotheses tried it
+    is the expected count of equally good false alarms.  Three random
+    matches within 5 px are common among 10 + 10 points; within 1 px, or
+    four of them, they are not.
+    """
+    extra = np.maximum(np.asarray(n_inliers) - 2, 0)
+    p = np.minimum(1.0, np.asarray(n_b) * np.pi * np.asarray(radius_sq) / field_area)
+    log_binom = (gammaln(np.asarray(n_a) - 1.0) - gammaln(extra + 1.0)
+                 - gammaln(np.maximum(np.asarray(n_a) - 2 - extra, 0) + 1.0))
+    with np.errstate(divide="ignore"):
+        return np.asarray(n_hypotheses) * np.exp(log_binom + extra * np.log(p))
 
 
 def _refit(rotation: np.ndarray, va: np.ndarray, vb: np.ndarray, gate: float) -> np.ndarray:
@@ -148,16 +168,20 @@ def _refit(rotation: np.ndarray, va: np.ndarray, vb: np.ndarray, gate: float) ->
 
 def estimate_pair_rotations(vectors: np.ndarray, hypothesis_sources: np.ndarray, links: np.ndarray, *,
                             pair_tol: float, min_baseline: float, score_gate: float,
-                            fit_gate: float, min_inliers: int, n_refine: int = 4) -> PairRotations:
+                            fit_gate: float, min_inliers: int, field_area: float, min_radius: float,
+                            max_false_alarms: float = 0.1, n_refine: int = 4) -> PairRotations:
     """Robust rotation a -> b for every snapshot pair ``links[l] = (a, b)``.
 
-    ``vectors`` (S, N, 3) camera-frame unit vectors, NaN-padded;
+    ``vectors`` (S, N, 3) camera-frame unit vectors, zero-padded;
     ``hypothesis_sources`` (S, K) indices into the N sources (-1 padding) of
     those allowed to generate hypotheses (the K brightest: brightness is
     unreliable but a star is more often bright than a ghost, and K bounds
     the (K^2)^2 growth of the pair combinations).  Tolerances are chords
     (radians for small angles).  A pair gets a rotation only with at least
-    ``min_inliers`` mutual matches (two points always fit a pair hypothesis).
+    ``min_inliers`` mutual matches (two points always fit a pair hypothesis)
+    and when chance explains them poorly: :func:`false_alarms` at most
+    ``max_false_alarms`` (``field_area`` is the sensor's area in squared
+    chords, ``min_radius`` the smallest match radius credited).
     """
     links = np.asarray(links, dtype=int).reshape(-1, 2)
     n_links = len(links)
@@ -166,6 +190,7 @@ def estimate_pair_rotations(vectors: np.ndarray, hypothesis_sources: np.ndarray,
     if n_links == 0:
         return PairRotations(rotation, n_inliers, np.full((n_links, vectors.shape[1]), -1), np.zeros(0))
 
+    # hypotheses must not come from padding: give it NaN chords
     padded = np.concatenate([vectors, np.full((vectors.shape[0], 1, 3), np.nan)], axis=1)
     hyp_vectors = np.take_along_axis(padded, np.where(hypothesis_sources < 0, vectors.shape[1],
                                                       hypothesis_sources)[..., None], axis=1)
@@ -204,11 +229,16 @@ def estimate_pair_rotations(vectors: np.ndarray, hypothesis_sources: np.ndarray,
     d2 = _nearest_chord_sq(r, va, vb)
     match, mutual = _mutual_matches(d2, fit_gate**2)
     count = mutual.sum(axis=1)
-    ok = count >= min_inliers
+    best = np.take_along_axis(d2, match[..., None], axis=2)[..., 0]
+    radius_sq = np.maximum(np.where(mutual, best, 0.0).max(axis=1), min_radius**2)
+    n_hyp = np.bincount(link, minlength=n_links)[found]
+    n_a = (np.abs(va).sum(axis=2) > 0).sum(axis=1)
+    n_b = (np.abs(vb).sum(axis=2) > 0).sum(axis=1)
+    nfa = false_alarms(n_hyp, n_a, n_b, count, radius_sq, field_area)
+    ok = (count >= min_inliers) & (nfa <= max_false_alarms)
     rotation[found[ok]] = r[ok]
     n_inliers[found] = count
     matches = np.full((n_links, vectors.shape[1]), -1, dtype=int)
     matches[found[ok]] = np.where(mutual[ok], match[ok], -1)
-    best = np.take_along_axis(d2, match[..., None], axis=2)[..., 0]
     inlier_sq = best[ok][mutual[ok]]
     return PairRotations(rotation, n_inliers, matches, inlier_sq)

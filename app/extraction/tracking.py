@@ -23,14 +23,16 @@ The steps of :func:`extract`:
    (the motion moves that sky point by more than the link gate) is
    stationary evidence; a source with two such partners, or one and at
    most one partner that moved with the sky, is a hot pixel, and so is
-   every source on the same pixel as a hot pixel.  When the sky moves less
+   every source on the same pixel as one with two such partners.  When the sky moves less
    than the link gate over the whole sequence a stationary source is
    indistinguishable from a star: it is kept as a track and a note says so
    (identification then finds it matches no star).
 5. **Association.**  In the common frame a star is a fixed direction.
    Snapshots are visited in order; each one's sources are assigned to the
    existing tracks' mean directions by ``linear_sum_assignment`` on the
-   angular distance, within the link gate; the rest start new tracks.  A
+   angular distance, within the link gate (when every source's nearest
+   track is a different one that is already the optimum); the rest start
+   new tracks.  A
    star missing from some snapshots simply rejoins its track later.  The
    rotations are then re-solved once more against these fuller tracks.
 6. **Outliers.**  A sighting farther from the mean of its track's other
@@ -51,8 +53,6 @@ import math
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from app.extraction.model import GHOST, HOT_PIXEL, OUTLIER, Extraction, ExtractionParameters, Track
 from app.extraction.motion import batched_wahba, estimate_pair_rotations, expand_ranges
@@ -87,7 +87,7 @@ def _padded(sequence: Sequence) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _chain_motions(vectors: np.ndarray, brightness: np.ndarray, valid: np.ndarray, chord_px: float,
-                   p: ExtractionParameters):
+                   field_area_px: float, p: ExtractionParameters):
     """Rotations into a common frame per connected run of snapshots.
 
     Returns (A (S, 3, 3) with v_c = A[i] v_i, component (S,), the links used
@@ -98,7 +98,8 @@ def _chain_motions(vectors: np.ndarray, brightness: np.ndarray, valid: np.ndarra
     hyp = np.where(np.take_along_axis(valid, order, axis=1), order, -1)
     kwargs = dict(pair_tol=p.pair_tol_px * chord_px, min_baseline=p.min_baseline_px * chord_px,
                   score_gate=p.score_gate_px * chord_px, fit_gate=p.fit_gate_px * chord_px,
-                  min_inliers=p.min_inliers)
+                  min_inliers=p.min_inliers, min_radius=p.min_match_radius_px * chord_px,
+                  max_false_alarms=p.max_false_alarms, field_area=field_area_px * chord_px**2)
     links = np.column_stack([np.arange(n_snap - 1), np.arange(1, n_snap)])
     first = estimate_pair_rotations(vectors, hyp, links, **kwargs)
     found = {(int(a), int(b)): (first.rotation[k], first.matches[k]) for k, (a, b) in enumerate(links)}
@@ -128,17 +129,17 @@ def _chain_motions(vectors: np.ndarray, brightness: np.ndarray, valid: np.ndarra
 
 
 def _linked_groups(used_links, flat_of: np.ndarray, n_sources: int) -> np.ndarray:
-    """(M,) group label joining the sources matched by the used links transitively."""
-    rows, cols = [], []
+    """(M,) group label joining the sources matched by the used links transitively.
+
+    Every snapshot has at most one used link from an earlier snapshot, so
+    copying labels forward link by link (in order of the later snapshot)
+    joins exactly the chains of matches.
+    """
+    label = np.arange(n_sources)
     for a, b, matches in used_links:
         k = np.flatnonzero(matches >= 0)
-        rows.append(flat_of[a, k])
-        cols.append(flat_of[b, matches[k]])
-    if not rows:
-        return np.arange(n_sources)
-    rows, cols = np.concatenate(rows), np.concatenate(cols)
-    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_sources, n_sources))
-    return connected_components(graph, directed=False)[1]
+        label[flat_of[b, matches[k]]] = label[flat_of[a, k]]
+    return label
 
 
 def _refine_to_common(vectors: np.ndarray, snap: np.ndarray, label: np.ndarray,
@@ -204,7 +205,8 @@ def _hot_pixels(xy: np.ndarray, snap: np.ndarray, comp: np.ndarray, predicted: n
         # the row source's sky point, carried into the column source's snapshot
         carried = np.hypot(*(predicted[rows, snap[cols]] - xy[cols]).T) < gate
     n_fixed = np.bincount(rows[~carried], minlength=m)
-    hot = n_fixed >= 2
+    strong = n_fixed >= 2
+    hot = strong.copy()
     # one stationary partner: hot unless another partner moved with the sky
     single = np.flatnonzero(n_fixed == 1)
     if len(single):
@@ -213,9 +215,9 @@ def _hot_pixels(xy: np.ndarray, snap: np.ndarray, comp: np.ndarray, predicted: n
             moved = np.hypot(pred[..., 0] - xy[None, :, 0], pred[..., 1] - xy[None, :, 1]) < gate
         moved &= (snap[single, None] != snap[None, :]) & (comp[single, None] == comp[None, :])
         hot[single] = moved.sum(axis=1) <= 1
-    # a hot pixel's stationary companions are hot too (in the middle of a
-    # slow drift they have fewer partners the sky moved away from)
-    hot[rows[hot[cols]]] = True
+    # the stationary companions of a clear hot pixel are hot too: in the
+    # middle of a slow drift they have fewer partners the sky moved away from
+    hot[rows[strong[cols]]] = True
     return hot
 
 
@@ -241,10 +243,16 @@ def _associate(common: np.ndarray, snap: np.ndarray, comp: np.ndarray, usable: n
         candidates = np.flatnonzero(track_comp[:n_tracks] == comp[idx[0]])
         if len(candidates):
             cost = 1.0 - common[idx] @ means[candidates].T
-            cost[cost > max_cost] = too_far
-            rows, cols = linear_sum_assignment(cost)
-            keep = cost[rows, cols] < too_far
-            rows, tracks = rows[keep], candidates[cols[keep]]
+            nearest = np.argmin(cost, axis=1)
+            rows = np.flatnonzero(cost[np.arange(len(idx)), nearest] <= max_cost)
+            cols = nearest[rows]
+            if len(np.unique(cols)) < len(cols):
+                # two sources want one track: the optimal one-to-one assignment decides
+                cost[cost > max_cost] = too_far
+                rows, cols = linear_sum_assignment(cost)
+                keep = cost[rows, cols] < too_far
+                rows, cols = rows[keep], cols[keep]
+            tracks = candidates[cols]
             label[idx[rows]] = tracks
             sums[tracks] += common[idx[rows]]
             means[tracks] = _normalized(sums[tracks])
@@ -307,23 +315,19 @@ def _noise_sigma_px(residual_sq_px: np.ndarray, dof_factor: np.ndarray, p: Extra
     """Per-axis sigma from 2D residuals r with E|r|^2 = 2 sigma^2 dof_factor (median based)."""
     if len(residual_sq_px) < 5:
         return p.sigma_default_px
-    sigma = math.sqrt(float(np.median(residual_sq_px / dof_factor)) / _CHI2_2_MEDIAN)
+    scaled = residual_sq_px / dof_factor
+    middle = len(scaled) // 2  # the upper median: np.median's overhead is most of the cost here
+    sigma = math.sqrt(float(np.partition(scaled, middle)[middle]) / _CHI2_2_MEDIAN)
     return float(np.clip(sigma, p.sigma_min_px, p.sigma_max_px))
 
 
-def _max_sky_motion_px(camera, to_common: np.ndarray, members: np.ndarray) -> float:
-    """Largest pixel shift of the field's centre and corners between two snapshots of ``members``."""
-    if len(members) < 2:
-        return 0.0
-    w, h = camera.width, camera.height
-    probe = camera.pixels_to_vectors(np.array([[camera.cx, camera.cy], [0, 0], [w - 1, 0],
-                                               [0, h - 1], [w - 1, h - 1]], dtype=float))
-    a = to_common[members]
-    relative = np.matmul(np.swapaxes(a, 1, 2)[:, None], a[None])  # A_i^T A_j: frame j -> frame i
-    moved = np.matmul(relative, probe.T)  # (n, n, 3, 5)
-    xy, _ = camera.vectors_to_pixels(np.swapaxes(moved, 2, 3).reshape(-1, 3))
-    home, _ = camera.vectors_to_pixels(probe)
-    shift = np.linalg.norm(xy.reshape(len(members), len(members), len(probe), 2) - home, axis=-1)
+def _max_sky_motion_px(camera, motion: np.ndarray, members: np.ndarray) -> float:
+    """Largest pixel shift of the field's centre and corners between ``members`` and the reference."""
+    probe_xy = np.array([[camera.cx, camera.cy], [0, 0], [camera.width - 1, 0],
+                         [0, camera.height - 1], [camera.width - 1, camera.height - 1]], dtype=float)
+    moved = np.matmul(motion[members], camera.pixels_to_vectors(probe_xy).T)  # (n, 3, 5)
+    xy, _ = camera.vectors_to_pixels(np.swapaxes(moved, 1, 2).reshape(-1, 3))
+    shift = np.linalg.norm(xy.reshape(len(members), len(probe_xy), 2) - probe_xy, axis=-1)
     return float(np.nanmax(shift))
 
 
@@ -383,9 +387,9 @@ def extract(sequence: Sequence, parameters: ExtractionParameters = DEFAULT_PARAM
     motion_valid = valid.copy()
     if 0 < recurring.sum() < 0.5 * len(snap):
         motion_valid[snap[recurring], index[recurring]] = False
-    motion_vectors = np.where(motion_valid[..., None], vectors_pad, np.nan)
+    motion_vectors = np.where(motion_valid[..., None], vectors_pad, 0.0)  # zero rows never match
     to_common, component, used, link_sq = _chain_motions(motion_vectors, bright_pad, motion_valid,
-                                                         chord_px, p)
+                                                         chord_px, camera.width * camera.height, p)
     comp = component[snap]
 
     # 2. refinement against the provisional tracks of the links' matches
@@ -425,10 +429,10 @@ def extract(sequence: Sequence, parameters: ExtractionParameters = DEFAULT_PARAM
     tracks, track_of_source, rejection = _verdicts(sequence, snap, index, label, hot, outlier, xy)
 
     notes = []
-    sky_motion = _max_sky_motion_px(camera, to_common, np.flatnonzero(same))
-    if tracks and sky_motion < gate:
-        notes.append(f"the sky moved at most {sky_motion:.1f} px during the sequence: hot pixels cannot be "
-                     f"told from stars and stationary sources are kept as tracks")
+    sky_motion = _max_sky_motion_px(camera, motion, np.flatnonzero(same))
+    if tracks and 2 * sky_motion < gate:
+        notes.append(f"the sky moved at most {sky_motion:.1f} px from the reference snapshot: hot pixels "
+                     f"cannot be told from stars and stationary sources are kept as tracks")
     if not tracks:
         notes.append("no source was seen moving consistently with the sky in two snapshots: no tracks")
     carried = [t for t in tracks if same[t.snapshots[0]]]
@@ -448,19 +452,21 @@ def _verdicts(sequence: Sequence, snap: np.ndarray, index: np.ndarray, label: np
     labels_in_order = label[label >= 0]
     _, first = np.unique(labels_in_order, return_index=True)
     old_ids = labels_in_order[np.sort(first)]
-    new_id = np.full(int(label.max(initial=-1)) + 1, -1, dtype=int)
+    new_id = np.full(max(1, int(label.max(initial=-1)) + 1), -1, dtype=int)
     new_id[old_ids] = np.arange(len(old_ids))
     track_id = np.where(label >= 0, new_id[np.maximum(label, 0)], -1)
 
     brightness = np.concatenate([np.asarray(s.brightness, dtype=float) for s in sequence.snapshots])
-    by_track = np.argsort(np.where(track_id >= 0, track_id, len(old_ids)), kind="stable")
-    sizes = np.bincount(track_id[track_id >= 0], minlength=len(old_ids))
-    starts = np.cumsum(sizes) - sizes
-    tracks = []
-    for tid in range(len(old_ids)):
-        members = by_track[starts[tid]:starts[tid] + sizes[tid]]  # in snapshot order (stable sort)
-        tracks.append(Track(id=tid, snapshots=snap[members], source_indices=index[members],
-                            xy=xy[members], mean_brightness=float(brightness[members].mean())))
+    in_track = np.flatnonzero(track_id >= 0)
+    by_track = in_track[np.argsort(track_id[in_track], kind="stable")]  # stable: snapshot order kept
+    sizes = np.bincount(track_id[in_track], minlength=len(old_ids))
+    split = np.cumsum(sizes)[:-1]
+    mean_brightness = np.bincount(track_id[in_track], brightness[in_track], len(old_ids)) / np.maximum(sizes, 1)
+    tracks = tuple(Track(id=tid, snapshots=s_, source_indices=i_, xy=xy_, mean_brightness=float(b_))
+                   for tid, (s_, i_, xy_, b_) in enumerate(zip(np.split(snap[by_track], split),
+                                                              np.split(index[by_track], split),
+                                                              np.split(xy[by_track], split),
+                                                              mean_brightness)))
 
     reason = np.full(len(label), GHOST, dtype=object)
     reason[outlier] = OUTLIER
@@ -472,4 +478,4 @@ def _verdicts(sequence: Sequence, snap: np.ndarray, index: np.ndarray, label: np
         # every source of a snapshot is in the flattened list, in input order
         track_of_source.append(track_id[bounds[s]:bounds[s + 1]].copy())
         rejection.append(tuple(reason[bounds[s]:bounds[s + 1]]))
-    return tuple(tracks), tuple(track_of_source), tuple(rejection)
+    return tracks, tuple(track_of_source), tuple(rejection)

@@ -1,0 +1,5 @@
+"""The API's routers, one module per resource."""
+
+from app.api.routes import attitudes, sequences, system
+
+ROUTERS = (sequences.router, attitudes.router, system.router)

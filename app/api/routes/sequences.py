@@ -1,0 +1,144 @@
+"""/api/sequences: upload, list, read, edit the pattern, search, candidates, confirm, AEM."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Literal
+
+from fastapi import APIRouter, Body, Depends, Path, Query, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import JSONResponse, PlainTextResponse
+from starlette.datastructures import UploadFile
+
+from app.api import service
+from app.api.context import AppContext
+from app.api.errors import ApiError
+from app.api.routes.common import (ID_LIMITS, get_context, operator_name, read_body_limited, replay_request,
+                                   too_large, writer)
+from app.api.schemas import ConfirmRequest, PatternEdit, PatternReset, SearchRequest
+
+router = APIRouter(prefix="/api/sequences", tags=["sequences"])
+
+#: Room for multipart boundaries and part headers on top of the file size limit.
+MULTIPART_OVERHEAD = 64 * 1024
+#: Raw-body media types read as telemetry (JSON or CSV; the content decides which).
+RAW_TYPES = ("application/json", "text/csv", "text/plain", "application/octet-stream")
+#: Extra wall-clock time a search may take beyond its own budget (waiting for a worker, extraction).
+SEARCH_GRACE_S = 20.0
+
+SeqId = Path(description="archive id of the sequence", **ID_LIMITS)
+_UPLOAD_BODY = {
+    "requestBody": {
+        "required": True,
+        "description": "A telemetry file (tubsat-snapshots/1, JSON or CSV): as a multipart `file` field "
+                       "or as the raw body.",
+        "content": {
+            "multipart/form-data": {"schema": {"type": "object", "required": ["file"],
+                                               "properties": {"file": {"type": "string", "format": "binary"}}}},
+            "application/json": {"schema": {"type": "object"}},
+            "text/csv": {"schema": {"type": "string"}},
+            "text/plain": {"schema": {"type": "string"}},
+        },
+    },
+    "responses": {"200": {"description": "The same content was uploaded before: the stored sequence"},
+                  "413": {"description": "Larger than the upload limit"},
+                  "422": {"description": "Invalid telemetry, with located problems"}},
+}
+
+
+async def _upload_bytes(request: Request, limit: int) -> tuple[bytes, str | None]:
+    """The telemetry bytes and the client's file name from a multipart or raw body."""
+    media_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if media_type == "multipart/form-data":
+        body = await read_body_limited(request, limit + MULTIPART_OVERHEAD)
+        form = await replay_request(request, body).form(max_files=1, max_fields=10)
+        files = [v for v in form.values() if isinstance(v, UploadFile)]
+        if not files:
+            raise ApiError(422, "the multipart upload has no file; send the telemetry as the 'file' field",
+                           problems=[{"location": "body.file", "message": "missing file"}])
+        data = await files[0].read()
+        if len(data) > limit:
+            raise too_large(limit)
+        return data, files[0].filename
+    if media_type and media_type not in RAW_TYPES:
+        raise ApiError(415, f"unsupported media type {media_type!r}: send multipart/form-data with a 'file' "
+                            f"field, or the file itself as application/json, text/csv or text/plain")
+    return await read_body_limited(request, limit), None
+
+
+@router.post("", status_code=201, openapi_extra=_UPLOAD_BODY,
+             summary="Upload a telemetry file (201 created, 200 if the same content exists)")
+async def upload(request: Request,
+                 filename: str | None = Query(None, max_length=255,
+                                              description="name of the file, for a raw body (a label only)"),
+                 _operator: str | None = Depends(writer), ctx: AppContext = Depends(get_context)):
+    data, form_name = await _upload_bytes(request, ctx.settings.max_upload_bytes)
+    doc, created = await run_in_threadpool(service.ingest_upload, ctx, data, form_name or filename)
+    return JSONResponse(doc, status_code=201 if created else 200)
+
+
+@router.get("", summary="A page of sequences, newest first")
+def list_sequences(offset: int = Query(0, ge=0, le=2**62), limit: int = Query(50, ge=1, le=1000),
+                   spacecraft: str | None = Query(None, max_length=128),
+                   status: Literal["new", "identified", "ambiguous", "no_match", "confirmed"] | None = None,
+                   ctx: AppContext = Depends(get_context)):
+    return service.list_sequences(ctx, offset, limit, spacecraft, status)
+
+
+@router.get("/{seq_id}", summary="A sequence: telemetry, extraction, current pattern, latest search, confirmation")
+def get_sequence(seq_id: int = SeqId, ctx: AppContext = Depends(get_context)):
+    return service.sequence_detail(ctx, seq_id)
+
+
+@router.put("/{seq_id}/pattern", summary="Set the operator's pattern (a new version)")
+def put_pattern(edit: PatternEdit, seq_id: int = SeqId, token_operator: str | None = Depends(writer),
+                ctx: AppContext = Depends(get_context)):
+    return service.set_pattern(ctx, seq_id, edit.definition(), operator_name(token_operator, edit.operator))
+
+
+@router.post("/{seq_id}/pattern/reset", summary="Restore the automatic pattern (a new version)")
+def reset_pattern(body: PatternReset | None = Body(None), seq_id: int = SeqId,
+                  token_operator: str | None = Depends(writer), ctx: AppContext = Depends(get_context)):
+    return service.reset_pattern(ctx, seq_id, operator_name(token_operator, body.operator if body else None))
+
+
+@router.post("/{seq_id}/search", summary="Identify the current pattern; ranked candidates and the status")
+async def search(body: SearchRequest | None = Body(None), seq_id: int = SeqId,
+                 _operator: str | None = Depends(writer), ctx: AppContext = Depends(get_context)):
+    body = body or SearchRequest()
+    # A dedicated pool: at most search_workers CPU-bound searches at once, the event loop stays free.
+    future = ctx.search_executor.submit(service.run_search, ctx, seq_id, body.method, body.max_candidates)
+    deadline = ctx.settings.search_timeout_s + SEARCH_GRACE_S
+    try:
+        return await asyncio.wait_for(asyncio.wrap_future(future), timeout=deadline)
+    except asyncio.TimeoutError:
+        raise ApiError(503, f"the search did not finish within {deadline:.0f} s (the server is busy); "
+                            "try again") from None
+
+
+@router.get("/{seq_id}/candidates/{rank}", summary="One candidate of the latest search with its sky section")
+def get_candidate(seq_id: int = SeqId, rank: int = Path(**ID_LIMITS),
+                  mag: float = Query(6.0, ge=-2.0, le=7.0, description="faintest catalogue star shown (Hp)"),
+                  ctx: AppContext = Depends(get_context)):
+    return service.candidate_view(ctx, seq_id, rank, mag)
+
+
+@router.post("/{seq_id}/confirm", status_code=201, summary="Confirm a candidate of the latest search")
+def confirm(body: ConfirmRequest, seq_id: int = SeqId, token_operator: str | None = Depends(writer),
+            ctx: AppContext = Depends(get_context)):
+    operator = operator_name(token_operator, body.operator)
+    if operator is None:
+        raise ApiError(422, "a confirmation needs the operator's name",
+                       problems=[{"location": "body.operator", "message": "missing operator"}])
+    comment = (body.comment or "").strip() or None
+    return service.confirm(ctx, seq_id, body.rank, operator, comment)
+
+
+@router.get("/{seq_id}/aem", response_class=PlainTextResponse,
+            summary="CCSDS AEM 2.0 (KVN): one quaternion per snapshot of the confirmed sequence")
+def get_aem(seq_id: int = SeqId, ctx: AppContext = Depends(get_context)):
+    text, c = service.sequence_aem(ctx, seq_id)
+    row = ctx.storage.get_sequence(seq_id)
+    name = service.download_name(row.sequence_id if row else None, f"sequence-{seq_id}", ".aem")
+    return PlainTextResponse(text, media_type="text/plain; charset=utf-8",
+                             headers={"Content-Disposition": f'attachment; filename="{name}"'})
