@@ -101,44 +101,89 @@ class Sky:
         return entry[0] if entry else None
 
 
+@dataclass(frozen=True, eq=False)
+class PreparedPattern:
+    """A pattern ready for any hypothesis method: the brightest points, their
+    noise, tolerances and the star field they are checked against."""
+
+    keep: np.ndarray  # rows of the original pattern used
+    vectors: np.ndarray
+    xy: np.ndarray
+    sigma_px: np.ndarray
+    match_tol: np.ndarray  # (m,) final match tolerance of each point, radians
+    weights: np.ndarray  # (m,) Wahba weights 1 / sigma^2
+    camera: Camera
+    field: StarField
+    star_mask: np.ndarray  # index rows the camera can see
+    scale: float  # radians per pixel
+
+    @property
+    def m(self) -> int:
+        return len(self.vectors)
+
+
+def prepare_pattern(pattern, camera: Camera, t: datetime, sky: Sky, velocity_km_s=None,
+                    options: SearchOptions = SearchOptions()) -> PreparedPattern:
+    # The brightest points only: faint sources are most often ghosts or missing stars.
+    keep = np.sort(np.argsort(-np.nan_to_num(pattern.brightness, nan=0.0), kind="stable")[:options.max_points])
+    sigma_px = np.maximum(np.nan_to_num(np.asarray(pattern.sigma_px, float)[keep], nan=0.5), 0.05)
+    scale = camera.pixel_scale_rad
+    mag_limit = min(camera.limiting_magnitude + options.mag_margin, sky.index.mag_limit)
+    return PreparedPattern(
+        keep=keep, vectors=pattern.vectors[keep], xy=pattern.xy[keep], sigma_px=sigma_px,
+        match_tol=np.maximum(options.match_tolerance_px, 5 * sigma_px) * scale,
+        weights=1.0 / (sigma_px * scale) ** 2, camera=camera,
+        field=sky.field(t, mag_limit, velocity_km_s), star_mask=sky.star_mask(mag_limit), scale=scale)
+
+
+def bright_pair_batches(p: PreparedPattern, sky: Sky, options: SearchOptions):
+    """Hypotheses from the bright-pair index, edge batches of growing size (see :mod:`.hypotheses`)."""
+    edges = ordered_pattern_edges(p.xy, p.camera)
+    if not edges:
+        return
+    v = p.vectors
+    edge_sigma_px = np.array([np.hypot(p.sigma_px[i], p.sigma_px[j]) for i, j in edges])
+    # Aberration differs across the field by up to ~1e-4 of an edge's length.
+    edge_len = np.array([np.arccos(np.clip(v[i] @ v[j], -1, 1)) for i, j in edges])
+    edge_tol = (options.edge_tolerance_px + 4 * edge_sigma_px) * p.scale + 1.1e-4 * edge_len
+    # A rotation from one edge errs at distance D from its first point by ~tol * D / L.
+    reach = np.array([np.max(np.arccos(np.clip(v @ v[i], -1, 1))) for i, _ in edges])
+    check_tol = np.minimum(np.max(p.match_tol) + edge_tol * np.maximum(1.0, reach / np.maximum(edge_len, 1e-9)),
+                           10 * p.scale)
+    e, batch = 0, 2
+    while e < len(edges):
+        stop = min(len(edges), e + batch)
+        hyp = bright_pair_hypotheses(v, edges[e:stop], edge_tol[e:stop], sky.index, p.star_mask)
+        yield hyp, check_tol[e + hyp.edge_number], stop
+        e, batch = stop, batch * 2
+
+
+#: Hypothesis generators by method name: each yields (Hypotheses, check
+#: tolerance per hypothesis, pattern edges/features used so far).
+HYPOTHESIS_METHODS = {"bright_pair": bright_pair_batches}
+
+
 def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=None,
-             options: SearchOptions = SearchOptions(), planets: dict[str, np.ndarray] | None = None) -> Solution:
+             options: SearchOptions = SearchOptions(), planets: dict[str, np.ndarray] | None = None,
+             method: str = "bright_pair") -> Solution:
     """Identify a pattern seen by ``camera`` at UTC ``t``.
 
     ``pattern`` has ``vectors`` (m, 3) camera-frame unit vectors, ``xy``
     (m, 2) pixels, ``sigma_px`` (m,), ``brightness`` (m,) and ``track_ids``
     (m,) (-1 for hand-picked points) - an :class:`app.extraction.Pattern`.
-    ``planets`` maps planet names to apparent unit vectors at ``t``.
+    ``planets`` maps planet names to apparent unit vectors at ``t``;
+    ``method`` names a generator in :data:`HYPOTHESIS_METHODS`.
     """
     started = _time.perf_counter()
+    if method not in HYPOTHESIS_METHODS:
+        raise ValueError(f"unknown method {method!r}; choose from {', '.join(HYPOTHESIS_METHODS)}")
     m_all = len(pattern.vectors)
     if m_all < 3:
         return Solution(status=NO_MATCH, candidates=(), elapsed_s=_time.perf_counter() - started,
                         notes=(f"the pattern has {m_all} point(s); at least 3 are needed",))
-    # The brightest points only: faint sources are most often ghosts or missing stars.
-    keep = np.argsort(-np.nan_to_num(pattern.brightness, nan=0.0), kind="stable")[:options.max_points]
-    keep = np.sort(keep)
-    vectors = pattern.vectors[keep]
-    xy = pattern.xy[keep]
-    sigma_px = np.maximum(np.nan_to_num(np.asarray(pattern.sigma_px, float)[keep], nan=0.5), 0.05)
-    m = len(vectors)
-    scale = camera.pixel_scale_rad
-    match_tol = np.maximum(options.match_tolerance_px, 5 * sigma_px) * scale
-    weights = 1.0 / (sigma_px * scale) ** 2
-
-    mag_limit = min(camera.limiting_magnitude + options.mag_margin, sky.index.mag_limit)
-    field = sky.field(t, mag_limit, velocity_km_s)
-    star_mask = sky.star_mask(mag_limit)
-
-    edges = ordered_pattern_edges(xy, camera)
-    edge_sigma_px = np.array([np.hypot(sigma_px[i], sigma_px[j]) for i, j in edges])
-    # Aberration differs across the field by up to ~1e-4 of an edge's length.
-    edge_len = np.array([np.arccos(np.clip(vectors[i] @ vectors[j], -1, 1)) for i, j in edges])
-    edge_tol = (options.edge_tolerance_px + 4 * edge_sigma_px) * scale + 1.1e-4 * edge_len
-    # A rotation from one edge errs at distance D from its first point by ~tol * D / L.
-    reach = np.array([np.max(np.arccos(np.clip(vectors @ vectors[i], -1, 1))) for i, _ in edges])
-    check_tol = np.minimum(np.max(match_tol) + edge_tol * np.maximum(1.0, reach / np.maximum(edge_len, 1e-9)),
-                           10 * scale)
+    p = prepare_pattern(pattern, camera, t, sky, velocity_km_s, options)
+    vectors, keep, m, scale, field = p.vectors, p.keep, p.m, p.scale, p.field
+    match_tol, weights = p.match_tol, p.weights
 
     merge_angle = 20 * scale
     found: list[dict] = []  # distinct refined hypotheses
@@ -158,31 +203,27 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
                 return
         same["merged"] += 1
 
-    # Edges are tried in growing batches; after each, the most promising new
-    # hypotheses are refined, and the search stops once one explains most of
-    # the pattern (usually after the first sure edges).
+    # Hypotheses come in batches; after each, the most promising new ones are
+    # refined, and the search stops once one explains most of the pattern
+    # (for bright pairs usually after the first sure edges).
     parts: list[tuple] = []
-    n_tried, e, batch = 0, 0, 2
-    while e < len(edges):
-        stop = min(len(edges), e + batch)
-        hyp = bright_pair_hypotheses(vectors, edges[e:stop], edge_tol[e:stop], sky.index, star_mask)
+    n_tried, used = 0, 0
+    for hyp, tol, used in HYPOTHESIS_METHODS[method](p, sky, options):
         if len(hyp):
-            tol = check_tol[e + hyp.edge_number]
             n_match, dev = check_hypotheses(hyp.rotations, vectors, field, tol)
             parts.append((hyp.rotations, hyp.pattern_edge, hyp.catalogue_pair, n_match, dev, tol))
             n_tried += len(hyp)
             for h in np.lexsort((dev, -n_match))[:options.refine_per_batch]:
                 if n_match[h] >= 3:
                     consider(hyp.rotations[h], hyp.pattern_edge[h], hyp.catalogue_pair[h], float(tol[h]))
-        e, batch = stop, batch * 2
         best = max((c["refined"].n_matched for c in found), default=0)
-        if best >= min(m, options.early_stop_matches) and e >= options.early_stop_edges:
+        if best >= min(m, options.early_stop_matches) and used >= options.early_stop_edges:
             break
         if _time.perf_counter() - started > options.timeout_s:
             break
     if not parts:
         return Solution(status=NO_MATCH, candidates=(), elapsed_s=_time.perf_counter() - started,
-                        notes=("no catalogue pair has the length of any pattern edge",))
+                        notes=(f"no {method} hypothesis: no catalogue feature fits the pattern",))
     # More distinct alternatives for the operator's Next/Prev, in order of promise.
     rot, pe, cp, n_match, dev, hyp_tol = (np.concatenate(x) for x in zip(*parts))
     for h in np.lexsort((dev, -n_match)):
@@ -192,8 +233,8 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
             break
         consider(rot[h], pe[h], cp[h], float(hyp_tol[h]))
 
-    candidates = [_candidate(c, vectors, keep, pattern, field, sky, scale, match_tol, m, n_tried, options,
-                             planets) for c in found]
+    candidates = [_candidate(c, vectors, keep, pattern, field, sky, scale, m, n_tried, options, planets)
+                  for c in found]
     candidates = [c for c in candidates if c.n_matched >= 3]
     candidates.sort(key=lambda c: (c.false_match_probability, -c.n_matched, c.deviation_arcsec))
     candidates = candidates[:options.max_candidates]
@@ -201,7 +242,7 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     candidates = [replace(c, rank=i + 1) for i, c in enumerate(candidates)]
     status = classify(candidates, options)
     return Solution(status=status, candidates=tuple(candidates), elapsed_s=_time.perf_counter() - started,
-                    notes=(f"{n_tried} hypotheses from {min(e, len(edges))} of {len(edges)} pattern edges",))
+                    notes=(f"{n_tried} {method} hypotheses from {used} pattern features",))
 
 
 def classify(candidates: list[Candidate], options: SearchOptions) -> str:
@@ -216,7 +257,7 @@ def classify(candidates: list[Candidate], options: SearchOptions) -> str:
     return AMBIGUOUS
 
 
-def _candidate(c, vectors, keep, pattern, field: StarField, sky: Sky, scale, match_tol, m, n_tried,
+def _candidate(c, vectors, keep, pattern, field: StarField, sky: Sky, scale, m, n_tried,
                options: SearchOptions, planets) -> Candidate:
     r = c["refined"]
     R = r.rotation
