@@ -2,13 +2,21 @@
 
 ``solve_sequence`` is the one function the CLI, the API and the benchmarks
 call: extraction (unless given) -> pattern (unless given) -> identification
-at the reference snapshot's time, with planets labelled.
+at the reference snapshot's time, with planets labelled -> for every
+credible candidate, the attitude of the whole sequence (one per snapshot,
+the body rate, and the attitude at the reference time averaged over all
+snapshots: :mod:`app.attitude.sequence`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field, replace
 
+import numpy as np
+
+from app.attitude.sequence import SequenceFit, fit_constant_rate, rate_from_motion, snapshot_attitude
+from app.attitude.wahba import cross_boresight_and_roll_sigma
 from app.extraction import Extraction, Pattern, extract
 from app.identification.engine import SearchOptions, Sky, classify, identify
 from app.identification.result import (AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, PlanetMatch, Solution,
@@ -16,7 +24,10 @@ from app.identification.result import (AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidat
 from app.telemetry import Sequence
 
 __all__ = ["AMBIGUOUS", "IDENTIFIED", "NO_MATCH", "Candidate", "PlanetMatch", "SearchOptions", "Sky",
-           "Solution", "SolvedSequence", "StarMatch", "classify", "identify", "solve_sequence"]
+           "Solution", "SolvedSequence", "StarMatch", "classify", "fit_sequence", "identify", "solve_sequence"]
+
+#: Noise of one sighting when extraction could not measure it, pixels.
+DEFAULT_SIGHTING_SIGMA_PX = 0.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -25,6 +36,8 @@ class SolvedSequence:
     extraction: Extraction
     pattern: Pattern
     solution: Solution
+    #: Sequence attitude fits by candidate rank (credible candidates of multi-snapshot sequences).
+    sequence_fits: dict[int, SequenceFit] = field(default_factory=dict)
 
     @property
     def reference_time(self):
@@ -33,7 +46,7 @@ class SolvedSequence:
 
 def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = SearchOptions(),
                    extraction: Extraction | None = None, pattern: Pattern | None = None,
-                   with_planets: bool = True) -> SolvedSequence:
+                   with_planets: bool = True, method: str = "bright_pair") -> SolvedSequence:
     """Extract (unless ``extraction`` is given) and identify ``pattern`` (default: the averaged one)."""
     from app.planets import planet_vectors
 
@@ -42,5 +55,57 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
     t = sequence.snapshots[extraction.reference].time
     planets = planet_vectors(t) if with_planets else None
     solution = identify(pattern, sequence.camera, t, sky, velocity_km_s=sequence.velocity_km_s,
-                        options=options, planets=planets)
-    return SolvedSequence(sequence=sequence, extraction=extraction, pattern=pattern, solution=solution)
+                        options=options, planets=planets, method=method)
+    fits: dict[int, SequenceFit] = {}
+    candidates = []
+    for c in solution.candidates:
+        fit = None
+        if c.false_match_probability <= options.rival_probability and len(sequence.snapshots) > 1:
+            fit = fit_sequence(sequence, extraction, pattern, c, sky)
+        if fit is not None:
+            fits[c.rank] = fit
+            cross, roll = cross_boresight_and_roll_sigma(fit.covariance)
+            c = replace(c, rotation_matrix=fit.rotation,
+                        sigma_cross_boresight_arcsec=math.degrees(cross) * 3600,
+                        sigma_roll_arcsec=math.degrees(roll) * 3600)
+        candidates.append(c)
+    solution = replace(solution, candidates=tuple(candidates))
+    return SolvedSequence(sequence=sequence, extraction=extraction, pattern=pattern, solution=solution,
+                          sequence_fits=fits)
+
+
+def fit_sequence(sequence: Sequence, extraction: Extraction, pattern: Pattern, candidate: Candidate,
+                 sky: Sky) -> SequenceFit | None:
+    """Per-snapshot attitudes from the candidate's identified tracks, then the constant-rate fit.
+
+    Each snapshot uses the sightings of the tracks the candidate matched to
+    stars, through the camera model, against the stars' apparent places.
+    """
+    camera = sequence.camera
+    ref = extraction.reference
+    t_ref = sequence.snapshots[ref].time
+    star_of_track = {m.track: m.hip for m in candidate.matches if m.track is not None}
+    if len(star_of_track) < 2:
+        return None
+    tracks = {t.id: t for t in extraction.tracks if t.id in star_of_track}
+    hips = sorted(set(star_of_track.values()))
+    star_vec = dict(zip(hips, sky.apparent_vectors_of(hips, t_ref, sequence.velocity_km_s)))
+    noise = extraction.noise_px if math.isfinite(extraction.noise_px) else DEFAULT_SIGHTING_SIGMA_PX
+    sigma = max(noise, 0.05) * camera.pixel_scale_rad
+    snaps = []
+    for pos, snap in enumerate(sequence.snapshots):
+        xy, ref_vectors = [], []
+        for track_id, track in tracks.items():
+            hit = np.flatnonzero(track.snapshots == pos)
+            if len(hit):
+                xy.append(track.xy[hit[0]])
+                ref_vectors.append(star_vec[star_of_track[track_id]])
+        if len(xy) < 2:
+            continue
+        body = camera.pixels_to_vectors(np.array(xy))
+        sa = snapshot_attitude(body, np.array(ref_vectors), np.full(len(xy), sigma), position=pos,
+                               dt_s=(snap.time - t_ref).total_seconds())
+        if sa is not None:
+            snaps.append(sa)
+    dt = np.array([(s.time - t_ref).total_seconds() for s in sequence.snapshots])
+    return fit_constant_rate(snaps, candidate.rotation_matrix, rate_from_motion(extraction.motion, dt))

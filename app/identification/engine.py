@@ -17,7 +17,8 @@ from datetime import datetime
 
 import numpy as np
 
-from app.attitude import rotation_angle_between
+from app.attitude import rotation_angle_between, wahba_covariance
+from app.attitude.wahba import cross_boresight_and_roll_sigma
 from app.camera import Camera
 from app.catalogue import Catalogue, load_catalogue, star_names
 from app.identification.hypotheses import bright_pair_hypotheses, ordered_pattern_edges
@@ -79,6 +80,7 @@ class Sky:
         self.catalogue = cat
         self.names = star_names()
         self._fields: OrderedDict[tuple, StarField] = OrderedDict()
+        self._row_of_hip: dict[int, int] | None = None
 
     def star_mask(self, mag_limit: float) -> np.ndarray:
         return self.index.mag <= mag_limit
@@ -95,6 +97,16 @@ class Sky:
             while len(self._fields) > 32:
                 self._fields.popitem(last=False)
         return self._fields[key]
+
+    def apparent_vectors_of(self, hips, t: datetime, velocity_km_s=None) -> np.ndarray:
+        """Apparent places (unit vectors) of the stars with these HIP numbers at ``t``."""
+        if self._row_of_hip is None:
+            self._row_of_hip = {int(h): i for i, h in enumerate(self.catalogue.hip)}
+        rows = np.array([self._row_of_hip[int(h)] for h in hips], dtype=int)
+        cat = self.catalogue
+        sub = Catalogue(*(a[rows] for a in (cat.hip, cat.ra_rad, cat.dec_rad, cat.pm_ra_cosdec_mas_yr,
+                                             cat.pm_dec_mas_yr, cat.mag)))
+        return sub.apparent_vectors(t, velocity_km_s)
 
     def name(self, row: int) -> str | None:
         entry = self.names.get(int(self.index.hip[row]))
@@ -233,8 +245,7 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
             break
         consider(rot[h], pe[h], cp[h], float(hyp_tol[h]))
 
-    candidates = [_candidate(c, vectors, keep, pattern, field, sky, scale, m, n_tried, options, planets)
-                  for c in found]
+    candidates = [_candidate(c, p, pattern, sky, n_tried, options, planets) for c in found]
     candidates = [c for c in candidates if c.n_matched >= 3]
     candidates.sort(key=lambda c: (c.false_match_probability, -c.n_matched, c.deviation_arcsec))
     candidates = candidates[:options.max_candidates]
@@ -257,8 +268,8 @@ def classify(candidates: list[Candidate], options: SearchOptions) -> str:
     return AMBIGUOUS
 
 
-def _candidate(c, vectors, keep, pattern, field: StarField, sky: Sky, scale, m, n_tried,
-               options: SearchOptions, planets) -> Candidate:
+def _candidate(c, p: PreparedPattern, pattern, sky: Sky, n_tried, options: SearchOptions, planets) -> Candidate:
+    vectors, keep, field, scale, m = p.vectors, p.keep, p.field, p.scale, p.m
     r = c["refined"]
     R = r.rotation
     matched = np.flatnonzero(r.star_of_point >= 0)
@@ -287,6 +298,9 @@ def _candidate(c, vectors, keep, pattern, field: StarField, sky: Sky, scale, m, 
     deviation = float(np.sum(r.nearest_rad))
     fmp = false_match_probability(m, len(matched), c["tol"], field.density_per_sr, n_tried,
                                   float(np.sum(resid ** 2)))
+    sigma_rad = p.sigma_px[matched] * scale
+    cov = wahba_covariance(vectors[matched], sigma_rad) * max(1.0, reduced_chi2(resid, sigma_rad))
+    sigma_cross, sigma_roll = cross_boresight_and_roll_sigma(cov)
     return Candidate(
         rank=0, rotation_matrix=R,
         deviation_arcsec=float(np.degrees(deviation) * 3600),
@@ -295,4 +309,12 @@ def _candidate(c, vectors, keep, pattern, field: StarField, sky: Sky, scale, m, 
         false_match_probability=fmp, matches=matches, planets=tuple(planet_matches),
         generating_edge=(int(keep[c["edge"][0]]), int(keep[c["edge"][1]])),
         generating_pair_hip=(int(sky.index.hip[c["pair"][0]]), int(sky.index.hip[c["pair"][1]])),
-        n_hypotheses_merged=c["merged"])
+        n_hypotheses_merged=c["merged"],
+        sigma_cross_boresight_arcsec=float(np.degrees(sigma_cross) * 3600),
+        sigma_roll_arcsec=float(np.degrees(sigma_roll) * 3600))
+
+
+def reduced_chi2(residual_rad: np.ndarray, sigma_rad: np.ndarray) -> float:
+    """chi^2 per degree of freedom of a Wahba fit: 2 per star, 3 taken by the attitude."""
+    dof = 2 * len(residual_rad) - 3
+    return float(np.sum((residual_rad / sigma_rad) ** 2) / dof) if dof > 0 else 1.0

@@ -1,4 +1,4 @@
-"""Attitude: rotations between the ICRS and the camera frame, and Wahba's problem.
+"""Rotations between the ICRS and the camera frame, and Wahba's problem.
 
 ``R`` (a "rotation_matrix" everywhere in this project) maps ICRS unit
 vectors to camera-frame unit vectors: ``v_cam = R @ v_icrs``.  Its rows are

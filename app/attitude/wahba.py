@@ -1,0 +1,41 @@
+"""The covariance of a Wahba (QUEST / q-method / SVD) attitude estimate.
+
+Shuster's measurement model (as used by FUSE, seed 001): each measured
+camera-frame unit vector is ``b_i = R r_i + noise`` with the noise isotropic
+in the plane perpendicular to ``b_i``, 1-sigma ``s_i`` radians.  For the
+optimal weights ``w_i = 1 / s_i^2`` the error of the estimate, written as a
+small rotation ``dtheta`` in the camera frame (``R_true = exp([dtheta]x) R_est``),
+has covariance::
+
+    P = [ sum_i w_i (I - b_i b_i^T) ]^-1
+
+Components 0 and 1 are the cross-boresight errors (about camera x and y),
+component 2 the roll about the boresight.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def wahba_covariance(body: np.ndarray, sigma_rad: np.ndarray) -> np.ndarray:
+    """(3, 3) covariance (rad^2) of the attitude from vectors ``body`` (N, 3) with 1-sigma ``sigma_rad`` (N,).
+
+    Needs at least two non-parallel vectors; with fewer the information
+    matrix is singular and the result holds ``inf``.
+    """
+    body = np.asarray(body, dtype=float).reshape(-1, 3)
+    w = 1.0 / np.asarray(sigma_rad, dtype=float).reshape(-1) ** 2
+    info = w.sum() * np.eye(3) - (body * w[:, None]).T @ body
+    try:
+        cov = np.linalg.inv(info)
+    except np.linalg.LinAlgError:
+        return np.full((3, 3), np.inf)
+    if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) < 0):
+        return np.full((3, 3), np.inf)
+    return cov
+
+
+def cross_boresight_and_roll_sigma(cov: np.ndarray) -> tuple[float, float]:
+    """(per-axis cross-boresight 1-sigma, roll 1-sigma), radians, from a camera-frame covariance."""
+    return float(np.sqrt((cov[0, 0] + cov[1, 1]) / 2)), float(np.sqrt(cov[2, 2]))

@@ -1,0 +1,108 @@
+"""Tracking mode: identification with a prior attitude (Liebe's predictional
+estimate, PE; FUSE's "known tracking").
+
+1. Predict: the catalogue stars the camera would see at the prior attitude
+   (stars within the field plus the prior's uncertainty).
+2. Match by least distance, robust to a prior that is off by up to a degree:
+   every pairing of a pattern point with a predicted star proposes the same
+   image offset; the offset most pairings agree on wins (a vote, so a false
+   star or a missing one changes nothing), and its pairings seed the fit.
+3. Refine: Wahba over the matched pairs with outlier rejection, re-matching
+   with a tolerance shrinking to the points' noise (the same routine as
+   lost-in-space identification, :func:`app.identification.verify.refine`).
+
+Two matched stars fix an attitude, so tracking works with as few as two.
+"""
+
+from __future__ import annotations
+
+import time as _time
+from datetime import datetime
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from app.attitude import angle_between
+from app.attitude.wahba import cross_boresight_and_roll_sigma, wahba_covariance
+from app.camera import Camera
+from app.identification.engine import SearchOptions, Sky, prepare_pattern, reduced_chi2
+from app.identification.result import AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, Solution, StarMatch
+from app.identification.verify import chord, false_match_probability, refine
+
+
+def track(pattern, camera: Camera, t: datetime, sky: Sky, prior_rotation: np.ndarray, *,
+          prior_sigma_deg: float = 1.0, velocity_km_s=None,
+          options: SearchOptions = SearchOptions()) -> Solution:
+    """Identify ``pattern`` near ``prior_rotation`` (ICRS -> camera), 1-sigma ``prior_sigma_deg``."""
+    started = _time.perf_counter()
+    if len(pattern.vectors) < 2:
+        return Solution(status=NO_MATCH, candidates=(), elapsed_s=_time.perf_counter() - started,
+                        notes=(f"the pattern has {len(pattern.vectors)} point(s); tracking needs 2",))
+    p = prepare_pattern(pattern, camera, t, sky, velocity_km_s, options)
+    prior = np.asarray(prior_rotation, dtype=float)
+    search = np.radians(3.0 * prior_sigma_deg)  # how far a star can be from its prediction
+
+    # 1. Predicted stars: within the field's half-diagonal plus the search radius of the boresight.
+    reach = camera.diagonal_fov_rad / 2 + search
+    rows = np.array(p.field.tree.query_ball_point(prior[2], float(chord(min(reach, np.pi)))), dtype=int)
+    if len(rows) == 0:
+        return Solution(status=NO_MATCH, candidates=(), elapsed_s=_time.perf_counter() - started,
+                        notes=("no catalogue star near the prior attitude",))
+    predicted = p.field.vectors[rows] @ prior.T  # camera frame at the prior attitude
+
+    # 2. Vote for the offset: tangent-plane differences point -> star, in radians.
+    offsets = (predicted[None, :, :2] / predicted[None, :, 2:3]) - (p.vectors[:, None, :2] / p.vectors[:, None, 2:3])
+    near = np.linalg.norm(offsets, axis=2) <= search
+    cand = offsets[near]  # (K, 2)
+    if len(cand) == 0:
+        return Solution(status=NO_MATCH, candidates=(), elapsed_s=_time.perf_counter() - started,
+                        notes=("no catalogue star within the prior's uncertainty of any pattern point",))
+    # Agreement radius: the points' noise plus what a roll error of the prior
+    # does across the field.
+    agree = float(np.max(p.match_tol)) + np.radians(prior_sigma_deg) * camera.diagonal_fov_rad / 2
+    votes = (np.linalg.norm(cand[:, None, :] - cand[None, :, :], axis=2) <= agree).sum(axis=1)
+    # Ties (common with two or three stars) go to the offset the prior finds likelier.
+    score = votes - 0.5 * (np.linalg.norm(cand, axis=1) / search) ** 2
+    best_offset = cand[np.argmax(score)]
+
+    # Start the fit from the prior moved so the predicted stars shift onto the points.
+    # Rotating by +a about camera y adds a to x/z; by +a about x subtracts a from y/z.
+    nudge = Rotation.from_rotvec([best_offset[1], -best_offset[0], 0.0]).as_matrix()
+    start = nudge @ prior
+    r = refine(start, p.vectors, p.weights, p.field, p.match_tol, agree)
+    matched = np.flatnonzero(r.star_of_point >= 0)
+    if len(matched) < 2:
+        return Solution(status=NO_MATCH, candidates=(), elapsed_s=_time.perf_counter() - started,
+                        notes=("fewer than two pattern points match stars near the prior",))
+    resid = r.residual_rad[matched]
+    sigma_rad = p.sigma_px[matched] * p.scale
+    cov = wahba_covariance(p.vectors[matched], sigma_rad) * max(1.0, reduced_chi2(resid, sigma_rad))
+    cross, roll = cross_boresight_and_roll_sigma(cov)
+    n_hyp = len(cand)
+    fmp = false_match_probability(p.m, len(matched), agree, p.field.density_per_sr, n_hyp,
+                                  float(np.sum(resid ** 2)))
+    track_ids = np.asarray(pattern.track_ids)[p.keep]
+    matches = tuple(
+        StarMatch(pattern_index=int(p.keep[i]), track=int(track_ids[i]) if track_ids[i] >= 0 else None,
+                  hip=int(sky.index.hip[p.field.rows[r.star_of_point[i]]]),
+                  name=sky.name(int(p.field.rows[r.star_of_point[i]])),
+                  residual_arcsec=float(np.degrees(r.residual_rad[i]) * 3600))
+        for i in matched)
+    deviation = float(np.sum(r.nearest_rad))
+    candidate = Candidate(
+        rank=1, rotation_matrix=r.rotation, deviation_arcsec=float(np.degrees(deviation) * 3600),
+        deviation_px_per_point=float(deviation / p.m / p.scale),
+        rms_arcsec=float(np.degrees(np.sqrt(np.mean(resid ** 2))) * 3600),
+        false_match_probability=fmp, matches=matches,
+        sigma_cross_boresight_arcsec=float(np.degrees(cross) * 3600),
+        sigma_roll_arcsec=float(np.degrees(roll) * 3600))
+    # With a prior the question is only "which nearby star", so two matches
+    # that agree with the prior suffice; a third must pass the usual test.
+    moved = float(angle_between(r.rotation[2], prior[2]))
+    consistent = moved <= search
+    if consistent and (len(matched) == 2 or fmp <= options.identified_probability):
+        status = IDENTIFIED
+    else:
+        status = AMBIGUOUS
+    return Solution(status=status, candidates=(candidate,), elapsed_s=_time.perf_counter() - started,
+                    notes=(f"tracking from a prior {prior_sigma_deg:g} deg; moved {np.degrees(moved):.3f} deg",))
