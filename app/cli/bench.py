@@ -3,8 +3,10 @@
 Suites: ``extraction`` (issue 2: tracked stars kept, ghosts and hot pixels
 rejected, time per sequence), ``identification`` (issue 3: top-1/top-5
 correct, wrong "identified" answers, attitude errors, time per sequence and
-the seed's deviation table).  Every figure is measured now, on this machine,
-in one process, from simulated sequences drawn with ``--seed``.
+the seed's deviation table), ``load`` (issue 4: the real server under 20
+concurrent clients; here ``--n`` is the duration in seconds, default 30).
+Every figure is measured now, on this machine, in one process (the load
+suite adds the server's), from simulated sequences drawn with ``--seed``.
 """
 
 from __future__ import annotations
@@ -16,13 +18,14 @@ import logging
 import sys
 import time
 
-SUITES = ("extraction", "identification")
+SUITES = ("extraction", "identification", "sequence", "load")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--suite", choices=SUITES + ("all",), default="all", help="which benchmark (default: all)")
     p.add_argument("--n", type=int, default=None, metavar="N",
-                   help="sequences per table row (default: 100 identification, 300 extraction)")
+                   help="sequences per table row (default: 100 identification, 300 extraction); "
+                        "for the load suite, seconds of load (default 30)")
     p.add_argument("--seed", type=int, default=1, help="random seed of the simulated data (default 1)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
 
