@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from app.attitude import rotation_angle_between
+from app.attitude import rotation_angle_between, solve_wahba
 from app.camera import CAMERAS
 from app.catalogue import load_catalogue
 from app.extraction import (GHOST, HOT_PIXEL, build_pattern, extract, extraction_to_json)
@@ -57,7 +57,11 @@ def synthetic(seed: int, camera, *, n_snapshots=16, px_per_snapshot=10.0, n_star
         seen = np.flatnonzero(front & camera.on_sensor(xy0, margin=60))
         if len(seen) >= n_stars:
             break
-    chosen = seen[np.argsort(mag[seen])[:n_stars]]
+    chosen = []
+    for k in seen[np.argsort(mag[seen])]:  # brightest first, no two closer than 10 px (double stars)
+        if len(chosen) < n_stars and all(np.linalg.norm(xy0[k] - xy0[j]) > 10 for j in chosen):
+            chosen.append(k)
+    chosen = np.array(chosen)
     attitudes = [Rotation.from_rotvec(axis * step * (i - mid)).as_matrix() @ r0 for i in range(n_snapshots)]
     hot = [rng.integers([0, 0], [camera.width, camera.height]).astype(float) for _ in range(n_hot)]
     removed = ()
@@ -132,9 +136,18 @@ def test_motion_matches_the_true_rotation():
     ex = extract(case.sequence)
     ref = case.attitudes[ex.reference]
     np.testing.assert_allclose(ex.motion[ex.reference], np.eye(3), atol=1e-12)
+    stars = np.array(list(case.star_vectors.values()))
+    errors = []
     for i, r in enumerate(case.attitudes):
         true = ref @ r.T  # camera frame of snapshot i -> reference camera frame
-        assert rotation_angle_between(ex.motion[i], true) * camera.focal_length_px < 0.5
+        xy, _ = camera.vectors_to_pixels(stars @ r.T)
+        probe = stars[camera.on_sensor(xy)] @ r.T  # where snapshot i saw stars
+        est_xy, _ = camera.vectors_to_pixels(probe @ ex.motion[i].T)
+        true_xy, _ = camera.vectors_to_pixels(probe @ true.T)
+        errors.extend(np.linalg.norm(est_xy - true_xy, axis=1))
+    # motion[i] carries the rotation errors of snapshot i and of the reference,
+    # each ~ sigma / sqrt(n stars) = 0.3 / 3 px per axis: ~0.15 px rms in 2D
+    assert np.sqrt(np.mean(np.square(errors))) < 0.3 and max(errors) < 0.8
 
 
 def test_averaged_pattern_is_closer_to_truth_than_single_snapshots():
@@ -146,15 +159,20 @@ def test_averaged_pattern_is_closer_to_truth_than_single_snapshots():
         ref = case.attitudes[ex.reference]
         hip_of_track = {next(iter(ids)): hip for hip, ids in _star_tracks(case, ex).items()}
         for pattern, errors in ((ex.pattern, errors_avg), (ex.seed_pattern, errors_seed)):
-            truth, _ = camera.vectors_to_pixels(np.array([case.star_vectors[hip_of_track[t]]
-                                                          for t in pattern.track_ids]) @ ref.T)
-            errors.extend(np.linalg.norm(pattern.xy - truth, axis=1))
+            truth = np.array([case.star_vectors[hip_of_track[t]] for t in pattern.track_ids]) @ ref.T
+            # Both patterns share the reference snapshot's own rotation error
+            # (sigma / sqrt(n) of the whole frame); identification absorbs it
+            # into the attitude, so compare shapes: align by the best rotation.
+            aligned = pattern.vectors @ solve_wahba(truth, pattern.vectors).T
+            errors.extend(np.linalg.norm(camera.vectors_to_pixels(aligned)[0]
+                                         - camera.vectors_to_pixels(truth)[0], axis=1))
         # sigma_px follows the number of sightings
         np.testing.assert_allclose(ex.pattern.sigma_px, ex.noise_px / np.sqrt(ex.pattern.sightings))
         assert 0.3 < ex.noise_px < 0.75  # the simulated 0.5 px, estimated
     rms_avg, rms_seed = np.sqrt(np.mean(np.square(errors_avg))), np.sqrt(np.mean(np.square(errors_seed)))
-    assert rms_avg < 0.5 * rms_seed, (rms_avg, rms_seed)
-    assert rms_seed > 0.4  # single sightings carry the full noise (sqrt(2) * 0.5 px expected)
+    # ~10-16 sightings per track: about a third of the single-sighting error
+    assert rms_avg < 0.4 * rms_seed, (rms_avg, rms_seed)
+    assert rms_seed > 0.4  # single sightings carry the full noise (~sqrt(2) * 0.5 px expected)
 
 
 def test_pattern_vectors_and_pixels_agree():
@@ -164,7 +182,8 @@ def test_pattern_vectors_and_pixels_agree():
     np.testing.assert_allclose(xy, ex.pattern.xy, atol=1e-9)
     np.testing.assert_allclose(np.linalg.norm(ex.pattern.vectors, axis=1), 1.0)
     assert len(ex.pattern) == len(ex.tracks)
-    assert set(ex.seed_pattern.track_ids) == set(ex.track_of_source[ex.reference][ex.track_of_source[ex.reference] >= 0])
+    in_reference = ex.track_of_source[ex.reference]
+    assert set(ex.seed_pattern.track_ids) == set(in_reference[in_reference >= 0])
 
 
 def test_slow_drift_still_exposes_hot_pixels():
@@ -297,7 +316,8 @@ def test_pair_rotation_recovers_a_known_rotation_among_outliers():
     hyp = np.array([list(range(10)) + [-1], list(range(11))])
     c = 1.0 / camera.focal_length_px
     result = estimate_pair_rotations(vectors, hyp, np.array([[0, 1]]), pair_tol=2 * c, min_baseline=40 * c,
-                                     score_gate=8 * c, fit_gate=3 * c, min_inliers=3)
+                                     score_gate=8 * c, fit_gate=3 * c, min_inliers=3,
+                                     field_area=752 * 582 * c**2, min_radius=c)
     assert rotation_angle_between(result.rotation[0], true) < 1e-9
     assert result.n_inliers[0] == 7
     np.testing.assert_array_equal(result.matches[0, :7], np.arange(4, 11))

@@ -25,6 +25,7 @@ from app.config import Settings, settings as default_settings
 from app.extraction import Extraction, extract
 from app.storage import Storage
 from app.telemetry import Sequence, parse_telemetry
+from app.viewer.state import ViewStateStore
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +76,8 @@ class AppContext:
     cache: SequenceCache = field(default_factory=SequenceCache)
     #: The 3D view of the console issue (issue 5) once started; None until then.
     viewer: Any = None
+    #: The selection the console and the 3D view share (GET/PUT /api/view).
+    view: ViewStateStore = field(default_factory=ViewStateStore)
     _executor: ThreadPoolExecutor | None = None
 
     @property

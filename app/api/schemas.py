@@ -63,3 +63,15 @@ class ConfirmRequest(_Strict):
     rank: int = Field(ge=1, le=MAX_ID)
     operator: str | None = Field(default=None, max_length=MAX_OPERATOR)
     comment: str | None = Field(default=None, max_length=MAX_COMMENT)
+
+
+class ViewEdit(_Strict):
+    """A write to the shared view state (issue 5): only the fields sent change; null clears one."""
+
+    sequence: int | None = Field(default=None, ge=1, le=MAX_ID)
+    rank: int | None = Field(default=None, ge=1, le=MAX_ID)
+    mag: float = Field(default=6.0, ge=-2.0, le=7.0, allow_inf_nan=False)
+
+    def changes(self) -> dict:
+        """The fields the client actually sent."""
+        return {name: getattr(self, name) for name in self.model_fields_set}

@@ -183,7 +183,7 @@ def _candidate_document(candidate) -> dict:
 
 def run_search(ctx: AppContext, seq_id: int, method: str, max_candidates: int | None) -> dict:
     """Identify the current pattern (within the configured time-out), store the result, set the status."""
-    from app.identification import SearchOptions, solve_sequence
+    from app.identification import solve_sequence
 
     if method not in METHODS:
         raise ApiError(422, f"unknown method {method!r}; known: {', '.join(METHODS)}")
@@ -192,8 +192,7 @@ def run_search(ctx: AppContext, seq_id: int, method: str, max_candidates: int | 
     version = current_pattern(ctx, seq_id)
     definition = version.pattern if version is not None else automatic_definition()
     pattern = pattern_from_definition(item, definition)
-    options = SearchOptions(timeout_s=ctx.settings.search_timeout_s,
-                            **({} if max_candidates is None else {"max_candidates": max_candidates}))
+    options = search_options(ctx, max_candidates)
     solved = solve_sequence(item.sequence, ctx.sky, options=options, extraction=item.extraction, pattern=pattern)
     solution = solved.solution
     result = {"status": solution.status, "method": method,
@@ -205,13 +204,57 @@ def run_search(ctx: AppContext, seq_id: int, method: str, max_candidates: int | 
               "notes": list(item.extraction.notes) + list(solution.notes),
               "elapsed_ms": round(solution.elapsed_s * 1000, 2)}
     search = ctx.storage.add_search(seq_id, pattern_version=result["pattern_version"], method=method,
-                                    options={"max_candidates": options.max_candidates,
-                                             "timeout_s": options.timeout_s},
+                                    options=search_options_record(ctx, options),
                                     result=result, status=solution.status, elapsed_s=solution.elapsed_s)
     # A confirmed sequence stays confirmed: its attitude stands until a new confirmation supersedes it.
     if row.status != "confirmed":
         ctx.storage.set_status(seq_id, solution.status)
-    return search_document(search)
+    return {**search_document(search), "reused": False}
+
+
+def search_options(ctx: AppContext, max_candidates: int | None):
+    """The identification options of a search request (the server's time-out, the client's count)."""
+    from app.identification import SearchOptions
+
+    return SearchOptions(timeout_s=ctx.settings.search_timeout_s,
+                         **({} if max_candidates is None else {"max_candidates": max_candidates}))
+
+
+def search_options_record(ctx: AppContext, options) -> dict:
+    """What a stored search depended on besides its pattern and method: its options and the index searched."""
+    index = ctx.sky.index
+    return {"max_candidates": options.max_candidates, "timeout_s": options.timeout_s,
+            "index": {"stars": int(index.n_stars), "pairs": int(index.n_pairs),
+                      "mag_limit": float(index.mag_limit)}}
+
+
+def reusable_search(ctx: AppContext, seq_id: int, method: str, max_candidates: int | None) -> dict | None:
+    """The latest stored search if running the search again would compute the same result, else None.
+
+    Identification is a deterministic function of the pattern, the method,
+    the options and the catalogue index, so a new request on an unchanged
+    pattern version with equal options and the same index is answered from
+    the archive (same ``search_id``, ``"reused": true``) instead of queueing
+    for a search worker.  A search that ran into its time-out is never
+    reused: it may have stopped early, and a rerun may find more.  Anything
+    unusual (unknown method or sequence) returns None so that
+    :func:`run_search` produces the proper error.
+    """
+    if method not in METHODS:
+        return None
+    row = ctx.storage.get_sequence(seq_id)
+    search = ctx.storage.latest_search(seq_id) if row is not None else None
+    if search is None:
+        return None
+    version = current_pattern(ctx, seq_id)
+    options = search_options(ctx, max_candidates)
+    timed_out = search.elapsed_s is None or search.elapsed_s >= options.timeout_s
+    if (timed_out or search.method != method or search.pattern_version != (version.version if version else None)
+            or search.options != search_options_record(ctx, options)):
+        return None
+    if row.status != "confirmed" and row.status != search.status:
+        ctx.storage.set_status(seq_id, search.status)
+    return {**search_document(search), "reused": True}
 
 
 def search_document(search: SearchRow) -> dict:
@@ -411,3 +454,57 @@ def health(ctx: AppContext) -> dict:
             "auth_required_for_writes": ctx.access.require_token,
             "max_upload_bytes": ctx.settings.max_upload_bytes, "search_timeout_s": ctx.settings.search_timeout_s}
 
+
+
+# ---------------------------------------------------------------------------
+# Shared view state of the console and the 3D view (issue 5)
+# ---------------------------------------------------------------------------
+
+def view_document(ctx: AppContext) -> dict:
+    """The shared view state plus what the archive says about its sequence now.
+
+    The derived fields (latest search, its size, the pattern version, the
+    current confirmation) are read fresh on every call, so a reader notices
+    a search, an edit or a confirmation made by the other window even though
+    only the selection itself is stored.
+    """
+    state = ctx.view.get()
+    doc = {**state.to_json(), "search_id": None, "n_candidates": 0, "status": None,
+           "pattern_version": None, "confirmation_id": None}
+    row = ctx.storage.get_sequence(state.sequence) if state.sequence is not None else None
+    if row is not None:
+        search = ctx.storage.latest_search(row.id)
+        version = ctx.storage.current_pattern(row.id)
+        confirmation = ctx.storage.current_confirmation(row.id)
+        doc.update(status=row.status, pattern_version=version.version if version else None,
+                   confirmation_id=confirmation.id if confirmation else None)
+        if search is not None:
+            doc.update(search_id=search.id, n_candidates=len(search.result.get("candidates", [])))
+    return doc
+
+
+def set_view(ctx: AppContext, changes: dict, writer_name: str) -> dict:
+    """Write the given view fields (checked against the archive) and return the new document.
+
+    A new sequence without a rank starts at rank 1 of its latest search (or
+    none); a rank must exist in the latest search of the sequence shown.
+    """
+    changes = dict(changes)
+    seq_id = changes.get("sequence", ctx.view.get().sequence)
+    if "sequence" in changes and seq_id is not None and ctx.storage.get_sequence(seq_id) is None:
+        raise ApiError(422, f"no sequence with id {seq_id}",
+                       problems=[{"location": "body.sequence", "message": "no such sequence"}])
+    search = ctx.storage.latest_search(seq_id) if seq_id is not None else None
+    n_candidates = len(search.result.get("candidates", [])) if search is not None else 0
+    if "sequence" in changes and "rank" not in changes:
+        changes["rank"] = 1 if n_candidates else None
+    rank = changes.get("rank")
+    if rank is not None and not 1 <= rank <= n_candidates:
+        raise ApiError(422, f"rank {rank} is not a candidate of the latest search "
+                            f"(it has {n_candidates})",
+                       problems=[{"location": "body.rank", "message": f"not in 1..{n_candidates}"}])
+    try:
+        ctx.view.update(**changes, updated_by=writer_name)
+    except ValueError as exc:
+        raise ApiError(422, str(exc), problems=[{"location": "body", "message": str(exc)}]) from None
+    return view_document(ctx)

@@ -5,6 +5,8 @@ rejected, time per sequence), ``identification`` (issue 3: top-1/top-5
 correct, wrong "identified" answers, attitude errors, time per sequence and
 the seed's deviation table), ``load`` (issue 4: the real server under 20
 concurrent clients; here ``--n`` is the duration in seconds, default 30).
+``seeds`` (issue 6, also ``--seeds``: Liebe's Tables 2 and 3 and Fig. 2,
+see :mod:`app.bench.seeds`).
 Every figure is measured now, on this machine, in one process (the load
 suite adds the server's), from simulated sequences drawn with ``--seed``.
 """
@@ -18,11 +20,13 @@ import logging
 import sys
 import time
 
-SUITES = ("extraction", "identification", "sequence", "load")
+SUITES = ("extraction", "identification", "sequence", "load", "seeds")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--suite", choices=SUITES + ("all",), default="all", help="which benchmark (default: all)")
+    p.add_argument("--seeds", dest="suite", action="store_const", const="seeds",
+                   help="Liebe's tables 2 and 3 and Fig. 2 (= --suite seeds; --n trials per situation, default 500)")
     p.add_argument("--n", type=int, default=None, metavar="N",
                    help="sequences per table row (default: 100 identification, 300 extraction); "
                         "for the load suite, seconds of load (default 30)")

@@ -32,6 +32,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--db", metavar="PATH", default=None,
                    help="SQLite database file (default: STARID_DB, DATABASE_URL or "
                         "~/.local/share/starid/starid.sqlite3)")
+    p.add_argument("--viewer-port", type=_port, default=None,
+                   help="port of the 3D view (viser, always on 127.0.0.1; default: --port + 1, "
+                        "or the next free port)")
+    p.add_argument("--no-viewer", action="store_true", help="do not start the 3D view")
     p.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"),
                    help="server log level (default info)")
 
@@ -51,6 +55,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"serve: {exc}", file=sys.stderr)
         return 2
     try:
+        if not args.no_viewer:
+            from app.viewer import start_viewer
+
+            # The 3D view is optional: start_viewer logs and returns None when viser cannot start.
+            viewer_port = args.viewer_port or (args.port % 65535) + 1
+            context.viewer = start_viewer(context, viewer_port)
         app = create_app(context)
         logging.getLogger("app.serve").info("serving on http://%s:%d (API /api, docs /docs)",
                                             args.host, args.port)

@@ -35,8 +35,9 @@ class ExtractionParameters:
     min_inliers: int = 3
     #: ... and the most false alarms tolerated (see app.extraction.motion.false_alarms),
     #: crediting every match with at least this residual.
-    max_false_alarms: float = 0.1
-    min_match_radius_px: float = 1.0
+    #: 0.02 per link keeps a pure-noise sequence of 16 snapshots almost always trackless.
+    max_false_alarms: float = 0.02
+    min_match_radius_px: float = 0.7
     #: Hypotheses come from the K brightest sources of each snapshot.
     hypothesis_sources: int = 20
     #: A snapshot with no rotation to its predecessor is linked to up to this

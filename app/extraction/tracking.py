@@ -21,9 +21,10 @@ The steps of :func:`extract`:
 4. **Hot pixels.**  A source whose pixel is occupied (within ``hot_tol``)
    in another snapshot by a source the sky could not have carried there
    (the motion moves that sky point by more than the link gate) is
-   stationary evidence; a source with two such partners, or one and at
-   most one partner that moved with the sky, is a hot pixel, and so is
-   every source on the same pixel as one with two such partners.  When the sky moves less
+   stationary evidence; a source with two such partners is a hot pixel, and
+   so is one with a single such partner when neither of the two has more
+   than one partner that moved with the sky; so is every source on the same
+   pixel as one with two such partners.  When the sky moves less
    than the link gate over the whole sequence a stationary source is
    indistinguishable from a star: it is kept as a track and a note says so
    (identification then finds it matches no star).
@@ -38,7 +39,8 @@ The steps of :func:`extract`:
 6. **Outliers.**  A sighting farther from the mean of its track's other
    sightings than the noise allows (4.5 sigma, scaled for the other mean's
    own noise) is an outlier; the worst one per track is removed, up to
-   three rounds.  Tracks left with one sighting lose it as an outlier too.
+   three rounds.  A track left with one sighting dissolves: its sightings
+   had no consistent partner and count as ghosts.
 7. **Verdicts.**  Tracks need two sightings; what is left unlinked is a
    ghost (including every source of a snapshot linked to no other).  The
    reference snapshot is the one with the most tracked sources.
@@ -207,14 +209,20 @@ def _hot_pixels(xy: np.ndarray, snap: np.ndarray, comp: np.ndarray, predicted: n
     n_fixed = np.bincount(rows[~carried], minlength=m)
     strong = n_fixed >= 2
     hot = strong.copy()
-    # one stationary partner: hot unless another partner moved with the sky
-    single = np.flatnonzero(n_fixed == 1)
+    # One stationary partner: hot only if neither it nor the partner has
+    # another sighting that moved with the sky (a ghost that happens to
+    # fall on a star's pixel of another snapshot is not a hot pixel).
+    fixed_pair = ~carried & (n_fixed[rows] == 1)
+    single, partner = rows[fixed_pair], cols[fixed_pair]
     if len(single):
-        pred = predicted[single][:, snap]  # (k, M, 2)
+        involved = np.unique(np.concatenate([single, partner]))
+        pred = predicted[involved][:, snap]  # (k, M, 2)
         with np.errstate(invalid="ignore"):
             moved = np.hypot(pred[..., 0] - xy[None, :, 0], pred[..., 1] - xy[None, :, 1]) < gate
-        moved &= (snap[single, None] != snap[None, :]) & (comp[single, None] == comp[None, :])
-        hot[single] = moved.sum(axis=1) <= 1
+        moved &= (snap[involved, None] != snap[None, :]) & (comp[involved, None] == comp[None, :])
+        n_sky = np.zeros(m, dtype=int)
+        n_sky[involved] = moved.sum(axis=1)
+        hot[single] = (n_sky[single] <= 1) & (n_sky[partner] <= 1)
     # the stationary companions of a clear hot pixel are hot too: in the
     # middle of a slow drift they have fewer partners the sky moved away from
     hot[rows[strong[cols]]] = True
@@ -305,10 +313,7 @@ def _outliers(common: np.ndarray, label: np.ndarray, sigma_chord: float, p: Extr
         worst = np.full(int(label.max()) + 1, -np.inf)
         np.maximum.at(worst, live[candidates[bad]], excess[bad])
         outlier[candidates[bad & (excess >= worst[live[candidates]])]] = True
-    live = np.where(outlier, -1, label)
-    # a track reduced to one sighting: that sighting was linked to an inconsistent one
-    lonely = (_track_sizes(live) == 1) & (_track_sizes(label) >= 2)
-    return outlier | lonely
+    return outlier
 
 
 def _noise_sigma_px(residual_sq_px: np.ndarray, dof_factor: np.ndarray, p: ExtractionParameters) -> float:
@@ -417,8 +422,14 @@ def extract(sequence: Sequence, parameters: ExtractionParameters = DEFAULT_PARAM
         residual_sq = ((common[tracked] - mean) ** 2).sum(axis=1) / chord_px**2
         sigma = _noise_sigma_px(residual_sq, 1.0 - 1.0 / size[tracked], p)
     outlier = _outliers(common, np.where(tracked, label, -1), sigma * chord_px, p, chord_px)
-    label = np.where(outlier, -1, label)
-    label = np.where(_track_sizes(label) >= 2, label, -1)
+    cut = np.where(outlier, -1, label)
+    kept = _track_sizes(cut) >= 2
+    # only a sighting cut from a track that survives is an outlier; the
+    # members of a track that dissolved had no consistent partner (ghosts)
+    survivors = np.zeros(int(label.max(initial=0)) + 1, dtype=bool)
+    survivors[cut[kept]] = True
+    outlier &= survivors[np.maximum(label, 0)] & (label >= 0)
+    label = np.where(kept, cut, -1)
 
     # 7. verdicts; the reference has the most tracked sources (first on ties)
     per_snapshot = np.bincount(snap[label >= 0], minlength=n_snap)

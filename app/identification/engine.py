@@ -22,6 +22,7 @@ from app.attitude.wahba import cross_boresight_and_roll_sigma
 from app.camera import Camera
 from app.catalogue import Catalogue, load_catalogue, star_names
 from app.identification.hypotheses import bright_pair_hypotheses, ordered_pattern_edges
+from app.identification.triangle_features import tf_batches
 from app.identification.result import (AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, PlanetMatch,
                                        Solution, StarMatch)
 from app.identification.verify import (StarField, check_hypotheses, false_match_probability,
@@ -172,7 +173,7 @@ def bright_pair_batches(p: PreparedPattern, sky: Sky, options: SearchOptions):
 
 #: Hypothesis generators by method name: each yields (Hypotheses, check
 #: tolerance per hypothesis, pattern edges/features used so far).
-HYPOTHESIS_METHODS = {"bright_pair": bright_pair_batches}
+HYPOTHESIS_METHODS = {"bright_pair": bright_pair_batches, "tf": tf_batches}
 
 
 def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=None,

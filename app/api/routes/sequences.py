@@ -106,6 +106,11 @@ def reset_pattern(body: PatternReset | None = Body(None), seq_id: int = SeqId,
 async def search(body: SearchRequest | None = Body(None), seq_id: int = SeqId,
                  _operator: str | None = Depends(writer), ctx: AppContext = Depends(get_context)):
     body = body or SearchRequest()
+    # An unchanged pattern searched again is answered from the archive without queueing behind
+    # the CPU-bound searches of other sequences (see service.reusable_search).
+    reused = await run_in_threadpool(service.reusable_search, ctx, seq_id, body.method, body.max_candidates)
+    if reused is not None:
+        return reused
     # A dedicated pool: at most search_workers CPU-bound searches at once, the event loop stays free.
     future = ctx.search_executor.submit(service.run_search, ctx, seq_id, body.method, body.max_candidates)
     deadline = ctx.settings.search_timeout_s + SEARCH_GRACE_S

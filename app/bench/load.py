@@ -1,0 +1,384 @@
+"""Load benchmark of the REST API (issue 4): 20 concurrent clients on loopback.
+
+``python -m app bench --suite load [--n SECONDS] [--seed S] [--json]``.
+
+What is measured
+----------------
+The real server is started as a subprocess (``python -m app serve --port
+<free> --db <tmp>``), exactly as an operator would start it, on a fresh
+temporary database.  Once ``/api/health`` answers, ``clients`` threads run
+the operator's loop for ``duration_s`` seconds, each on its own keep-alive
+HTTP connection (``http.client``, no extra dependency):
+
+1. ``POST /api/sequences``: a telemetry file.  Every other loop uses a
+   sequence simulated fresh for this run (never seen by the server, so it
+   is parsed, extracted, stored and later searched from scratch); the other
+   loops upload one of the sample files (after its first upload the server
+   recognises the content and answers 200 with the stored sequence).
+2. ``POST /api/sequences/{id}/search``.
+3. ``GET /api/sequences/{id}/candidates/1`` when the search found a candidate.
+
+Every request's wall-clock latency is recorded on the client side from
+sending the request to reading the whole body.  An error is any exception
+(connection reset, time-out) or any status other than the one the loop
+expects (200/201 for an upload, 200 for the rest).  The fresh sequences are
+simulated *before* the clock starts so the clients' CPU use does not load the
+2 shared cores during the measurement; the run stops early, with the pool
+exhausted flagged, rather than upload a fresh sequence twice.
+
+Latency percentiles are nearest-rank percentiles of all requests of a kind
+(p95 = the smallest latency at least 95 % of the requests did not exceed).
+The target of issue 4 is zero errors and a 95th-percentile search latency of
+at most 150 ms.
+"""
+
+from __future__ import annotations
+
+import http.client
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+SAMPLE_DIR = REPO / "sample_telemetry"
+DEFAULT_SECONDS = 30
+DEFAULT_CLIENTS = 20
+#: Issue 4's acceptance target for the 95th-percentile search latency.
+TARGET_P95_SEARCH_MS = 150.0
+#: Fresh sequences simulated per client and per 30 s before the clock starts
+#: (measured: a loop takes well over 0.5 s per client under full load).
+FRESH_PER_CLIENT_PER_30S = 20
+#: Scenarios of the fresh sequences: what a ground station receives day to day.
+FRESH_SCENARIOS = ("nominal", "nominal", "clean", "ghosts", "planet", "sparse")
+REQUEST_TIMEOUT_S = 120.0
+STARTUP_TIMEOUT_S = 300.0
+
+
+@dataclass(frozen=True)
+class Upload:
+    """One telemetry file to upload: its name, bytes and media type, and whether it is fresh."""
+
+    name: str
+    body: bytes
+    content_type: str
+    fresh: bool
+
+
+@dataclass(frozen=True)
+class Record:
+    """One request as the client saw it."""
+
+    kind: str  # "upload", "search" or "candidate"
+    #: "new" (201 upload, search computed now) or "stored" (200 upload of known content, search
+    #: answered from the archive); None for candidates and errors.
+    detail: str | None
+    latency_s: float
+    status: int  # HTTP status, 0 when no response came back
+    error: str | None  # None when the status was the expected one
+
+
+# ---------------------------------------------------------------------------
+# The workload
+# ---------------------------------------------------------------------------
+
+def sample_uploads(sample_dir: Path = SAMPLE_DIR) -> list[Upload]:
+    """The sample telemetry files (JSON and CSV, not the truth files)."""
+    files = sorted(p for p in sample_dir.iterdir()
+                   if p.suffix in (".json", ".csv") and not p.name.endswith(".truth.json"))
+    return [Upload(p.name, p.read_bytes(), "text/csv" if p.suffix == ".csv" else "application/json", False)
+            for p in files]
+
+
+def fresh_uploads(n: int, seed: int) -> list[Upload]:
+    """``n`` sequences simulated now with ``seed`` (cameras and scenarios in turn), as JSON files."""
+    from app.simulate import camera_cycle, simulate_sequence
+    from app.telemetry.formats import dump_json
+
+    rng = np.random.default_rng(seed)
+    uploads = []
+    for i in range(n):
+        scenario = FRESH_SCENARIOS[i % len(FRESH_SCENARIOS)]
+        sequence, _truth = simulate_sequence(rng, camera_cycle(None, i), scenario,
+                                             sequence_id=f"load-{seed}-{i:05d}")
+        uploads.append(Upload(f"load-{i:05d}.json", dump_json(sequence).encode(), "application/json", True))
+    return uploads
+
+
+class Workload:
+    """Thread-safe source of uploads: fresh and sample files in turn, each fresh one used once."""
+
+    def __init__(self, fresh: list[Upload], samples: list[Upload]) -> None:
+        self._fresh = list(reversed(fresh))
+        self._samples = samples
+        self._turn = 0
+        self._lock = threading.Lock()
+        self.exhausted = threading.Event()
+
+    def next(self) -> Upload | None:
+        """The next file, or None once the fresh pool is used up (the run then stops)."""
+        with self._lock:
+            self._turn += 1
+            if self._turn % 2 == 0:
+                return self._samples[(self._turn // 2) % len(self._samples)]
+            if not self._fresh:
+                self.exhausted.set()
+                return None
+            return self._fresh.pop()
+
+
+# ---------------------------------------------------------------------------
+# The server process
+# ---------------------------------------------------------------------------
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_server(db: Path, port: int, log_path: Path) -> subprocess.Popen:
+    """``python -m app serve`` on loopback (no token needed) with its output in ``log_path``."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    for name in ("STARID_TOKENS", "STARID_TOKENS_FILE", "DATABASE_URL"):
+        env.pop(name, None)  # the benchmark's own loopback server, on its own database
+    with log_path.open("ab") as log:
+        return subprocess.Popen([sys.executable, "-m", "app", "serve", "--port", str(port), "--db", str(db)],
+                                cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+
+
+def wait_ready(port: int, process: subprocess.Popen, log_path: Path, timeout_s: float = STARTUP_TIMEOUT_S) -> None:
+    """Poll ``/api/health`` until it answers 200; RuntimeError with the log if the server dies or stalls."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            raise RuntimeError(f"the server exited with {process.returncode}:\n{_tail(log_path)}")
+        try:
+            connection = http.client.HTTPConnection("127.0.0.1", port, timeout=5)
+            connection.request("GET", "/api/health")
+            if connection.getresponse().status == 200:
+                connection.close()
+                return
+            connection.close()
+        except OSError:
+            pass
+        time.sleep(0.25)
+    raise RuntimeError(f"the server did not answer within {timeout_s:.0f} s:\n{_tail(log_path)}")
+
+
+def stop_server(process: subprocess.Popen) -> None:
+    """SIGTERM (uvicorn shuts down cleanly), SIGKILL if it has not gone after 20 s."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
+        try:
+            process.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(timeout=20)
+
+
+def _tail(path: Path, n_chars: int = 4000) -> str:
+    try:
+        return path.read_text(errors="replace")[-n_chars:]
+    except OSError:
+        return "(no server log)"
+
+
+# ---------------------------------------------------------------------------
+# The clients
+# ---------------------------------------------------------------------------
+
+class Client:
+    """One keep-alive HTTP/1.1 connection that reconnects after a failure."""
+
+    def __init__(self, port: int) -> None:
+        self._port = port
+        self._connection: http.client.HTTPConnection | None = None
+
+    def request(self, method: str, path: str, body: bytes | None = None,
+                content_type: str | None = None) -> tuple[int, bytes, float]:
+        """(status, body, latency in s); raises OSError / HTTPException on transport failures."""
+        if self._connection is None:
+            self._connection = http.client.HTTPConnection("127.0.0.1", self._port, timeout=REQUEST_TIMEOUT_S)
+        headers = {"Content-Type": content_type} if content_type else {}
+        t0 = time.perf_counter()
+        try:
+            self._connection.request(method, path, body=body, headers=headers)
+            response = self._connection.getresponse()
+            data = response.read()
+        except (OSError, http.client.HTTPException):
+            self.close()
+            raise
+        return response.status, data, time.perf_counter() - t0
+
+    def close(self) -> None:
+        if self._connection is not None:
+            self._connection.close()
+            self._connection = None
+
+
+def _timed(client: Client, records: list[Record], kind: str, expected: tuple[int, ...], method: str,
+           path: str, body: bytes | None = None, content_type: str | None = None) -> dict | None:
+    """Send one request, append its record, return the JSON body when the status was expected."""
+    t0 = time.perf_counter()
+    try:
+        status, data, latency = client.request(method, path, body, content_type)
+    except (OSError, http.client.HTTPException) as exc:
+        records.append(Record(kind, None, time.perf_counter() - t0, 0, f"{type(exc).__name__}: {exc}"))
+        return None
+    if status not in expected:
+        records.append(Record(kind, None, latency, status, f"{method} {path} -> {status}: {data[:200]!r}"))
+        return None
+    try:
+        doc = json.loads(data)
+    except ValueError:
+        records.append(Record(kind, None, latency, status,
+                              f"{method} {path} -> {status} with a body that is not JSON"))
+        return None
+    detail = None
+    if kind == "upload":
+        detail = "new" if status == 201 else "stored"
+    elif kind == "search":
+        detail = "stored" if doc.get("reused") else "new"
+    records.append(Record(kind, detail, latency, status, None))
+    return doc
+
+
+def client_loop(port: int, workload: Workload, stop_at: float, records: list[Record]) -> None:
+    """Upload, search, fetch candidate 1, until ``stop_at`` (perf_counter) or the pool runs out."""
+    client = Client(port)
+    try:
+        while time.perf_counter() < stop_at:
+            upload = workload.next()
+            if upload is None:
+                return
+            doc = _timed(client, records, "upload", (200, 201), "POST",
+                         f"/api/sequences?filename={upload.name}", upload.body, upload.content_type)
+            if doc is None:
+                continue
+            seq_id = doc["id"]
+            found = _timed(client, records, "search", (200,), "POST", f"/api/sequences/{seq_id}/search",
+                           b"{}", "application/json")
+            if found is None or not found.get("candidates"):
+                continue  # nothing to show: an Earth or a too-sparse field
+            _timed(client, records, "candidate", (200,), "GET", f"/api/sequences/{seq_id}/candidates/1")
+    finally:
+        client.close()
+
+
+# ---------------------------------------------------------------------------
+# Figures
+# ---------------------------------------------------------------------------
+
+def percentile_ms(latencies_s: list[float], q: float) -> float | None:
+    """Nearest-rank q-th percentile in ms: the ceil(q/100 * n)-th smallest latency."""
+    if not latencies_s:
+        return None
+    ordered = sorted(latencies_s)
+    rank = max(1, math.ceil(q / 100.0 * len(ordered)))
+    return round(ordered[rank - 1] * 1000.0, 1)
+
+
+def summarise(records: list[Record], duration_s: float) -> dict:
+    """Counts, error messages and latency percentiles per request kind (and per new/stored detail)."""
+    kinds = {}
+    groups = [(kind, None) for kind in ("upload", "search", "candidate")]
+    groups += [(kind, detail) for kind in ("upload", "search") for detail in ("new", "stored")]
+    for kind, detail in groups:
+        mine = [r for r in records if r.kind == kind and (detail is None or r.detail == detail)]
+        name = kind if detail is None else f"{kind} ({detail})"
+        latencies = [r.latency_s for r in mine if r.error is None]
+        kinds[name] = {"requests": len(mine), "errors": sum(r.error is not None for r in mine),
+                       "p50_ms": percentile_ms(latencies, 50), "p95_ms": percentile_ms(latencies, 95),
+                       "max_ms": percentile_ms(latencies, 100),
+                       "per_s": round(len(mine) / duration_s, 2) if duration_s > 0 else None}
+    errors = [r.error for r in records if r.error is not None]
+    return {"requests": len(records), "errors": len(errors), "error_examples": errors[:5], "by_kind": kinds}
+
+
+def run(n_sequences: int = DEFAULT_SECONDS, seed: int = 1, clients: int = DEFAULT_CLIENTS) -> dict:
+    """Start the server, run ``clients`` client threads for ``n_sequences`` *seconds*, stop it.
+
+    (The bench command's ``--n`` is seconds for this suite.)  Returns the
+    figures of :func:`summarise` plus the set-up and whether the target held.
+    Raises RuntimeError when the server cannot be started.
+    """
+    duration_s = float(n_sequences)
+    if duration_s <= 0 or clients < 1:
+        raise ValueError("the load benchmark needs a positive duration and at least one client")
+    n_fresh = max(clients, math.ceil(FRESH_PER_CLIENT_PER_30S * clients * duration_s / 30.0))
+    t0 = time.perf_counter()
+    workload = Workload(fresh_uploads(n_fresh, seed), sample_uploads())
+    prepare_s = time.perf_counter() - t0
+
+    with tempfile.TemporaryDirectory(prefix="starid-load-") as tmp:
+        tmp_dir = Path(tmp)
+        log_path = tmp_dir / "server.log"
+        port = free_port()
+        process = start_server(tmp_dir / "load.sqlite3", port, log_path)
+        try:
+            t1 = time.perf_counter()
+            wait_ready(port, process, log_path)
+            startup_s = time.perf_counter() - t1
+            records_per_client: list[list[Record]] = [[] for _ in range(clients)]
+            start = time.perf_counter()
+            threads = [threading.Thread(target=client_loop, args=(port, workload, start + duration_s, mine),
+                                        name=f"load-client-{i}", daemon=True)
+                       for i, mine in enumerate(records_per_client)]
+            for thread in threads:
+                thread.start()
+            for thread in threads:
+                thread.join()
+            elapsed_s = time.perf_counter() - start
+            server_alive = process.poll() is None
+        finally:
+            stop_server(process)
+        server_log_tail = _tail(log_path, 2000) if not server_alive else None
+
+    records = [r for mine in records_per_client for r in mine]
+    result = summarise(records, elapsed_s)
+    search = result["by_kind"]["search"]
+    result.update(
+        clients=clients, duration_s=round(elapsed_s, 1), seed=seed, fresh_pool=n_fresh,
+        fresh_uploaded=n_fresh - len(workload._fresh), pool_exhausted=workload.exhausted.is_set(),
+        prepare_s=round(prepare_s, 1), server_startup_s=round(startup_s, 1), server_survived=server_alive,
+        server_log_tail=server_log_tail, cpu_count=os.cpu_count(),
+        uploads_per_s=result["by_kind"]["upload"]["per_s"],
+        target={"p95_search_ms": TARGET_P95_SEARCH_MS, "zero_errors": True},
+        target_met=(result["errors"] == 0 and search["p95_ms"] is not None
+                    and search["p95_ms"] <= TARGET_P95_SEARCH_MS and server_alive))
+    return result
+
+
+def format_table(result: dict) -> str:
+    lines = [f"{result['clients']} clients for {result['duration_s']} s on loopback "
+             f"({result['cpu_count']} CPUs; server start {result['server_startup_s']} s; "
+             f"{result['fresh_uploaded']} fresh simulated sequences of {result['fresh_pool']} prepared"
+             f"{', POOL EXHAUSTED' if result['pool_exhausted'] else ''})",
+             f"requests {result['requests']}, errors {result['errors']}, uploads/s {result['uploads_per_s']}",
+             "",
+             f"{'request':<16} {'count':>7} {'errors':>6} {'per s':>7} {'p50 ms':>8} {'p95 ms':>8} {'max ms':>8}"]
+    for kind, k in result["by_kind"].items():
+        cells = [("-" if v is None else f"{v}") for v in (k["per_s"], k["p50_ms"], k["p95_ms"], k["max_ms"])]
+        lines.append(f"{kind:<16} {k['requests']:>7} {k['errors']:>6} {cells[0]:>7} {cells[1]:>8} "
+                     f"{cells[2]:>8} {cells[3]:>8}")
+    search_p95 = result["by_kind"]["search"]["p95_ms"]
+    lines.append("")
+    lines.append(f"target: 0 errors and p95 search <= {result['target']['p95_search_ms']:.0f} ms -> "
+                 f"{'MET' if result['target_met'] else 'MISSED'} (p95 search {search_p95} ms)")
+    for example in result["error_examples"]:
+        lines.append(f"  error: {example}")
+    if not result["server_survived"]:
+        lines.append("the server process died during the run; its log ends with:")
+        lines.append(result["server_log_tail"] or "")
+    return "\n".join(lines)

@@ -1,0 +1,375 @@
+"""The 3D view: a viser server in the API's process, drawing the shared view state.
+
+What it shows (scene units: see :mod:`app.viewer.scene`):
+
+* the celestial sphere: catalogue stars as point clouds, one per magnitude
+  class so brighter stars are bigger dots, down to the view's magnitude
+  limit; constellation labels (a few dozen); the celestial equator;
+* for the current candidate of the shared view: the camera frustum, the
+  current pattern's rays onto the sphere (green when the candidate matched
+  the point, orange otherwise), a small clickable sphere at the end of each
+  ray (click: take that track out of the pattern), grey spheres for tracks
+  taken out (click: put back), the matched catalogue stars highlighted and
+  named.
+
+The GUI has Prev / Next, the magnitude slider and Confirm (operator name,
+optional comment).  Every action writes through :mod:`app.api.service`, the
+same code the REST API runs, and a poll thread redraws whenever the shared
+state or the archive behind it changes, so the console and this view stay
+in step without talking to each other.
+
+Security: viser's websocket has no authentication, so it is bound to
+127.0.0.1 whatever the API's host.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.viewer import scene as geo
+
+log = logging.getLogger(__name__)
+
+#: Loopback only: the viser websocket accepts anyone who can reach it.
+VIEWER_HOST = "127.0.0.1"
+#: How often the view re-reads the shared state (seconds).
+POLL_S = 0.3
+STAR_COLOUR = (235, 235, 245)
+LABEL_OFFSET = 1.03
+MATCHED_COLOUR = (255, 214, 10)
+RAY_MATCHED = (64, 220, 120)
+RAY_UNMATCHED = (255, 140, 40)
+EXCLUDED_COLOUR = (120, 120, 130)
+FRUSTUM_COLOUR = (90, 180, 255)
+
+
+@dataclass(frozen=True)
+class SkyModel:
+    """The catalogue as the view draws it: ICRS directions, magnitudes, HIP numbers, label anchors."""
+
+    vectors: np.ndarray
+    mag: np.ndarray
+    hip: np.ndarray
+    anchors: list
+
+    @classmethod
+    def load(cls) -> "SkyModel":
+        from app.catalogue import constellations, load_catalogue
+
+        catalogue = load_catalogue()
+        vectors = catalogue.mean_vectors()
+        bright = np.flatnonzero(catalogue.mag <= geo.LABEL_MAG_LIMIT)
+        names = constellations(vectors[bright])
+        anchors = geo.constellation_anchors(vectors[bright], catalogue.mag[bright], names)
+        return cls(vectors=vectors, mag=np.asarray(catalogue.mag), hip=np.asarray(catalogue.hip), anchors=anchors)
+
+    def vectors_of(self, hips) -> np.ndarray:
+        index = {int(h): i for i, h in enumerate(self.hip)}
+        rows = [index[int(h)] for h in hips if int(h) in index]
+        return self.vectors[rows] if rows else np.zeros((0, 3))
+
+
+class Viewer:
+    """The running 3D view of one :class:`app.api.context.AppContext`."""
+
+    def __init__(self, context, server, sky: SkyModel) -> None:
+        self._ctx = context
+        self._server = server
+        self._sky = sky
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._drawn_key = None
+        self._drawn_mag = None
+        self._camera_key = None
+        self._candidate_nodes: list = []
+        self._status = ""
+        self._build_gui()
+        self._draw_static()
+        self._thread = threading.Thread(target=self._poll, name="viewer-poll", daemon=True)
+        self._thread.start()
+
+    # --- life cycle ---------------------------------------------------------
+    @classmethod
+    def start(cls, context, port: int) -> "Viewer":
+        import viser
+
+        sky = SkyModel.load()
+        server = viser.ViserServer(host=VIEWER_HOST, port=port, label="Star pattern 3D view", verbose=False)
+        try:
+            return cls(context, server, sky)
+        except BaseException:
+            server.stop()
+            raise
+
+    @property
+    def port(self) -> int:
+        """The port viser really listens on (it moves to the next free one when asked for a busy one)."""
+        return int(self._server.get_port())
+
+    def describe(self) -> dict:
+        return {"available": True, "url": f"http://{VIEWER_HOST}:{self.port}/", "host": VIEWER_HOST,
+                "port": self.port, "detail": None}
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(timeout=2.0)
+        self._server.stop()
+
+    # --- GUI ----------------------------------------------------------------
+    def _build_gui(self) -> None:
+        gui = self._server.gui
+        gui.configure_theme(dark_mode=True, show_logo=False, show_share_button=False,
+                            brand_color=(90, 180, 255))
+        self._info = gui.add_markdown("No sequence selected yet: open one in the console.")
+        self._prev = gui.add_button("Prev", hint="previous candidate (rank - 1)")
+        self._next = gui.add_button("Next", hint="next candidate (rank + 1)")
+        self._mag = gui.add_slider("Faintest mag", min=1.0, max=7.0, step=0.5,
+                                   initial_value=float(self._ctx.view.get().mag))
+        self._operator = gui.add_text("Operator", initial_value="")
+        self._comment = gui.add_text("Comment", initial_value="")
+        self._confirm = gui.add_button("Confirm", color="green", hint="confirm the candidate shown")
+        self._message = gui.add_markdown("")
+        self._prev.on_click(lambda event: self._step(-1))
+        self._next.on_click(lambda event: self._step(+1))
+        self._confirm.on_click(lambda event: self._confirm_shown())
+
+        @self._mag.on_update
+        def _(event) -> None:
+            if event.client is None:  # our own update from the shared state: nothing to write
+                return
+            self._act(lambda: self._write_view({"mag": float(self._mag.value)}))
+
+    def _act(self, action) -> None:
+        """Run a GUI action; its error is shown in the panel instead of being lost in a thread."""
+        from app.api.errors import ApiError
+
+        try:
+            message = action()
+        except ApiError as exc:
+            message = f"**Error:** {exc.detail}"
+        except Exception as exc:  # keep the view alive whatever went wrong
+            log.exception("3D view action failed")
+            message = f"**Error:** {exc}"
+        self._message.content = message or ""
+        self._wake.set()
+
+    def _write_view(self, changes: dict) -> str:
+        from app.api import service
+
+        service.set_view(self._ctx, changes, "viewer")
+        return ""
+
+    def _step(self, delta: int) -> None:
+        def action() -> str:
+            from app.api import service
+
+            doc = service.view_document(self._ctx)
+            if doc["sequence"] is None or not doc["n_candidates"]:
+                return "No candidates to step through: search the sequence first."
+            rank = min(max(1, (doc["rank"] or 1) + delta), doc["n_candidates"])
+            if rank == doc["rank"]:
+                return f"Already at rank {rank} of {doc['n_candidates']}."
+            return self._write_view({"rank": rank})
+        self._act(action)
+
+    def _confirm_shown(self) -> None:
+        def action() -> str:
+            from app.api import service
+
+            doc = service.view_document(self._ctx)
+            if doc["sequence"] is None or doc["rank"] is None:
+                return "Nothing to confirm: no candidate is shown."
+            operator = self._operator.value.strip()
+            if not operator:
+                return "**Error:** enter the operator's name before confirming."
+            comment = self._comment.value.strip() or None
+            result = service.confirm(self._ctx, doc["sequence"], doc["rank"], operator, comment)
+            return f"Confirmed rank {result['rank']} as attitude {result['id']} by {operator}."
+        self._act(action)
+
+    def _toggle(self, definition_change) -> None:
+        def action() -> str:
+            from app.api import service
+
+            doc = service.view_document(self._ctx)
+            if doc["sequence"] is None:
+                return "No sequence shown."
+            version = self._ctx.storage.current_pattern(doc["sequence"])
+            definition = version.pattern if version is not None else service.automatic_definition()
+            service.set_pattern(self._ctx, doc["sequence"], definition_change(definition), None)
+            return "Pattern changed: search again to identify the new pattern."
+        self._act(action)
+
+    # --- scene --------------------------------------------------------------
+    def _draw_static(self) -> None:
+        scene = self._server.scene
+        scene.set_up_direction("+z")
+        for name, vector in self._sky.anchors:
+            scene.add_label(f"/sky/constellations/{name}", name, position=tuple(geo.SPHERE_RADIUS * LABEL_OFFSET
+                                                                              * vector), font_screen_scale=0.8)
+        t = np.linspace(0, 2 * np.pi, 121)
+        ring = geo.SPHERE_RADIUS * np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)])
+        scene.add_line_segments("/sky/equator", np.stack([ring[:-1], ring[1:]], axis=1), (60, 70, 110),
+                                thickness=0.02)
+        scene.add_label("/sky/ncp", "North celestial pole", position=(0.0, 0.0, geo.SPHERE_RADIUS * LABEL_OFFSET))
+        self._draw_stars(self._ctx.view.get().mag)
+
+    def _draw_stars(self, mag_limit: float) -> None:
+        for k, rows in enumerate(geo.magnitude_classes(self._sky.mag, mag_limit)):
+            points = geo.SPHERE_RADIUS * self._sky.vectors[rows] if len(rows) else np.zeros((1, 3))
+            self._server.scene.add_point_cloud(f"/sky/stars/class{k}", points, STAR_COLOUR,
+                                               point_size=geo.MAG_CLASS_SIZES[k], point_shape="circle",
+                                               visible=bool(len(rows)))
+        self._drawn_mag = mag_limit
+
+    def _clear_candidate(self) -> None:
+        for node in self._candidate_nodes:
+            try:
+                node.remove()
+            except Exception:  # already gone with its parent
+                pass
+        self._candidate_nodes = []
+
+    def _poll(self) -> None:
+        from app.api import service
+
+        while not self._stop.is_set():
+            try:
+                doc = service.view_document(self._ctx)
+                key = (doc["sequence"], doc["search_id"], doc["rank"], doc["pattern_version"],
+                       doc["confirmation_id"], doc["status"])
+                if doc["mag"] != self._drawn_mag:
+                    self._draw_stars(doc["mag"])
+                    self._mag.value = float(min(7.0, max(1.0, doc["mag"])))
+                if key != self._drawn_key:
+                    self._draw_candidate(doc)
+                    self._drawn_key = key
+            except Exception:  # a bad record must not kill the view; try again next time
+                log.exception("3D view could not draw the shared state")
+            self._wake.wait(POLL_S)
+            self._wake.clear()
+
+    def _draw_candidate(self, doc: dict) -> None:
+        from app.api import service
+
+        self._clear_candidate()
+        if doc["sequence"] is None:
+            self._info.content = "No sequence selected yet: open one in the console."
+            return
+        row = service.require_sequence(self._ctx, doc["sequence"])
+        title = f"**{row.sequence_id or row.id}** ({row.spacecraft or 'unknown spacecraft'}), status {row.status}"
+        search = self._ctx.storage.latest_search(row.id)
+        if search is None or doc["rank"] is None:
+            self._info.content = f"{title}\n\nNot searched yet, or no candidate."
+            return
+        candidate = service.candidate_of(search, doc["rank"], 404)
+        item = service.loaded(self._ctx, row)
+        camera = item.sequence.camera
+        rotation = np.array(candidate["rotation_matrix"], dtype=float)
+        scene = self._server.scene
+        pose = geo.frustum_pose(rotation, camera)
+        self._candidate_nodes.append(scene.add_camera_frustum(
+            "/candidate/frustum", fov=pose.fov_rad, aspect=pose.aspect, scale=2.5, color=FRUSTUM_COLOUR,
+            wxyz=pose.wxyz, thickness=0.03))
+
+        version = self._ctx.storage.current_pattern(row.id)
+        definition = version.pattern if version is not None else service.automatic_definition()
+        points = service.pattern_document(item, version)["points"]
+        matched_tracks = {m.get("track") for m in candidate.get("matches", [])}
+        self._draw_pattern(rotation, camera, points, matched_tracks)
+        self._draw_excluded(rotation, camera, item, definition, {p.get("track") for p in points})
+
+        hips = [m["hip"] for m in candidate.get("matches", [])]
+        matched = self._sky.vectors_of(hips)
+        if len(matched):
+            self._candidate_nodes.append(scene.add_point_cloud(
+                "/candidate/matched", geo.SPHERE_RADIUS * matched, MATCHED_COLOUR, point_size=0.2,
+                point_shape="rounded"))
+        for m in candidate.get("matches", []):
+            vector = self._sky.vectors_of([m["hip"]])
+            if m.get("name") and len(vector):
+                self._candidate_nodes.append(scene.add_label(
+                    f"/candidate/names/{m['hip']}", m["name"], position=tuple(geo.SPHERE_RADIUS * 1.01 * vector[0]),
+                    anchor="bottom-left", font_screen_scale=0.9))
+        boresight = rotation[2]
+        self._candidate_nodes.append(scene.add_label(
+            "/candidate/rank", f"candidate {doc['rank']} of {doc['n_candidates']}",
+            position=tuple(geo.SPHERE_RADIUS * 0.7 * boresight), anchor="top-center"))
+        self._info.content = (
+            f"{title}\n\nCandidate **{doc['rank']} of {doc['n_candidates']}**: RA {candidate['ra_deg']:.3f}°, "
+            f"Dec {candidate['dec_deg']:.3f}°, roll {candidate['roll_deg']:.3f}°  \n"
+            f"deviation {candidate.get('deviation_arcsec')}″, false-match probability "
+            f"{candidate.get('false_match_probability'):.3g}, {len(hips)} of {len(points)} points matched"
+            + ("" if doc["confirmation_id"] is None else f"  \nconfirmed as attitude {doc['confirmation_id']}"))
+        camera_key = (doc["sequence"], doc["search_id"], doc["rank"])
+        if camera_key != self._camera_key:
+            self._point_cameras(boresight)
+            self._camera_key = camera_key
+
+    def _draw_pattern(self, rotation, camera, points: list[dict], matched_tracks: set) -> None:
+        xy = np.array([[p["x"], p["y"]] for p in points], dtype=float).reshape(-1, 2)
+        directions = geo.pixel_directions(rotation, camera, xy)
+        colours = np.array([RAY_MATCHED if p.get("track") in matched_tracks and p.get("track") is not None
+                            else RAY_UNMATCHED for p in points], dtype=np.uint8).reshape(-1, 3)
+        scene = self._server.scene
+        if len(points):
+            self._candidate_nodes.append(scene.add_line_segments(
+                "/candidate/rays", geo.ray_segments(directions),
+                np.repeat(colours[:, None, :], 2, axis=1), thickness=0.015))
+        manual_index = 0
+        for i, (point, direction) in enumerate(zip(points, directions)):
+            track = point.get("track")
+            handle = scene.add_icosphere(f"/candidate/pattern/{i}", radius=0.09, color=tuple(int(c) for c in colours[i]),
+                                         position=tuple(geo.SPHERE_RADIUS * direction), subdivisions=2)
+            if track is None:
+                index = manual_index
+                manual_index += 1
+                handle.on_click(lambda event, index=index: self._toggle(
+                    lambda d: geo.remove_manual_point(d, index)))
+            else:
+                handle.on_click(lambda event, track=track: self._toggle(lambda d: geo.toggle_track(d, track)))
+            self._candidate_nodes.append(handle)
+
+    def _draw_excluded(self, rotation, camera, item, definition: dict, in_pattern: set) -> None:
+        """Grey spheres for tracks the operator took out, at their automatic pattern positions."""
+        from app.extraction import pattern_to_json
+
+        scene = self._server.scene
+        for point in pattern_to_json(item.extraction.pattern):
+            track = point.get("track")
+            if track is None or track in in_pattern or point["x"] is None or point["y"] is None:
+                continue
+            direction = geo.pixel_directions(rotation, camera, [[point["x"], point["y"]]])[0]
+            handle = scene.add_icosphere(f"/candidate/excluded/{track}", radius=0.07, color=EXCLUDED_COLOUR,
+                                         position=tuple(geo.SPHERE_RADIUS * direction), subdivisions=2)
+            handle.on_click(lambda event, track=track: self._toggle(lambda d: geo.toggle_track(d, track)))
+            self._candidate_nodes.append(handle)
+
+    def _point_cameras(self, boresight: np.ndarray) -> None:
+        """Look along the candidate's boresight from behind the sphere's centre (new and open clients)."""
+        position = tuple(-0.15 * geo.SPHERE_RADIUS * boresight)
+        self._server.initial_camera.position = position
+        self._server.initial_camera.look_at = (0.0, 0.0, 0.0)
+        for client in self._server.get_clients().values():
+            client.camera.position = position
+            client.camera.look_at = (0.0, 0.0, 0.0)
+
+
+def start_viewer(context, port: int) -> Viewer | None:
+    """Start the 3D view on 127.0.0.1:``port`` (or the next free port); None, logged, if it cannot start.
+
+    The API must keep serving without the 3D view, so nothing raised here
+    reaches the caller.
+    """
+    try:
+        viewer = Viewer.start(context, port)
+    except Exception:
+        log.exception("the 3D view (viser) could not start; serving without it")
+        return None
+    log.info("3D view on http://%s:%d/", VIEWER_HOST, viewer.port)
+    return viewer

@@ -1,0 +1,179 @@
+// Snapshot player: the sequence on the sensor frame, sources coloured by track,
+// rejected sources marked by reason, tracks drawn as trails; play / step / slider;
+// clicks toggle tracks in or out of the pattern, or pick points by hand.
+import { $, trackColour } from "./dom.js";
+
+const CLICK_RADIUS_CSS = 10;   // how close (CSS pixels) a click must be to a source or trail
+const SNAP_RADIUS_PX = 6;      // a picked point snaps to a reported source this close (sensor pixels)
+const PLAY_INTERVAL_MS = 450;
+
+export class SnapshotPlayer {
+  constructor({ onToggleTrack, onPick, onRemoveManual, onMessage }) {
+    this.canvas = $("player-canvas");
+    this.ctx = this.canvas.getContext("2d");
+    this.slider = $("snapshot-slider");
+    this.callbacks = { onToggleTrack, onPick, onRemoveManual, onMessage };
+    this.detail = null;
+    this.index = 0;
+    this.timer = null;
+    this.picking = false;
+    this.slider.addEventListener("input", () => this.show(Number(this.slider.value)));
+    $("step-back").addEventListener("click", () => this.step(-1));
+    $("step-fwd").addEventListener("click", () => this.step(+1));
+    $("play").addEventListener("click", () => this.togglePlay());
+    this.canvas.addEventListener("click", (e) => this.click(e));
+  }
+
+  setSequence(detail) {
+    const first = !this.detail || this.detail.id !== detail.id;
+    this.detail = detail;
+    const cam = detail.telemetry.camera;
+    this.scale = this.canvas.width / cam.width;
+    this.canvas.height = Math.round(cam.height * this.scale);
+    const n = detail.telemetry.snapshots.length;
+    this.slider.max = Math.max(0, n - 1);
+    if (first) { this.stop(); this.index = detail.extraction.reference_snapshot ?? 0; }
+    this.index = Math.min(this.index, n - 1);
+    this.inPattern = new Set(detail.pattern.points.filter((p) => p.track !== null).map((p) => p.track));
+    this.draw();
+  }
+
+  setPicking(on) {
+    this.picking = on;
+    this.canvas.classList.toggle("picking", on);
+  }
+
+  step(delta) {
+    if (!this.detail) return;
+    const n = this.detail.telemetry.snapshots.length;
+    this.show((this.index + delta + n) % n);
+  }
+
+  show(index) { this.index = index; this.draw(); }
+
+  togglePlay() { if (this.timer) this.stop(); else this.play(); }
+
+  play() {
+    if (!this.detail) return;
+    this.timer = setInterval(() => this.step(+1), PLAY_INTERVAL_MS);
+    $("play").innerHTML = "&#10073;&#10073; Pause";
+  }
+
+  stop() {
+    clearInterval(this.timer);
+    this.timer = null;
+    $("play").innerHTML = "&#9654; Play";
+  }
+
+  toCanvas(x, y) { return [(x + 0.5) * this.scale, (y + 0.5) * this.scale]; }
+
+  // Sources of snapshot i with their extraction verdicts.
+  sourcesOf(i) {
+    const ex = this.detail.extraction;
+    return this.detail.telemetry.snapshots[i].sources.map((s, j) => ({
+      ...s, index: j, track: ex.sources[i]?.[j] ?? null, reason: ex.rejected[i]?.[j] ?? null,
+    }));
+  }
+
+  draw() {
+    const { ctx, canvas } = this;
+    ctx.fillStyle = "#05070b";
+    ctx.fillRect(0, 0, canvas.width, canvas.height);
+    if (!this.detail) return;
+    const snapshots = this.detail.telemetry.snapshots;
+    const ex = this.detail.extraction;
+    this.slider.value = this.index;
+    const ref = ex.reference_snapshot;
+    $("snapshot-label").textContent = `${this.index + 1}/${snapshots.length}` + (this.index === ref ? " (reference)" : "");
+    $("player-caption").textContent = snapshots[this.index]?.time ?? "";
+
+    // Trails: every track through all its sightings, faint; dashed grey when out of the pattern.
+    ctx.lineWidth = 1.5;
+    for (const t of ex.tracks) {
+      const inside = this.inPattern.has(t.id);
+      ctx.strokeStyle = inside ? trackColour(t.id, 0.45) : "rgba(150,150,160,0.35)";
+      ctx.setLineDash(inside ? [] : [4, 4]);
+      ctx.beginPath();
+      t.xy.forEach(([x, y], k) => { const [cx, cy] = this.toCanvas(x, y); if (k) ctx.lineTo(cx, cy); else ctx.moveTo(cx, cy); });
+      ctx.stroke();
+    }
+    ctx.setLineDash([]);
+
+    for (const s of this.sourcesOf(this.index)) this.drawSource(s);
+
+    // Points picked by hand in this snapshot.
+    for (const p of this.detail.pattern.definition.manual_points || []) {
+      if (p.snapshot !== this.index) continue;
+      const [cx, cy] = this.toCanvas(p.x, p.y);
+      ctx.fillStyle = "#ffe066";
+      ctx.beginPath();
+      ctx.moveTo(cx, cy - 7); ctx.lineTo(cx + 7, cy); ctx.lineTo(cx, cy + 7); ctx.lineTo(cx - 7, cy); ctx.closePath();
+      ctx.fill();
+    }
+  }
+
+  drawSource(s) {
+    const { ctx } = this;
+    const [cx, cy] = this.toCanvas(s.x, s.y);
+    const r = 2.5 + 4 * Math.min(1, Math.max(0, (s.brightness ?? 0) / 255));
+    if (s.track !== null) {
+      const inside = this.inPattern.has(s.track);
+      ctx.beginPath();
+      ctx.arc(cx, cy, r, 0, 2 * Math.PI);
+      if (inside) { ctx.fillStyle = trackColour(s.track); ctx.fill(); }
+      else { ctx.setLineDash([2, 2]); ctx.strokeStyle = "#aaa"; ctx.lineWidth = 1.5; ctx.stroke(); ctx.setLineDash([]); }
+      ctx.fillStyle = inside ? "#dfe6ee" : "#777";
+      ctx.font = "11px system-ui, sans-serif";
+      ctx.fillText(`T${s.track}`, cx + r + 3, cy - 3);
+    } else if (s.reason === "ghost") {
+      ctx.strokeStyle = "#f85149"; ctx.lineWidth = 2;
+      ctx.beginPath(); ctx.moveTo(cx - 5, cy - 5); ctx.lineTo(cx + 5, cy + 5); ctx.moveTo(cx + 5, cy - 5); ctx.lineTo(cx - 5, cy + 5); ctx.stroke();
+    } else if (s.reason === "hot_pixel") {
+      ctx.fillStyle = "#f06595"; ctx.fillRect(cx - 4, cy - 4, 8, 8);
+    } else if (s.reason === "outlier") {
+      ctx.fillStyle = "#adb5bd";
+      ctx.beginPath(); ctx.moveTo(cx, cy - 6); ctx.lineTo(cx + 5, cy + 4); ctx.lineTo(cx - 5, cy + 4); ctx.closePath(); ctx.fill();
+    } else {
+      ctx.strokeStyle = "#777"; ctx.beginPath(); ctx.arc(cx, cy, 3, 0, 2 * Math.PI); ctx.stroke();
+    }
+  }
+
+  // Sensor pixel under a mouse event.
+  eventToSensor(e) {
+    const rect = this.canvas.getBoundingClientRect();
+    const cssScale = this.canvas.width / rect.width;
+    const cx = (e.clientX - rect.left) * cssScale, cy = (e.clientY - rect.top) * cssScale;
+    return { x: cx / this.scale - 0.5, y: cy / this.scale - 0.5, cssPerSensor: this.scale / cssScale };
+  }
+
+  click(e) {
+    if (!this.detail) return;
+    const { x, y, cssPerSensor } = this.eventToSensor(e);
+    const radius = CLICK_RADIUS_CSS / cssPerSensor;
+    const sources = this.sourcesOf(this.index);
+    const nearest = (items) => items.reduce((best, s) => {
+      const d = Math.hypot(s.x - x, s.y - y);
+      return d < best.d ? { s, d } : best;
+    }, { s: null, d: Infinity });
+
+    if (this.picking) {
+      const snap = nearest(sources);
+      const point = snap.d <= SNAP_RADIUS_PX ? { x: snap.s.x, y: snap.s.y } : { x, y };
+      this.callbacks.onPick(this.index, Math.round(point.x * 100) / 100, Math.round(point.y * 100) / 100);
+      return;
+    }
+    const manual = (this.detail.pattern.definition.manual_points || [])
+      .map((p, k) => ({ ...p, k })).filter((p) => p.snapshot === this.index);
+    const m = nearest(manual);
+    if (m.d <= radius) { this.callbacks.onRemoveManual(m.s.k); return; }
+    const hit = nearest(sources);
+    if (hit.d <= radius && hit.s.track !== null) { this.callbacks.onToggleTrack(hit.s.track); return; }
+    // A trail: the nearest sighting of any track.
+    const trail = nearest(this.detail.extraction.tracks.flatMap((t) => t.xy.map(([tx, ty]) => ({ x: tx, y: ty, track: t.id }))));
+    if (trail.d <= radius) { this.callbacks.onToggleTrack(trail.s.track); return; }
+    if (hit.d <= radius) {
+      const what = hit.s.reason ? hit.s.reason.replace("_", " ") : "untracked source";
+      this.callbacks.onMessage(`That is a ${what}, not a track: switch on "Pick points by hand" to add it to the pattern.`);
+    }
+  }
+}
