@@ -64,7 +64,8 @@ SCENARIOS: dict[str, str] = {
     "ghosts3": "random pointing, exactly 3 ghosts in every snapshot and 0-2 hot pixels (the worst case benchmarked)",
     "planet": "boresight near a bright planet (Venus, Mars, Jupiter or Saturn) well away from the Sun",
     "earth": "the Earth fills the view: no stars, only drifting bright blobs (no match must be claimed)",
-    "sparse": "only 4-5 stars, all in view through the whole sequence, slow rate",
+    "sparse": "a sparse field: only the 4-5 brightest stars of the view are detected (as with a less "
+              "sensitive sensor), all in view through the whole sequence, slow rate",
     "single": "one snapshot only, random pointing",
     "big-dipper": "pointing at the Big Dipper (RA 178 deg, Dec 56 deg), as in the TUBSAT paper's figure",
 }
@@ -254,17 +255,29 @@ def _star_sightings(camera, stars, rotations, times):
 
 
 def _choose_sparse_stars(rng, camera, stars, sightings, n_snapshots, wanted: tuple[int, int]):
-    """Indices of k (in ``wanted``) bright stars on the sensor in every snapshot, or None."""
+    """Indices of the k (in ``wanted``) brightest stars on the sensor in every snapshot, or None.
+
+    A sparse field is one where few stars are bright enough to detect, so the
+    stars kept are the brightest of the view; no brighter star is left out
+    (leaving random ones out would model missing stars, another situation).
+    """
     counts = np.zeros(len(stars), dtype=int)
     for idx, xy in sightings:
         inner = camera.on_sensor(xy, margin=2.0)
         counts[idx[inner]] += 1
     # Half a magnitude inside the limit: detected in ~all snapshots.
-    always = np.flatnonzero((counts == n_snapshots) & (stars.mag <= camera.limiting_magnitude - 0.5))
+    bright = stars.mag <= camera.limiting_magnitude - 0.5
+    always = np.flatnonzero((counts == n_snapshots) & bright)
     k = int(rng.integers(wanted[0], wanted[1] + 1))
     if len(always) < k:
         return None
-    return set(int(i) for i in rng.choice(always, size=k, replace=False))
+    brightest = always[np.argsort(stars.mag[always], kind="stable")[:k]]
+    # Any star brighter than the k-th that is seen in some snapshot would be
+    # detected too: such a field is not sparse, draw another.
+    faintest_kept = stars.mag[brightest].max()
+    if np.any((counts > 0) & (stars.mag < faintest_kept) & ~np.isin(np.arange(len(stars)), brightest)):
+        return None
+    return set(int(i) for i in brightest)
 
 
 def _earth_sources(rng, camera, n_snapshots) -> list[_SkySources]:

@@ -56,11 +56,15 @@ class SequenceFit:
 
 
 def snapshot_attitude(body: np.ndarray, ref: np.ndarray, sigma_rad: np.ndarray, *, position: int = 0,
-                      dt_s: float = 0.0, reject_sigmas: float = 5.0) -> SnapshotAttitude | None:
-    """Wahba attitude of one snapshot, dropping pairs beyond ``reject_sigmas`` once; None if < 2 stars."""
+                      dt_s: float = 0.0, reject_sigmas: float = 5.0, min_stars: int = 3) -> SnapshotAttitude | None:
+    """Wahba attitude of one snapshot, dropping pairs beyond ``reject_sigmas``.
+
+    None with fewer than ``min_stars`` consistent stars: two stars always fit
+    exactly, so a mixed-up pair could not be noticed.
+    """
     keep = np.ones(len(body), dtype=bool)
-    for _ in range(2):
-        if keep.sum() < 2:
+    for _ in range(3):
+        if keep.sum() < min_stars:
             return None
         R = solve_wahba(body[keep], ref[keep], 1.0 / sigma_rad[keep] ** 2)
         resid = np.linalg.norm(body - ref @ R.T, axis=1)
@@ -68,7 +72,7 @@ def snapshot_attitude(body: np.ndarray, ref: np.ndarray, sigma_rad: np.ndarray, 
         if np.array_equal(new_keep, keep):
             break
         keep = new_keep
-    if keep.sum() < 2:
+    if keep.sum() < min_stars:
         return None
     R = solve_wahba(body[keep], ref[keep], 1.0 / sigma_rad[keep] ** 2)
     cov = wahba_covariance(body[keep], sigma_rad[keep])
@@ -77,50 +81,70 @@ def snapshot_attitude(body: np.ndarray, ref: np.ndarray, sigma_rad: np.ndarray, 
     return SnapshotAttitude(position=position, dt_s=dt_s, rotation=R, covariance=cov, n_stars=int(keep.sum()))
 
 
-def _residuals(params: np.ndarray, R0: np.ndarray, snaps: list[SnapshotAttitude]) -> np.ndarray:
-    c, w = params[:3], params[3:]
-    base = Rotation.from_rotvec(c).as_matrix() @ R0
-    out = []
-    for s in snaps:
-        pred = Rotation.from_rotvec(-w * s.dt_s).as_matrix() @ base
-        out.append(Rotation.from_matrix(s.rotation @ pred.T).as_rotvec())
-    return np.concatenate(out)
+#: A snapshot whose attitude misses the fitted model by more than this chi-square
+#: (3 degrees of freedom; 16.3 is the 99.9 % point) is dropped and the fit redone.
+SNAPSHOT_REJECT_CHI2 = 16.3
 
 
 def fit_constant_rate(snaps: list[SnapshotAttitude], R0: np.ndarray, rate_guess: np.ndarray | None = None,
-                      iterations: int = 6) -> SequenceFit | None:
-    """Fit ``(c, w)`` of the module's model; None with fewer than two snapshot attitudes."""
+                      iterations: int = 8) -> SequenceFit | None:
+    """Fit ``(c, w)``, dropping snapshots that disagree with the rest (a mixed-up track).
+
+    None with fewer than two usable snapshot attitudes.
+    """
+    snaps = list(snaps)
+    while True:
+        fit, chi2_each = _fit_once(snaps, R0, rate_guess, iterations)
+        if fit is None:
+            return None
+        worst = int(np.argmax(chi2_each))
+        if chi2_each[worst] <= SNAPSHOT_REJECT_CHI2 or len(snaps) <= 3:
+            return fit
+        del snaps[worst]
+        rate_guess = fit.rate_rad_s
+
+
+def _fit_once(snaps: list[SnapshotAttitude], R0: np.ndarray, rate_guess: np.ndarray | None,
+              iterations: int) -> tuple[SequenceFit | None, np.ndarray]:
+    """One Gauss-Newton fit of ``(c, w)``; also each snapshot's chi-square.
+
+    Gauss-Newton with the Jacobian of ``r_i`` taken to first order:
+    ``dr_i/dc = -exp(-[w]x dt_i)`` and ``dr_i/dw = dt_i I`` (exact for the
+    small rotations the fit moves through; the iteration absorbs the rest).
+    """
     if len(snaps) < 2 or len({round(s.dt_s, 9) for s in snaps}) < 2:
-        return None
-    # Whitening: W_i = chol(P_i^-1) so that |W_i r_i|^2 = r_i^T P_i^-1 r_i.
-    whiten = [np.linalg.cholesky(np.linalg.inv(s.covariance)).T for s in snaps]
+        return None, np.zeros(0)
+    R_obs = np.stack([s.rotation for s in snaps])
+    dt = np.array([s.dt_s for s in snaps])
+    # Whitening: W_i^T W_i = P_i^-1, so |W_i r_i|^2 = r_i^T P_i^-1 r_i.
+    W = np.stack([np.linalg.cholesky(np.linalg.inv(s.covariance)).T for s in snaps])
+    c = np.zeros(3)
+    w = np.zeros(3) if rate_guess is None else np.asarray(rate_guess, dtype=float).copy()
 
-    def white(params):
-        r = _residuals(params, R0, snaps).reshape(-1, 3)
-        return np.concatenate([W @ ri for W, ri in zip(whiten, r)])
+    def residuals_and_jacobian(c, w):
+        turn = Rotation.from_rotvec(-w[None, :] * dt[:, None]).as_matrix()  # (S, 3, 3)
+        pred = turn @ (Rotation.from_rotvec(c).as_matrix() @ R0)
+        r = Rotation.from_matrix(R_obs @ np.swapaxes(pred, 1, 2)).as_rotvec()  # (S, 3)
+        J = np.concatenate([-turn, dt[:, None, None] * np.eye(3)[None]], axis=2)  # (S, 3, 6)
+        return np.einsum("sij,sj->si", W, r).reshape(-1), np.einsum("sij,sjk->sik", W, J).reshape(-1, 6)
 
-    params = np.concatenate([np.zeros(3), np.zeros(3) if rate_guess is None else rate_guess])
     for _ in range(iterations):
-        f0 = white(params)
-        J = np.empty((len(f0), 6))
-        for k in range(6):
-            step = np.zeros(6)
-            step[k] = 1e-7 if k < 3 else 1e-8
-            J[:, k] = (white(params + step) - f0) / step[k]
-        delta, *_ = np.linalg.lstsq(J, -f0, rcond=None)
-        params = params + delta
-        if np.max(np.abs(delta)) < 1e-12:
+        f, J = residuals_and_jacobian(c, w)
+        delta, *_ = np.linalg.lstsq(J, -f, rcond=None)
+        c, w = c + delta[:3], w + delta[3:]
+        if np.max(np.abs(delta)) < 1e-13:
             break
-    f = white(params)
+    f, J = residuals_and_jacobian(c, w)
     dof = max(1, len(f) - 6)
     chi2_red = float(f @ f / dof)
     try:
         cov = np.linalg.inv(J.T @ J) * max(1.0, chi2_red)
     except np.linalg.LinAlgError:
-        return None
-    rotation = Rotation.from_rotvec(params[:3]).as_matrix() @ R0
-    return SequenceFit(rotation=rotation, covariance=cov[:3, :3], rate_rad_s=params[3:].copy(),
-                       rate_covariance=cov[3:, 3:], snapshots=tuple(snaps), chi2_reduced=chi2_red)
+        return None, np.zeros(0)
+    rotation = Rotation.from_rotvec(c).as_matrix() @ R0
+    fit = SequenceFit(rotation=rotation, covariance=cov[:3, :3], rate_rad_s=w,
+                      rate_covariance=cov[3:, 3:], snapshots=tuple(snaps), chi2_reduced=chi2_red)
+    return fit, (f.reshape(-1, 3) ** 2).sum(axis=1)
 
 
 def rate_from_motion(motion: np.ndarray, dt_s: np.ndarray) -> np.ndarray | None:

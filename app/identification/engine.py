@@ -50,8 +50,10 @@ class SearchOptions:
     max_refinements: int = 40
     #: Status "identified" needs a best false-match probability at most this ...
     identified_probability: float = 1e-6
-    #: ... and every other distinct candidate above this one.
+    #: ... and no other distinct candidate at or below this one with an RMS
+    #: residual within this factor of the best's.
     rival_probability: float = 1e-3
+    rival_rms_factor: float = 3.0
     #: No candidate at or below this false-match probability: "no_match".
     no_match_probability: float = 0.01
     #: Stop generating hypotheses once a hypothesis matches this many points
@@ -258,13 +260,20 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
 
 
 def classify(candidates: list[Candidate], options: SearchOptions) -> str:
-    """identified / ambiguous / no_match from the ranked candidates (see SearchOptions)."""
+    """identified / ambiguous / no_match from the ranked candidates (see SearchOptions).
+
+    A rival blocks "identified" when chance does not explain it either
+    (probability at most ``rival_probability``) and its residuals are of the
+    same order as the best candidate's (RMS within ``rival_rms_factor``): a
+    true attitude fits its stars to the measurement noise, so a rival fitting
+    several times worse than the best is not a competing explanation.
+    """
     if not candidates or min(c.false_match_probability for c in candidates) > options.no_match_probability:
         return NO_MATCH
     best = candidates[0]
-    rivals = [c.false_match_probability for c in candidates[1:]]
-    if best.false_match_probability <= options.identified_probability and \
-            all(p > options.rival_probability for p in rivals):
+    rivals = [c for c in candidates[1:] if c.false_match_probability <= options.rival_probability
+              and c.rms_arcsec <= options.rival_rms_factor * best.rms_arcsec]
+    if best.false_match_probability <= options.identified_probability and not rivals:
         return IDENTIFIED
     return AMBIGUOUS
 

@@ -62,8 +62,9 @@ import hashlib
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -74,6 +75,9 @@ from app.config import settings
 from app.identification.hypotheses import Hypotheses
 from app.identification.verify import chord, chord_to_angle
 from app.index import BrightPairIndex
+
+if TYPE_CHECKING:  # the engine imports this module
+    from app.identification.engine import PreparedPattern, SearchOptions, Sky
 
 log = logging.getLogger(__name__)
 
@@ -422,14 +426,19 @@ class Assignments:
     star_second: np.ndarray
     votes: np.ndarray  # (A,) other pattern points with a consistent assignment
 
+    def take(self, rows: np.ndarray) -> "Assignments":
+        """The assignments at ``rows`` (a mask or row numbers), in that order."""
+        return Assignments(**{f.name: getattr(self, f.name)[rows] for f in fields(self)})
+
 
 def candidate_assignments(pf: PatternFeatures, db: TriangleFeatureDatabase,
                           star_vectors: np.ndarray) -> Assignments:
     """Look up every usable point and keep the NBCs whose exact feature fits within the uncertainty."""
-    query, nbc = db.lookup(class_keys(pf.features, db.params)) if len(pf.points) else (
-        np.zeros(0, int), np.zeros(0, int))
+    keys = class_keys(pf.features, db.params)
+    query, nbc = db.lookup(keys[keys >= 0])
+    query = np.flatnonzero(keys >= 0)[query]
     s, a, b = db.nbc_star[nbc], db.nbc_first[nbc], db.nbc_second[nbc]
-    cat = triangle_features(star_vectors[s], star_vectors[a], star_vectors[b]) if len(nbc) else np.zeros((0, 3))
+    cat = triangle_features(star_vectors[s], star_vectors[a], star_vectors[b]).reshape(-1, 3)
     meas = pf.features[query]
     tol = db.params.distance_tolerance_rad
     dang = np.abs(np.mod(meas[:, 2] - cat[:, 2] + np.pi, 2 * np.pi) - np.pi)
@@ -457,7 +466,7 @@ def vote(asg: Assignments, pattern_vectors: np.ndarray, star_vectors: np.ndarray
     support = np.zeros((n, len(points)), dtype=bool)
     rows, cols = np.nonzero(consistent)
     support[rows, col[cols]] = True
-    return Assignments(**{**asg.__dict__, "votes": support.sum(axis=1)})
+    return replace(asg, votes=support.sum(axis=1))
 
 
 def tf_hypotheses(asg: Assignments, pattern_vectors: np.ndarray, star_vectors: np.ndarray) -> Hypotheses:
@@ -475,7 +484,7 @@ def tf_hypotheses(asg: Assignments, pattern_vectors: np.ndarray, star_vectors: n
                       edge_number=np.arange(len(asg.point)))
 
 
-def tf_batches(p, sky, options):
+def tf_batches(p: "PreparedPattern", sky: "Sky", options: "SearchOptions"):
     """Hypothesis generator of the TF method for :func:`app.identification.engine.identify`.
 
     Yields ``(Hypotheses, check tolerance (H,), pattern points used)`` in
@@ -489,12 +498,10 @@ def tf_batches(p, sky, options):
     stars = sky.index.vectors
     asg = candidate_assignments(pf, db, stars)
     visible = p.star_mask[asg.star] & p.star_mask[asg.star_first] & p.star_mask[asg.star_second]
-    asg = Assignments(**{k: v[visible] for k, v in asg.__dict__.items()})
-    asg = vote(asg, p.vectors, stars, params.distance_tolerance_rad)
+    asg = vote(asg.take(visible), p.vectors, stars, params.distance_tolerance_rad)
     if len(asg.point) == 0:
         return
-    order = np.lexsort((asg.point, -asg.votes))
-    asg = Assignments(**{k: v[order] for k, v in asg.__dict__.items()})
+    asg = asg.take(np.lexsort((asg.point, -asg.votes)))
     hyp = tf_hypotheses(asg, p.vectors, stars)
     # A pair rotation errs at distance D from its first point by ~ tol * D / baseline.
     baseline = angle_between(p.vectors[asg.point], p.vectors[asg.second])

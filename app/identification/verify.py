@@ -101,10 +101,12 @@ def match_points(rotation: np.ndarray, pattern_vectors: np.ndarray, field: StarF
     d, idx = field.tree.query(sky, k=1)
     ang = chord_to_angle(d)
     star = np.where(ang <= tolerance_rad, idx, -1)
-    for s in np.unique(star[star >= 0]):
-        claim = np.flatnonzero(star == s)
-        if len(claim) > 1:
-            star[claim[claim != claim[np.argmin(ang[claim])]]] = -1
+    # One point per star: among points claiming the same star, the closest keeps it.
+    claimed = np.flatnonzero(star >= 0)
+    if len(claimed) > 1:
+        order = claimed[np.lexsort((ang[claimed], star[claimed]))]
+        repeat = np.concatenate([[False], star[order][1:] == star[order][:-1]])
+        star[order[repeat]] = -1
     return star, np.where(star >= 0, ang, np.nan), ang
 
 
