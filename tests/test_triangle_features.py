@@ -15,7 +15,7 @@ from app.attitude import rotation_from_radec_roll
 from app.camera import CAMERAS
 from app.identification import IDENTIFIED, identify
 from app.identification.triangle_features import (
-    N_ANGLE_CLASSES, TFParameters, build_tf_database, candidate_assignments, class_keys,
+    N_ANGLE_CLASSES, TFParameters, candidate_assignments, class_keys,
     database_for, load_tf_database, neighbour_constellations, pattern_features, quantised_entries,
     rim_distance, triangle_features)
 

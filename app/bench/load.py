@@ -56,9 +56,10 @@ DEFAULT_SECONDS = 30
 DEFAULT_CLIENTS = 20
 #: Issue 4's acceptance target for the 95th-percentile search latency.
 TARGET_P95_SEARCH_MS = 150.0
-#: Fresh sequences simulated per client and per 30 s before the clock starts
-#: (measured: a loop takes well over 0.5 s per client under full load).
-FRESH_PER_CLIENT_PER_30S = 20
+#: Fresh sequences simulated per client and per 30 s before the clock starts (measured: 20
+#: clients used ~310 in 30 s, one client ~40), at least MIN_FRESH; ~60 ms each to simulate.
+FRESH_PER_CLIENT_PER_30S = 25
+MIN_FRESH = 60
 #: Scenarios of the fresh sequences: what a ground station receives day to day.
 FRESH_SCENARIOS = ("nominal", "nominal", "clean", "ghosts", "planet", "sparse")
 REQUEST_TIMEOUT_S = 120.0
@@ -316,7 +317,7 @@ def run(n_sequences: int = DEFAULT_SECONDS, seed: int = 1, clients: int = DEFAUL
     duration_s = float(n_sequences)
     if duration_s <= 0 or clients < 1:
         raise ValueError("the load benchmark needs a positive duration and at least one client")
-    n_fresh = max(clients, math.ceil(FRESH_PER_CLIENT_PER_30S * clients * duration_s / 30.0))
+    n_fresh = max(MIN_FRESH, math.ceil(FRESH_PER_CLIENT_PER_30S * clients * duration_s / 30.0))
     t0 = time.perf_counter()
     workload = Workload(fresh_uploads(n_fresh, seed), sample_uploads())
     prepare_s = time.perf_counter() - t0

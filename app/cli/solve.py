@@ -4,6 +4,12 @@ One JSON object per input file and line, in input order, all in one process
 (the catalogue index is loaded once).  An invalid file gives status
 ``invalid`` with its validation error and does not stop the batch.  Exit
 status 0 when every file was valid, 2 otherwise.
+
+``--method`` picks the lost-in-space identifier: ``bright_pair`` (default),
+``tf`` (Liebe's triangle features) or ``both``: then the bright-pair answer
+fills the usual keys, the TF candidates come under ``tf_candidates`` and
+``methods_agree`` says whether the two first candidates are the same
+attitude (within :data:`AGREE_DEG`; also true when neither finds any).
 """
 
 from __future__ import annotations
@@ -14,12 +20,18 @@ import sys
 
 from app.cli.common import for_each_file, format_error
 
+METHODS = ("bright_pair", "tf", "both")
+#: Two first candidates closer than this (rotation angle) are the same attitude.
+AGREE_DEG = 0.1
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("files", nargs="+", metavar="FILE", help="telemetry files (tubsat-snapshots/1 JSON or CSV)")
     p.add_argument("--json", action="store_true", help="one JSON object per file and line")
     p.add_argument("--candidates", type=int, default=None, metavar="N",
                    help="distinct candidates to report (default 10)")
+    p.add_argument("--method", choices=METHODS, default="bright_pair",
+                   help="identifier: bright_pair (default), tf (Liebe's triangle features) or both, compared")
 
 
 def solved_to_json(solved) -> dict:
@@ -40,16 +52,37 @@ def run(args: argparse.Namespace) -> int:
     sky = Sky()
     options = SearchOptions() if args.candidates is None else SearchOptions(max_candidates=args.candidates)
 
+    method = getattr(args, "method", "bright_pair")
+
     def solve_one(path, sequence):
-        solved = solve_sequence(sequence, sky, options=options)
-        return {"file": path, "sequence_id": sequence.sequence_id, "status": solved.solution.status,
-                "error": None, **solved_to_json(solved)}
+        solved = solve_sequence(sequence, sky, options=options, method="tf" if method == "tf" else "bright_pair")
+        doc = {"file": path, "sequence_id": sequence.sequence_id, "status": solved.solution.status,
+               "error": None, **solved_to_json(solved)}
+        if method == "both":
+            tf = solve_sequence(sequence, sky, options=options, extraction=solved.extraction,
+                                pattern=solved.pattern, method="tf").solution
+            doc["tf_status"] = tf.status
+            doc["tf_candidates"] = [c.to_json() for c in tf.candidates]
+            doc["methods_agree"] = methods_agree(solved.solution, tf)
+        return doc
 
     def invalid(path, error):
         return {"file": path, "sequence_id": None, "status": "invalid", "error": format_error(error),
                 "reference_snapshot": None, "sources": [], "candidates": []}
 
     return for_each_file(args.files, solve_one, invalid, args.json, print_summary)
+
+
+def methods_agree(a, b, tolerance_deg: float = AGREE_DEG) -> bool:
+    """True when both solutions' first candidates are one attitude, or neither has a candidate."""
+    import math
+
+    from app.attitude import rotation_angle_between
+
+    if not a.candidates or not b.candidates:
+        return not a.candidates and not b.candidates
+    angle = rotation_angle_between(a.candidates[0].rotation_matrix, b.candidates[0].rotation_matrix)
+    return math.degrees(angle) <= tolerance_deg
 
 
 def print_summary(doc: dict) -> None:
@@ -59,7 +92,15 @@ def print_summary(doc: dict) -> None:
         return
     print(f"  {'rank':>4} {'RA deg':>10} {'Dec deg':>9} {'roll deg':>9} {'matched':>7} {'rms as':>7} "
           f"{'dev px/pt':>9} {'P(false)':>9}  stars")
-    for c in doc["candidates"]:
+    _print_candidates(doc["candidates"])
+    if "tf_candidates" in doc:
+        print(f"  triangle-feature method: {doc['tf_status']}, "
+              f"{'agrees' if doc['methods_agree'] else 'DISAGREES'} with the bright-pair method")
+        _print_candidates(doc["tf_candidates"])
+
+
+def _print_candidates(candidates: list[dict]) -> None:
+    for c in candidates:
         names = ", ".join(m["name"] or f"HIP {m['hip']}" for m in c["matches"][:6])
         planets = "".join(f", {p['name']} (planet)" for p in c["planets"])
         print(f"  {c['rank']:>4} {c['ra_deg']:>10.4f} {c['dec_deg']:>9.4f} {c['roll_deg']:>9.3f} "

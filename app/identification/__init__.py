@@ -53,7 +53,7 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
     extraction = extraction if extraction is not None else extract(sequence)
     pattern = pattern if pattern is not None else extraction.pattern
     t = sequence.snapshots[extraction.reference].time
-    planets = planet_vectors(t) if with_planets else None
+    planets = (lambda: planet_vectors(t)) if with_planets else None
     solution = identify(pattern, sequence.camera, t, sky, velocity_km_s=sequence.velocity_km_s,
                         options=options, planets=planets, method=method)
     fits: dict[int, SequenceFit] = {}

@@ -13,6 +13,7 @@ from __future__ import annotations
 import time as _time
 from collections import OrderedDict
 from dataclasses import dataclass, replace
+from typing import Callable
 from datetime import datetime
 
 import numpy as np
@@ -179,14 +180,17 @@ HYPOTHESIS_METHODS = {"bright_pair": bright_pair_batches, "tf": tf_batches}
 
 
 def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=None,
-             options: SearchOptions = SearchOptions(), planets: dict[str, np.ndarray] | None = None,
+             options: SearchOptions = SearchOptions(),
+             planets: Callable[[], dict[str, np.ndarray]] | None = None,
              method: str = "bright_pair") -> Solution:
     """Identify a pattern seen by ``camera`` at UTC ``t``.
 
     ``pattern`` has ``vectors`` (m, 3) camera-frame unit vectors, ``xy``
     (m, 2) pixels, ``sigma_px`` (m,), ``brightness`` (m,) and ``track_ids``
     (m,) (-1 for hand-picked points) - an :class:`app.extraction.Pattern`.
-    ``planets`` maps planet names to apparent unit vectors at ``t``;
+    ``planets()`` returns planet names -> apparent unit vectors at ``t``; it is
+    called only when a credible candidate leaves a point unmatched (an
+    ephemeris evaluation costs tens of milliseconds);
     ``method`` names a generator in :data:`HYPOTHESIS_METHODS`.
     """
     started = _time.perf_counter()
@@ -294,20 +298,20 @@ def _candidate(c, p: PreparedPattern, pattern, sky: Sky, n_tried, options: Searc
                   name=sky.name(int(field.rows[r.star_of_point[i]])),
                   residual_arcsec=float(np.degrees(r.residual_rad[i]) * 3600))
         for i in matched)
+    resid = r.residual_rad[matched]
+    fmp = false_match_probability(m, len(matched), c["tol"], field.density_per_sr, n_tried,
+                                  float(np.sum(resid ** 2)))
     planet_matches = []
-    if planets:
-        unmatched = np.flatnonzero(r.star_of_point < 0)
+    unmatched = np.flatnonzero(r.star_of_point < 0)
+    if planets is not None and len(unmatched) and fmp <= options.rival_probability:
         sky_dirs = vectors[unmatched] @ R
-        for name, pv in planets.items():
+        for name, pv in planets().items():
             ang = np.arccos(np.clip(sky_dirs @ pv, -1, 1))
             for k in np.flatnonzero(ang <= options.planet_tolerance_px * scale):
                 i = unmatched[k]
                 planet_matches.append(PlanetMatch(pattern_index=int(keep[i]), track=track_of(i), name=name,
                                                   residual_arcsec=float(np.degrees(ang[k]) * 3600)))
-    resid = r.residual_rad[matched]
     deviation = float(np.sum(r.nearest_rad))
-    fmp = false_match_probability(m, len(matched), c["tol"], field.density_per_sr, n_tried,
-                                  float(np.sum(resid ** 2)))
     sigma_rad = p.sigma_px[matched] * scale
     cov = wahba_covariance(vectors[matched], sigma_rad) * max(1.0, reduced_chi2(resid, sigma_rad))
     sigma_cross, sigma_roll = cross_boresight_and_roll_sigma(cov)

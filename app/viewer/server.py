@@ -275,7 +275,7 @@ class Viewer:
         pose = geo.frustum_pose(rotation, camera)
         self._candidate_nodes.append(scene.add_camera_frustum(
             "/candidate/frustum", fov=pose.fov_rad, aspect=pose.aspect, scale=2.5, color=FRUSTUM_COLOUR,
-            wxyz=pose.wxyz, thickness=0.03))
+            wxyz=pose.wxyz, thickness=2.0, thickness_units="screen"))
 
         version = self._ctx.storage.current_pattern(row.id)
         definition = version.pattern if version is not None else service.automatic_definition()
@@ -320,7 +320,7 @@ class Viewer:
         if len(points):
             self._candidate_nodes.append(scene.add_line_segments(
                 "/candidate/rays", geo.ray_segments(directions),
-                np.repeat(colours[:, None, :], 2, axis=1), thickness=0.015))
+                np.repeat(colours[:, None, :], 2, axis=1), thickness=1.5, thickness_units="screen"))
         manual_index = 0
         for i, (point, direction) in enumerate(zip(points, directions)):
             track = point.get("track")
@@ -351,13 +351,18 @@ class Viewer:
             self._candidate_nodes.append(handle)
 
     def _point_cameras(self, boresight: np.ndarray) -> None:
-        """Look along the candidate's boresight from behind the sphere's centre (new and open clients)."""
-        position = tuple(-0.15 * geo.SPHERE_RADIUS * boresight)
+        """Look at the candidate's field on the sphere from halfway out along the boresight (new and open clients).
+
+        The camera orbits the field centre, so dragging shows the frustum and
+        rays from the side while the field stays in view.
+        """
+        position = tuple(0.45 * geo.SPHERE_RADIUS * boresight)
+        look_at = tuple(geo.SPHERE_RADIUS * boresight)
         self._server.initial_camera.position = position
-        self._server.initial_camera.look_at = (0.0, 0.0, 0.0)
+        self._server.initial_camera.look_at = look_at
         for client in self._server.get_clients().values():
             client.camera.position = position
-            client.camera.look_at = (0.0, 0.0, 0.0)
+            client.camera.look_at = look_at
 
 
 def start_viewer(context, port: int) -> Viewer | None:

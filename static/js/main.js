@@ -309,6 +309,7 @@ async function runSearch() {
     state.rank = result.candidates.length ? 1 : null;
     await writeView({ sequence: d.id, rank: state.rank });
     await showCandidate();
+    $("candidate-card").scrollIntoView({ block: "start" });
     await loadSequences();
     toast(`Search done: ${result.status.replace("_", " ")}, ${result.candidates.length} candidates`,
       result.status === "identified" ? "ok" : "error");
@@ -330,6 +331,7 @@ async function showCandidate() {
   $("cand-rank").textContent = hasCandidates ? `rank ${state.rank} of ${d.search.candidates.length}` : "";
   $("cand-prev").disabled = !hasCandidates || state.rank <= 1;
   $("cand-next").disabled = !hasCandidates || state.rank >= d.search.candidates.length;
+  $("confirm").textContent = hasCandidates ? `Confirm rank ${state.rank}` : "Confirm";
   renderConfirmed();
   if (!hasCandidates) return;
   const view = await api.get(`/api/sequences/${d.id}/candidates/${state.rank}?mag=${state.mag}`);
@@ -363,8 +365,8 @@ async function stepCandidate(delta) {
   }
   await action("Showing the candidate", async () => {
     state.rank = rank;
+    await writeView({ rank });   // first, so the 3D view moves with the console
     await showCandidate();
-    await writeView({ rank });
   });
 }
 
@@ -396,6 +398,7 @@ async function confirmCandidate(e) {
     const c = await api.post(`/api/sequences/${d.id}/confirm`, { rank: state.rank, operator, comment: $("comment").value.trim() || null });
     await loadDetail(d.id);
     renderConfirmed();
+    $("confirmed").scrollIntoView({ block: "nearest" });
     await Promise.all([loadAttitudes(), loadSequences()]);
     toast(`Attitude #${c.id} confirmed by ${c.operator}: RA ${fmt(c.ra_deg, 3)}°, Dec ${fmt(c.dec_deg, 3)}°, roll ${fmt(c.roll_deg, 2)}°`);
   });
