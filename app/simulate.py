@@ -96,6 +96,9 @@ class SensorModel:
     dropout_width_mag: float = 0.15
     #: Hot pixels are reported in each snapshot with this probability.
     hot_pixel_presence: float = 0.9
+    #: Sky sources closer than this (pixels) blur into one spot, reported at
+    #: their brightness-weighted centre with their summed brightness.
+    blend_radius_px: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -302,6 +305,31 @@ def _earth_sources(rng, camera, n_snapshots) -> list[_SkySources]:
     return out
 
 
+def _blend(true_xy, seen_xy, measured, detected, labels, radius):
+    """Merge detected sources closer than ``radius`` into their brightest member (in place).
+
+    The brightest keeps its label (with ``blend_of`` listing the others) and
+    gets the brightness-weighted centre and the summed brightness; the others
+    are marked undetected.  Returns the (possibly updated) labels.
+    """
+    idx = np.flatnonzero(detected)
+    if len(idx) < 2 or radius <= 0:
+        return labels
+    d = np.linalg.norm(true_xy[idx, None, :] - true_xy[None, idx, :], axis=2)
+    close = np.argwhere(np.triu(d < radius, k=1))
+    for a, b in close:
+        i, j = idx[a], idx[b]
+        if not (detected[i] and detected[j]):
+            continue
+        keep, drop = (i, j) if measured[i] >= measured[j] else (j, i)
+        w = measured[[keep, drop]]
+        seen_xy[keep] = (seen_xy[keep] * w[0] + seen_xy[drop] * w[1]) / w.sum()
+        measured[keep] = w.sum()
+        detected[drop] = False
+        labels[keep] = {**labels[keep], "blend_of": labels[keep].get("blend_of", []) + [labels[drop]["object"]]}
+    return labels
+
+
 def _measure_snapshot(rng, camera, sensor, sky: _SkySources, ghosts: int,
                       hot_pixels: list[tuple[np.ndarray, float]], snapshot_index: int):
     """The sensor's report of one snapshot: (xy (n, 2), brightness (n,), labels), shuffled."""
@@ -325,6 +353,7 @@ def _measure_snapshot(rng, camera, sensor, sky: _SkySources, ghosts: int,
         seen_xy = true_xy + rng.normal(0, sensor.position_sigma_px, size=(n, 2))
         measured = np.array(sky.brightness) * np.exp(rng.normal(0, sensor.brightness_log_sigma, n))
         detected = (rng.random(n) < np.array(sky.p_detect))
+        sky_labels = _blend(true_xy, seen_xy, measured, detected, list(sky.labels), sensor.blend_radius_px)
         # Keep the centroid within [0, size - 1] so rounding stays on the sensor.
         detected &= camera.on_sensor(seen_xy, margin=0.5)
         candidates = np.flatnonzero(detected)
@@ -333,7 +362,7 @@ def _measure_snapshot(rng, camera, sensor, sky: _SkySources, ghosts: int,
         for j in candidates[order][:slots]:
             xy_list.append(seen_xy[j])
             b_list.append(measured[j])
-            labels.append(sky.labels[j])
+            labels.append(sky_labels[j])
 
     xy = np.array(xy_list, dtype=float).reshape(-1, 2)
     if sensor.integer_pixels:
