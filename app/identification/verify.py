@@ -110,9 +110,21 @@ def match_points(rotation: np.ndarray, pattern_vectors: np.ndarray, field: StarF
     return star, np.where(star >= 0, ang, np.nan), ang
 
 
+#: After the fit, a matched point whose residual exceeds this many of its
+#: sigmas (or of the residuals' own robust scale, if larger) is let go: a
+#: displaced star or a blend inside the match tolerance would bias the fit.
+FINAL_REJECT_SIGMAS = 3.5
+RAYLEIGH_MEDIAN = 1.1774  # median of |r| for a 2-D Gaussian of unit sigma per axis
+
+
 def refine(rotation: np.ndarray, pattern_vectors: np.ndarray, weights: np.ndarray, field: StarField,
            final_tolerance_rad: np.ndarray, start_tolerance_rad: float, iterations: int = 4) -> Refined:
-    """Iterated Wahba fit with a tolerance shrinking to ``final_tolerance_rad``."""
+    """Iterated Wahba fit with a tolerance shrinking to ``final_tolerance_rad``, then outlier rejection.
+
+    ``weights`` are 1 / sigma^2 of each point.  The last step drops matched
+    points beyond :data:`FINAL_REJECT_SIGMAS` times max(sigma_i, robust
+    scale of the residuals) and refits, while at least 3 points remain.
+    """
     R = rotation
     for it in range(iterations):
         f = it / max(1, iterations - 1)
@@ -123,6 +135,21 @@ def refine(rotation: np.ndarray, pattern_vectors: np.ndarray, weights: np.ndarra
             break
         R = solve_wahba(pattern_vectors[ok], field.vectors[star[ok]], weights[ok])
     star, resid, nearest = match_points(R, pattern_vectors, field, final_tolerance_rad)
+    sigma = 1.0 / np.sqrt(weights)
+    for _ in range(3):
+        ok = star >= 0
+        if ok.sum() <= 3:
+            break
+        scale = np.maximum(sigma, np.median(resid[ok]) / RAYLEIGH_MEDIAN)
+        bad = ok & (resid > FINAL_REJECT_SIGMAS * scale)
+        if not bad.any():
+            break
+        star = np.where(bad, -1, star)
+        ok = star >= 0
+        R = solve_wahba(pattern_vectors[ok], field.vectors[star[ok]], weights[ok])
+        fresh, resid, nearest = match_points(R, pattern_vectors, field, final_tolerance_rad)
+        star = np.where(bad | (fresh < 0), -1, fresh)
+        resid = np.where(star >= 0, resid, np.nan)
     return Refined(rotation=R, star_of_point=star, residual_rad=resid, nearest_rad=nearest)
 
 
