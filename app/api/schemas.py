@@ -54,9 +54,22 @@ class PatternReset(_Strict):
     operator: str | None = Field(default=None, max_length=MAX_OPERATOR)
 
 
+class PriorAttitude(_Strict):
+    """A prior attitude for tracking: boresight RA/Dec, roll (README conventions) and its 1-sigma, degrees."""
+
+    ra_deg: float = Field(ge=0.0, lt=360.0)
+    dec_deg: float = Field(ge=-90.0, le=90.0)
+    roll_deg: float = Field(ge=-360.0, le=360.0)
+    sigma_deg: float = Field(default=1.0, gt=0.0, le=10.0)
+
+
 class SearchRequest(_Strict):
-    method: Literal["bright_pair"] = "bright_pair"
+    """``bright_pair`` (default) and ``tf`` search the whole sky; ``tracking`` matches near ``prior``, or
+    near the newest confirmed attitude of the same spacecraft propagated with its rate."""
+
+    method: Literal["bright_pair", "tf", "tracking"] = "bright_pair"
     max_candidates: int | None = Field(default=None, ge=1, le=50)
+    prior: PriorAttitude | None = None
 
 
 class ConfirmRequest(_Strict):

@@ -33,8 +33,9 @@ from app.storage import ConfirmationRow, PatternVersion, SearchRow, SequenceRow
 from app.telemetry import parse_telemetry
 from app.telemetry.model import format_time
 
-#: The one identification method so far (issue 6 may add others).
-METHODS = ("bright_pair",)
+#: Identification methods of a search: the bright-pair index (default),
+#: Liebe's triangle features, and tracking from a prior attitude.
+METHODS = ("bright_pair", "tf", "tracking")
 #: Originator written into the CCSDS messages.
 ORIGINATOR = "STARID GROUND STATION"
 
@@ -170,8 +171,10 @@ def reset_pattern(ctx: AppContext, seq_id: int, operator: str | None) -> dict:
 # Search and candidates
 # ---------------------------------------------------------------------------
 
-def _candidate_document(candidate) -> dict:
-    doc = candidate.to_json()
+def _candidate_document(solved, candidate) -> dict:
+    from app.identification import candidate_json
+
+    doc = candidate_json(solved, candidate)
     for m_doc, match in zip(doc["matches"], candidate.matches):
         m_doc["pattern_index"] = int(match.pattern_index)
     for p_doc, planet in zip(doc["planets"], candidate.planets):
@@ -181,7 +184,41 @@ def _candidate_document(candidate) -> dict:
     return doc
 
 
-def run_search(ctx: AppContext, seq_id: int, method: str, max_candidates: int | None) -> dict:
+def tracking_prior(ctx: AppContext, row: SequenceRow, prior: dict | None):
+    """The prior of a tracking search: the one given, else the newest confirmed attitude of the
+    same spacecraft propagated with its body rate (422 when there is neither)."""
+    from app.attitude import rotation_from_radec_roll
+    from app.identification import Prior
+
+    if prior is not None:
+        return Prior(rotation=rotation_from_radec_roll(prior["ra_deg"], prior["dec_deg"], prior["roll_deg"]),
+                     sigma_deg=prior.get("sigma_deg") or 1.0)
+    offset = 0
+    while True:
+        page, total = ctx.storage.list_confirmations(offset, 100)
+        for c in page:
+            other = ctx.storage.get_sequence(c.seq_id)
+            if other is None or other.spacecraft != row.spacecraft or c.superseded_by is not None:
+                continue
+            fit = (c.candidate or {}).get("sequence_fit")
+            epoch = _confirmation_epoch(ctx, c)
+            rate = np.radians(fit["rate_deg_s"]) if fit else None
+            # Without a rate the attitude is only a rough guide: widen the prior.
+            return Prior(rotation=np.array(c.rotation_matrix, dtype=float), time=epoch, rate_rad_s=rate,
+                         sigma_deg=1.0 if rate is not None else 5.0)
+        offset += len(page)
+        if not page or offset >= total:
+            raise ApiError(422, "tracking needs a prior attitude: give \"prior\" (ra_deg, dec_deg, roll_deg, "
+                                f"sigma_deg) or confirm an attitude of spacecraft {row.spacecraft!r} first")
+
+
+def _confirmation_epoch(ctx: AppContext, c: ConfirmationRow) -> datetime | None:
+    text = _epoch_of(c)
+    return datetime.fromisoformat(text.replace("Z", "+00:00")) if text else None
+
+
+def run_search(ctx: AppContext, seq_id: int, method: str, max_candidates: int | None,
+               prior: dict | None = None) -> dict:
     """Identify the current pattern (within the configured time-out), store the result, set the status."""
     from app.identification import solve_sequence
 
@@ -193,14 +230,16 @@ def run_search(ctx: AppContext, seq_id: int, method: str, max_candidates: int | 
     definition = version.pattern if version is not None else automatic_definition()
     pattern = pattern_from_definition(item, definition)
     options = search_options(ctx, max_candidates)
-    solved = solve_sequence(item.sequence, ctx.sky, options=options, extraction=item.extraction, pattern=pattern)
+    track_from = tracking_prior(ctx, row, prior) if method == "tracking" else None
+    solved = solve_sequence(item.sequence, ctx.sky, options=options, extraction=item.extraction, pattern=pattern,
+                            method=method if method != "tracking" else "bright_pair", prior=track_from)
     solution = solved.solution
     result = {"status": solution.status, "method": method,
               "reference_snapshot": int(item.extraction.reference),
               "reference_time": format_time(solved.reference_time),
               "pattern_version": version.version if version else None,
               "pattern": pattern_to_json(pattern),
-              "candidates": [_candidate_document(c) for c in solution.candidates],
+              "candidates": [_candidate_document(solved, c) for c in solution.candidates],
               "notes": list(item.extraction.notes) + list(solution.notes),
               "elapsed_ms": round(solution.elapsed_s * 1000, 2)}
     search = ctx.storage.add_search(seq_id, pattern_version=result["pattern_version"], method=method,
@@ -240,7 +279,7 @@ def reusable_search(ctx: AppContext, seq_id: int, method: str, max_candidates: i
     unusual (unknown method or sequence) returns None so that
     :func:`run_search` produces the proper error.
     """
-    if method not in METHODS:
+    if method not in METHODS or method == "tracking":  # a tracking search depends on its prior too
         return None
     row = ctx.storage.get_sequence(seq_id)
     search = ctx.storage.latest_search(seq_id) if row is not None else None
@@ -317,6 +356,7 @@ def render_apm(row: SequenceRow, candidate: dict, epoch: datetime, operator: str
                 f"candidate rank {candidate['rank']}",
                 f"Confirmed by {operator}; deviation {candidate['deviation_arcsec']} arcsec, "
                 f"false-match probability {candidate['false_match_probability']}",
+                *_uncertainty_comments(candidate),
                 "REF_FRAME_B SENSOR_1 is the star camera frame: +X pixel column, +Y pixel row, +Z boresight"]
     if comment:
         comments.append(f"Operator comment: {comment}")
@@ -324,19 +364,46 @@ def render_apm(row: SequenceRow, candidate: dict, epoch: datetime, operator: str
                    object_name=name, object_id=object_id, comments=comments, creation_date=confirmed_at)
 
 
+def _uncertainty_comments(candidate: dict) -> list[str]:
+    """The attitude's 1-sigma (APM 2.0 has no covariance block) and the fitted body rate."""
+    out = []
+    if candidate.get("sigma_cross_boresight_arcsec") is not None:
+        out.append(f"1-sigma uncertainty: {candidate['sigma_cross_boresight_arcsec']} arcsec about each "
+                   f"cross-boresight axis, {candidate['sigma_roll_arcsec']} arcsec in roll (camera frame)")
+    fit = candidate.get("sequence_fit")
+    if fit:
+        rate = ", ".join(f"{w:.6f}" for w in fit["rate_deg_s"])
+        sig = ", ".join(f"{w:.6f}" for w in fit["rate_sigma_deg_s"])
+        out.append(f"Body rate (camera axes) [{rate}] deg/s, 1-sigma [{sig}] deg/s, "
+                   f"from {fit['snapshots_used']} snapshots")
+    return out
+
+
 def _unit(q) -> list[float]:
     q = np.asarray(q, dtype=float)
     return list(q / np.linalg.norm(q))
 
 
-def snapshot_attitudes(item: LoadedSequence, rotation_ref: np.ndarray) -> tuple[list[datetime], list[np.ndarray]]:
-    """ICRS -> camera rotation of every snapshot whose motion is known.
+def snapshot_attitudes(item: LoadedSequence, rotation_ref: np.ndarray,
+                       rate_rad_s: np.ndarray | None = None) -> tuple[list[datetime], list[np.ndarray]]:
+    """ICRS -> camera rotation of every snapshot.
 
-    ``motion[i]`` carries snapshot i's camera vectors into the reference
-    frame (``v_ref = M_i v_i``), so ``v_i = M_i^T R_ref v_icrs``: the
-    attitude at snapshot i is ``R_i = M_i^T R_ref``.
+    With the candidate's fitted body rate ``w`` (the sequence fit,
+    :mod:`app.attitude.sequence`): ``R_i = exp(-[w]x (t_i - t_ref)) R_ref``
+    for every snapshot.  Without one, extraction's motion: ``motion[i]``
+    carries snapshot i's camera vectors into the reference frame
+    (``v_ref = M_i v_i``), so ``R_i = M_i^T R_ref`` where it is known.
     """
+    from scipy.spatial.transform import Rotation
+
     times, rotations = [], []
+    if rate_rad_s is not None:
+        t_ref = item.sequence.snapshots[item.extraction.reference].time
+        for snapshot in item.sequence.snapshots:
+            dt = (snapshot.time - t_ref).total_seconds()
+            times.append(snapshot.time)
+            rotations.append(Rotation.from_rotvec(-np.asarray(rate_rad_s) * dt).as_matrix() @ rotation_ref)
+        return times, rotations
     for snapshot, motion in zip(item.sequence.snapshots, item.extraction.motion):
         if np.all(np.isfinite(motion)):
             times.append(snapshot.time)
@@ -348,7 +415,9 @@ def render_aem(row: SequenceRow, item: LoadedSequence, candidate: dict, operator
                confirmed_at: datetime) -> str | None:
     from app.ccsds import aem_kvn
 
-    times, rotations = snapshot_attitudes(item, np.array(candidate["rotation_matrix"], dtype=float))
+    fit = candidate.get("sequence_fit")
+    times, rotations = snapshot_attitudes(item, np.array(candidate["rotation_matrix"], dtype=float),
+                                          np.radians(fit["rate_deg_s"]) if fit else None)
     if not times:
         return None
     name, object_id = _object_names(row)

@@ -10,12 +10,17 @@ status 0 when every file was valid, 2 otherwise.
 fills the usual keys, the TF candidates come under ``tf_candidates`` and
 ``methods_agree`` says whether the two first candidates are the same
 attitude (within :data:`AGREE_DEG`; also true when neither finds any).
+
+``--prior RA,DEC,ROLL[,SIGMA_DEG]`` switches to tracking mode (Liebe's
+predictional estimate): the pattern is matched near that attitude (degrees;
+sigma default 1 deg) instead of searched for over the whole sky.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 
 from app.cli.common import for_each_file, format_error
@@ -32,16 +37,38 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="distinct candidates to report (default 10)")
     p.add_argument("--method", choices=METHODS, default="bright_pair",
                    help="identifier: bright_pair (default), tf (Liebe's triangle features) or both, compared")
+    p.add_argument("--prior", type=parse_prior, default=None, metavar="RA,DEC,ROLL[,SIGMA_DEG]",
+                   help="tracking mode from this attitude (degrees; its 1-sigma defaults to 1 deg)")
+
+
+def parse_prior(text: str):
+    """``RA,DEC,ROLL[,SIGMA_DEG]`` in degrees -> an :class:`app.identification.Prior`."""
+    from app.attitude import rotation_from_radec_roll
+    from app.identification import Prior
+
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected numbers RA,DEC,ROLL[,SIGMA_DEG], got {text!r}") from None
+    if len(values) not in (3, 4) or not all(map(math.isfinite, values)):
+        raise argparse.ArgumentTypeError(f"expected RA,DEC,ROLL[,SIGMA_DEG] in degrees, got {text!r}")
+    ra, dec, roll = values[:3]
+    sigma = values[3] if len(values) == 4 else 1.0
+    if not -90.0 <= dec <= 90.0 or not 0.0 < sigma <= 10.0:
+        raise argparse.ArgumentTypeError("DEC must be within [-90, 90] and SIGMA_DEG within (0, 10]")
+    return Prior(rotation=rotation_from_radec_roll(ra, dec, roll), sigma_deg=sigma)
 
 
 def solved_to_json(solved) -> dict:
     """The members of a solve result after file, sequence_id, status and error."""
     from app.extraction import extraction_to_json
 
+    from app.identification import candidate_json
+
     s = solved.solution
     ex = extraction_to_json(solved.extraction)
     return {"reference_snapshot": ex["reference_snapshot"], "sources": ex["sources"],
-            "candidates": [c.to_json() for c in s.candidates],
+            "candidates": [candidate_json(solved, c) for c in s.candidates],
             "elapsed_ms": round(s.elapsed_s * 1000, 2), "notes": list(solved.extraction.notes) + list(s.notes)}
 
 
@@ -53,12 +80,14 @@ def run(args: argparse.Namespace) -> int:
     options = SearchOptions() if args.candidates is None else SearchOptions(max_candidates=args.candidates)
 
     method = getattr(args, "method", "bright_pair")
+    prior = getattr(args, "prior", None)
 
     def solve_one(path, sequence):
-        solved = solve_sequence(sequence, sky, options=options, method="tf" if method == "tf" else "bright_pair")
+        solved = solve_sequence(sequence, sky, options=options, method="tf" if method == "tf" else "bright_pair",
+                                prior=prior)
         doc = {"file": path, "sequence_id": sequence.sequence_id, "status": solved.solution.status,
                "error": None, **solved_to_json(solved)}
-        if method == "both":
+        if method == "both" and prior is None:
             tf = solve_sequence(sequence, sky, options=options, extraction=solved.extraction,
                                 pattern=solved.pattern, method="tf").solution
             doc["tf_status"] = tf.status

@@ -23,8 +23,9 @@ from app.identification.result import (AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidat
                                        StarMatch)
 from app.telemetry import Sequence
 
-__all__ = ["AMBIGUOUS", "IDENTIFIED", "NO_MATCH", "Candidate", "PlanetMatch", "SearchOptions", "Sky",
-           "Solution", "SolvedSequence", "StarMatch", "classify", "fit_sequence", "identify", "solve_sequence"]
+__all__ = ["AMBIGUOUS", "IDENTIFIED", "NO_MATCH", "Candidate", "PlanetMatch", "Prior", "SearchOptions", "Sky",
+           "Solution", "SolvedSequence", "StarMatch", "candidate_json", "classify", "fit_sequence", "identify",
+           "solve_sequence"]
 
 #: Noise of one sighting when extraction could not measure it, pixels.
 DEFAULT_SIGHTING_SIGMA_PX = 0.5
@@ -44,18 +45,48 @@ class SolvedSequence:
         return self.sequence.snapshots[self.extraction.reference].time
 
 
+@dataclass(frozen=True)
+class Prior:
+    """A prior attitude for tracking mode: ICRS -> camera at ``time`` (or at the
+    reference snapshot when None), turning at ``rate_rad_s`` (camera axes)."""
+
+    rotation: np.ndarray
+    sigma_deg: float = 1.0
+    time: object | None = None  # datetime
+    rate_rad_s: np.ndarray | None = None
+
+    def at(self, t) -> np.ndarray:
+        """The prior propagated to ``t`` with its rate (R(t) = exp(-[w]x dt) R)."""
+        from scipy.spatial.transform import Rotation
+
+        if self.time is None or self.rate_rad_s is None:
+            return np.asarray(self.rotation, dtype=float)
+        dt = (t - self.time).total_seconds()
+        return Rotation.from_rotvec(-np.asarray(self.rate_rad_s) * dt).as_matrix() @ self.rotation
+
+
 def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = SearchOptions(),
                    extraction: Extraction | None = None, pattern: Pattern | None = None,
-                   with_planets: bool = True, method: str = "bright_pair") -> SolvedSequence:
-    """Extract (unless ``extraction`` is given) and identify ``pattern`` (default: the averaged one)."""
+                   with_planets: bool = True, method: str = "bright_pair",
+                   prior: Prior | None = None) -> SolvedSequence:
+    """Extract (unless ``extraction`` is given) and identify ``pattern`` (default: the averaged one).
+
+    With a ``prior`` the pattern is tracked from it (:func:`app.identification.tracking.track`)
+    instead of identified lost-in-space with ``method``.
+    """
+    from app.identification.tracking import track
     from app.planets import planet_vectors
 
     extraction = extraction if extraction is not None else extract(sequence)
     pattern = pattern if pattern is not None else extraction.pattern
     t = sequence.snapshots[extraction.reference].time
-    planets = (lambda: planet_vectors(t)) if with_planets else None
-    solution = identify(pattern, sequence.camera, t, sky, velocity_km_s=sequence.velocity_km_s,
-                        options=options, planets=planets, method=method)
+    if prior is not None:
+        solution = track(pattern, sequence.camera, t, sky, prior.at(t), prior_sigma_deg=prior.sigma_deg,
+                         velocity_km_s=sequence.velocity_km_s, options=options)
+    else:
+        planets = (lambda: planet_vectors(t)) if with_planets else None
+        solution = identify(pattern, sequence.camera, t, sky, velocity_km_s=sequence.velocity_km_s,
+                            options=options, planets=planets, method=method)
     fits: dict[int, SequenceFit] = {}
     candidates = []
     for c in solution.candidates:
@@ -72,6 +103,18 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
     solution = replace(solution, candidates=tuple(candidates))
     return SolvedSequence(sequence=sequence, extraction=extraction, pattern=pattern, solution=solution,
                           sequence_fits=fits)
+
+
+def candidate_json(solved: SolvedSequence, candidate: Candidate) -> dict:
+    """A candidate's JSON with its sequence fit (body rate and its 1-sigma, snapshots used)."""
+    doc = candidate.to_json()
+    fit = solved.sequence_fits.get(candidate.rank)
+    if fit is not None:
+        doc["sequence_fit"] = {
+            "rate_deg_s": [round(math.degrees(w), 7) for w in fit.rate_rad_s],
+            "rate_sigma_deg_s": [round(math.degrees(math.sqrt(v)), 7) for v in np.diag(fit.rate_covariance)],
+            "snapshots_used": len(fit.snapshots), "chi2_reduced": round(fit.chi2_reduced, 3)}
+    return doc
 
 
 def fit_sequence(sequence: Sequence, extraction: Extraction, pattern: Pattern, candidate: Candidate,

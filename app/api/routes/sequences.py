@@ -112,7 +112,8 @@ async def search(body: SearchRequest | None = Body(None), seq_id: int = SeqId,
     if reused is not None:
         return reused
     # A dedicated pool: at most search_workers CPU-bound searches at once, the event loop stays free.
-    future = ctx.search_executor.submit(service.run_search, ctx, seq_id, body.method, body.max_candidates)
+    future = ctx.search_executor.submit(service.run_search, ctx, seq_id, body.method, body.max_candidates,
+                                        body.prior.model_dump() if body.prior else None)
     deadline = ctx.settings.search_timeout_s + SEARCH_GRACE_S
     try:
         return await asyncio.wait_for(asyncio.wrap_future(future), timeout=deadline)
