@@ -74,15 +74,20 @@ class Catalogue:
         return Catalogue(*(a[:n] for a in (self.hip, self.ra_rad, self.dec_rad,
                                            self.pm_ra_cosdec_mas_yr, self.pm_dec_mas_yr, self.mag)))
 
-    def mean_vectors(self, epoch_jyear: float = 2000.0) -> np.ndarray:
-        """Unit vectors at ``epoch_jyear`` with proper motion applied."""
+    @functools.cached_property
+    def _catalogue_epoch_geometry(self) -> tuple[np.ndarray, np.ndarray]:
+        """Unit vectors at J1991.25 and their proper motion per year (radians, tangent vectors)."""
         v0 = radec_to_vectors(self.ra_rad, self.dec_rad)
-        dt = epoch_jyear - HIP2_EPOCH_JYEAR
         # Local east and north unit vectors at each star.
         east = np.column_stack([-np.sin(self.ra_rad), np.cos(self.ra_rad), np.zeros(len(self))])
         north = np.cross(v0, east)
-        v = v0 + dt * MAS_TO_RAD * (self.pm_ra_cosdec_mas_yr[:, None] * east
-                                    + self.pm_dec_mas_yr[:, None] * north)
+        motion = MAS_TO_RAD * (self.pm_ra_cosdec_mas_yr[:, None] * east + self.pm_dec_mas_yr[:, None] * north)
+        return v0, motion
+
+    def mean_vectors(self, epoch_jyear: float = 2000.0) -> np.ndarray:
+        """Unit vectors at ``epoch_jyear`` with proper motion applied (linear on the tangent plane)."""
+        v0, motion = self._catalogue_epoch_geometry
+        v = v0 + (epoch_jyear - HIP2_EPOCH_JYEAR) * motion
         return v / np.linalg.norm(v, axis=1, keepdims=True)
 
     def apparent_vectors(self, t: datetime, velocity_km_s=None) -> np.ndarray:

@@ -7,6 +7,7 @@ times, limits respected) and survive a dump/parse round trip unchanged.
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 from datetime import datetime, timedelta, timezone
@@ -174,7 +175,9 @@ def location_of(path) -> str:
 def set_at(doc, path, value) -> None:
     for key in path[:-1]:
         doc = doc[key]
-    doc[path[-1]] = value
+    # A copy: st.just() hands out the same object every time, and a later edit
+    # of this document must not change what the next example draws.
+    doc[path[-1]] = copy.deepcopy(value)
 
 
 def delete_at(doc, path) -> None:

@@ -59,15 +59,20 @@ def parse_prior(text: str):
     return Prior(rotation=rotation_from_radec_roll(ra, dec, roll), sigma_deg=sigma)
 
 
-def solved_to_json(solved) -> dict:
-    """The members of a solve result after file, sequence_id, status and error."""
-    from app.extraction import extraction_to_json
+def solved_to_json(solved, sky) -> dict:
+    """The members of a solve result after file, sequence_id, status and error.
 
-    from app.identification import candidate_json
+    ``source_stars`` gives, per snapshot and source in input order, the HIP
+    number the first candidate's attitude assigns it (null: no star there),
+    or is null when that candidate is not credible.
+    """
+    from app.extraction import extraction_to_json
+    from app.identification import candidate_json, source_stars
 
     s = solved.solution
     ex = extraction_to_json(solved.extraction)
     return {"reference_snapshot": ex["reference_snapshot"], "sources": ex["sources"],
+            "source_stars": source_stars(solved, sky),
             "candidates": [candidate_json(solved, c) for c in s.candidates],
             "elapsed_ms": round(s.elapsed_s * 1000, 2), "notes": list(solved.extraction.notes) + list(s.notes)}
 
@@ -86,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         solved = solve_sequence(sequence, sky, options=options, method="tf" if method == "tf" else "bright_pair",
                                 prior=prior)
         doc = {"file": path, "sequence_id": sequence.sequence_id, "status": solved.solution.status,
-               "error": None, **solved_to_json(solved)}
+               "error": None, **solved_to_json(solved, sky)}
         if method == "both" and prior is None:
             tf = solve_sequence(sequence, sky, options=options, extraction=solved.extraction,
                                 pattern=solved.pattern, method="tf").solution

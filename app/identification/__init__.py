@@ -25,7 +25,7 @@ from app.telemetry import Sequence
 
 __all__ = ["AMBIGUOUS", "IDENTIFIED", "NO_MATCH", "Candidate", "PlanetMatch", "Prior", "SearchOptions", "Sky",
            "Solution", "SolvedSequence", "StarMatch", "candidate_json", "classify", "fit_sequence", "identify",
-           "solve_sequence"]
+           "solve_sequence", "source_stars"]
 
 #: Noise of one sighting when extraction could not measure it, pixels.
 DEFAULT_SIGHTING_SIGMA_PX = 0.5
@@ -103,6 +103,49 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
     solution = replace(solution, candidates=tuple(candidates))
     return SolvedSequence(sequence=sequence, extraction=extraction, pattern=pattern, solution=solution,
                           sequence_fits=fits)
+
+
+#: A reported source is that star when it lies within max(this, 5 sigma) pixels of it.
+SOURCE_MATCH_PX = 2.0
+
+
+def source_stars(solved: SolvedSequence, sky: Sky, rank: int = 1,
+                 mag_margin: float = SearchOptions().mag_margin) -> list[list[int | None]] | None:
+    """HIP number (or None) of every reported source, by the attitude of candidate ``rank``.
+
+    Each snapshot's attitude comes from the sequence fit (or, without one,
+    from extraction's motion), so sources that tracking had to call ghosts,
+    stars the sensor reported only once, are recognised too.  None when the
+    candidate is not credible enough to label anything.
+    """
+    candidate = next((c for c in solved.solution.candidates if c.rank == rank), None)
+    if candidate is None or candidate.false_match_probability > SearchOptions().rival_probability:
+        return None
+    sequence, extraction = solved.sequence, solved.extraction
+    camera = sequence.camera
+    t_ref = solved.reference_time
+    fit = solved.sequence_fits.get(rank)
+    noise = extraction.noise_px if math.isfinite(extraction.noise_px) else DEFAULT_SIGHTING_SIGMA_PX
+    tol = max(SOURCE_MATCH_PX, 5 * noise) * camera.pixel_scale_rad
+    field = sky.field(t_ref, min(camera.limiting_magnitude + mag_margin, sky.index.mag_limit),
+                      sequence.velocity_km_s)
+    out: list[list[int | None]] = []
+    for pos, snap in enumerate(sequence.snapshots):
+        dt = (snap.time - t_ref).total_seconds()
+        if fit is not None:
+            R = fit.attitude_at(dt)
+        elif np.all(np.isfinite(extraction.motion[pos])):
+            R = extraction.motion[pos].T @ candidate.rotation_matrix
+        else:
+            out.append([None] * snap.n_sources)
+            continue
+        if snap.n_sources == 0:
+            out.append([])
+            continue
+        d, idx = field.tree.query(camera.pixels_to_vectors(snap.xy) @ R, k=1)
+        out.append([int(sky.index.hip[field.rows[i]]) if 2 * np.arcsin(min(1.0, di / 2)) <= tol else None
+                    for di, i in zip(d, idx)])
+    return out
 
 
 def candidate_json(solved: SolvedSequence, candidate: Candidate) -> dict:

@@ -84,20 +84,30 @@ class Sky:
         self.catalogue = cat
         self.names = star_names()
         self._fields: OrderedDict[tuple, StarField] = OrderedDict()
+        self._apparent: OrderedDict[tuple, np.ndarray] = OrderedDict()
         self._row_of_hip: dict[int, int] | None = None
 
     def star_mask(self, mag_limit: float) -> np.ndarray:
         return self.index.mag <= mag_limit
 
+    def apparent_vectors(self, t: datetime, velocity_km_s=None) -> np.ndarray:
+        """Apparent places of every catalogue star in the index, for the hour of ``t``."""
+        key = (t.replace(minute=0, second=0, microsecond=0),
+               None if velocity_km_s is None else tuple(np.round(velocity_km_s, 3)))
+        if key not in self._apparent:
+            self._apparent[key] = self.catalogue.apparent_vectors(key[0], velocity_km_s)
+            while len(self._apparent) > 32:
+                self._apparent.popitem(last=False)
+        return self._apparent[key]
+
     def field(self, t: datetime, mag_limit: float, velocity_km_s=None) -> StarField:
-        key = (t.replace(minute=0, second=0, microsecond=0), round(mag_limit, 2),
+        """The stars down to ``mag_limit`` (a prefix: stars are sorted brightest first) with a KD-tree."""
+        n = int(self.star_mask(mag_limit).sum())
+        key = (t.replace(minute=0, second=0, microsecond=0), n,
                None if velocity_km_s is None else tuple(np.round(velocity_km_s, 3)))
         if key not in self._fields:
-            rows = np.flatnonzero(self.star_mask(mag_limit))
-            sub = Catalogue(*(a[rows] for a in (self.catalogue.hip, self.catalogue.ra_rad, self.catalogue.dec_rad,
-                                                 self.catalogue.pm_ra_cosdec_mas_yr, self.catalogue.pm_dec_mas_yr,
-                                                 self.catalogue.mag)))
-            self._fields[key] = StarField.from_vectors(sub.apparent_vectors(t, velocity_km_s), rows)
+            vectors = self.apparent_vectors(t, velocity_km_s)[:n]
+            self._fields[key] = StarField.from_vectors(vectors, np.arange(n))
             while len(self._fields) > 32:
                 self._fields.popitem(last=False)
         return self._fields[key]
@@ -107,10 +117,7 @@ class Sky:
         if self._row_of_hip is None:
             self._row_of_hip = {int(h): i for i, h in enumerate(self.catalogue.hip)}
         rows = np.array([self._row_of_hip[int(h)] for h in hips], dtype=int)
-        cat = self.catalogue
-        sub = Catalogue(*(a[rows] for a in (cat.hip, cat.ra_rad, cat.dec_rad, cat.pm_ra_cosdec_mas_yr,
-                                             cat.pm_dec_mas_yr, cat.mag)))
-        return sub.apparent_vectors(t, velocity_km_s)
+        return self.apparent_vectors(t, velocity_km_s)[rows]
 
     def name(self, row: int) -> str | None:
         entry = self.names.get(int(self.index.hip[row]))

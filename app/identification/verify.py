@@ -46,7 +46,8 @@ class StarField:
 
     @classmethod
     def from_vectors(cls, vectors: np.ndarray, rows: np.ndarray) -> "StarField":
-        return cls(vectors=vectors, rows=rows, tree=cKDTree(vectors))
+        # An unbalanced tree builds twice as fast; queries are as quick on stars.
+        return cls(vectors=vectors, rows=rows, tree=cKDTree(vectors, balanced_tree=False, compact_nodes=False))
 
     @property
     def density_per_sr(self) -> float:
@@ -110,20 +111,70 @@ def match_points(rotation: np.ndarray, pattern_vectors: np.ndarray, field: StarF
     return star, np.where(star >= 0, ang, np.nan), ang
 
 
-#: After the fit, a matched point whose residual exceeds this many of its
-#: sigmas (or of the residuals' own robust scale, if larger) is let go: a
-#: displaced star or a blend inside the match tolerance would bias the fit.
-FINAL_REJECT_SIGMAS = 3.5
-RAYLEIGH_MEDIAN = 1.1774  # median of |r| for a 2-D Gaussian of unit sigma per axis
+#: After the fit, a matched point whose leave-one-out residual exceeds this
+#: many of its sigmas (or of the residuals' own robust scale, if larger) is
+#: let go: a displaced star or a blend inside the match tolerance would bias
+#: the fit.
+FINAL_REJECT_SIGMAS = 3.0
+RAYLEIGH_QUARTILE = 0.7585  # lower quartile of |r| for a 2-D Gaussian of unit sigma per axis
+
+
+#: Up to this many matched points, outliers are found by trying every subset.
+SMALL_SET = 7
+
+
+def consensus_subset(body: np.ndarray, ref: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(n,) mask of the points agreeing with the fit of the best subset of at least 3 of them.
+
+    Every subset of 3 or more points is fitted; a point agrees when its
+    residual is within :data:`FINAL_REJECT_SIGMAS` sigma.  The subset whose
+    fit most points agree with wins, ties going to the smallest chi-square.
+    """
+    from itertools import combinations
+
+    n = len(body)
+    sigma = 1.0 / np.sqrt(weights)
+    best_key, best_mask = None, np.ones(n, dtype=bool)
+    for size in range(3, n + 1):
+        for subset in combinations(range(n), size):
+            idx = list(subset)
+            R = solve_wahba(body[idx], ref[idx], weights[idx])
+            predicted = ref @ R.T
+            resid = np.arctan2(np.linalg.norm(np.cross(body, predicted), axis=1), np.sum(body * predicted, axis=1))
+            agree = resid <= FINAL_REJECT_SIGMAS * sigma
+            key = (int(agree.sum()), -float(np.sum((resid[agree] / sigma[agree]) ** 2)))
+            if best_key is None or key > best_key:
+                best_key, best_mask = key, agree
+    return best_mask if best_mask.sum() >= 3 else np.ones(n, dtype=bool)
+
+
+def leave_one_out_residuals(body: np.ndarray, ref: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Angle between each ``body_i`` and ``R_(-i) ref_i``, with ``R_(-i)`` Wahba's fit without point i.
+
+    All fits at once: ``B_(-i) = B - w_i b_i r_i^T``, a stack of 3x3 SVDs.
+    """
+    outer = weights[:, None, None] * body[:, :, None] * ref[:, None, :]
+    B = outer.sum(axis=0)[None] - outer
+    U, _, Vt = np.linalg.svd(B)
+    d = np.linalg.det(U) * np.linalg.det(Vt)
+    D = np.zeros((len(body), 3, 3))
+    D[:, 0, 0] = 1.0
+    D[:, 1, 1] = 1.0
+    D[:, 2, 2] = d
+    R = U @ D @ Vt
+    predicted = np.einsum("nij,nj->ni", R, ref)
+    return np.arctan2(np.linalg.norm(np.cross(body, predicted), axis=1), np.sum(body * predicted, axis=1))
 
 
 def refine(rotation: np.ndarray, pattern_vectors: np.ndarray, weights: np.ndarray, field: StarField,
            final_tolerance_rad: np.ndarray, start_tolerance_rad: float, iterations: int = 4) -> Refined:
     """Iterated Wahba fit with a tolerance shrinking to ``final_tolerance_rad``, then outlier rejection.
 
-    ``weights`` are 1 / sigma^2 of each point.  The last step drops matched
-    points beyond :data:`FINAL_REJECT_SIGMAS` times max(sigma_i, robust
-    scale of the residuals) and refits, while at least 3 points remain.
+    ``weights`` are 1 / sigma^2 of each point.  The last step drops, one at a
+    time, the matched point whose leave-one-out residual exceeds
+    :data:`FINAL_REJECT_SIGMAS` times max(sigma_i, a robust scale of those
+    residuals, so that real data with larger errors than stated keeps its
+    stars) the most, and refits, while more than 3 points remain.
     """
     R = rotation
     for it in range(iterations):
@@ -136,19 +187,37 @@ def refine(rotation: np.ndarray, pattern_vectors: np.ndarray, weights: np.ndarra
         R = solve_wahba(pattern_vectors[ok], field.vectors[star[ok]], weights[ok])
     star, resid, nearest = match_points(R, pattern_vectors, field, final_tolerance_rad)
     sigma = 1.0 / np.sqrt(weights)
-    for _ in range(3):
-        ok = star >= 0
-        if ok.sum() <= 3:
+    if 3 <= len(pattern_vectors) and (star >= 0).sum() <= SMALL_SET:
+        # Few points: leave-one-out cannot unmask two outliers among five, so
+        # among the points near a star (twice the tolerance: a biased fit may
+        # have pushed a good one out) the largest subset that fits within the
+        # noise wins (ties: lowest chi-square).
+        near, _, _ = match_points(R, pattern_vectors, field, 2 * final_tolerance_rad)
+        ok = np.flatnonzero(near >= 0)
+        if 3 <= len(ok) <= SMALL_SET:
+            agree = consensus_subset(pattern_vectors[ok], field.vectors[near[ok]], weights[ok])
+            R = solve_wahba(pattern_vectors[ok[agree]], field.vectors[near[ok[agree]]], weights[ok[agree]])
+            fresh, resid, nearest = match_points(R, pattern_vectors, field, final_tolerance_rad)
+            rejected = np.zeros(len(star), dtype=bool)
+            rejected[ok[~agree]] = True
+            star = np.where(~rejected & (fresh >= 0), fresh, -1)
+            resid = np.where(star >= 0, resid, np.nan)
+    for _ in range(max(1, len(pattern_vectors) // 3)):
+        ok = np.flatnonzero(star >= 0)
+        if len(ok) <= 3:
             break
-        scale = np.maximum(sigma, np.median(resid[ok]) / RAYLEIGH_MEDIAN)
-        bad = ok & (resid > FINAL_REJECT_SIGMAS * scale)
-        if not bad.any():
+        # Judge each point by the fit of the others: an outlier cannot hide by pulling the fit.
+        loo = leave_one_out_residuals(pattern_vectors[ok], field.vectors[star[ok]], weights[ok])
+        # The lower quartile: outliers pull the fit, inflating the others' residuals and the median.
+        scale = np.maximum(sigma[ok], np.quantile(loo, 0.25) / RAYLEIGH_QUARTILE)
+        worst = int(np.argmax(loo / scale))
+        if loo[worst] <= FINAL_REJECT_SIGMAS * scale[worst]:
             break
-        star = np.where(bad, -1, star)
-        ok = star >= 0
-        R = solve_wahba(pattern_vectors[ok], field.vectors[star[ok]], weights[ok])
+        star[ok[worst]] = -1
+        keep = star >= 0
+        R = solve_wahba(pattern_vectors[keep], field.vectors[star[keep]], weights[keep])
         fresh, resid, nearest = match_points(R, pattern_vectors, field, final_tolerance_rad)
-        star = np.where(bad | (fresh < 0), -1, fresh)
+        star = np.where(keep & (fresh >= 0), fresh, -1)  # a rejected point stays out
         resid = np.where(star >= 0, resid, np.nan)
     return Refined(rotation=R, star_of_point=star, residual_rad=resid, nearest_rad=nearest)
 
