@@ -433,26 +433,7 @@ def parse_kvn(text: str) -> dict:
 
 
 def _parse_header(tokens, result) -> list:
-    header: dict = {"COMMENT": []}
-    i = 0
-    # Header comments come straight after the version line, before any keyword.
-    while i < len(tokens) and tokens[i][1] == "COMMENT":
-        header["COMMENT"].append(tokens[i][2])
-        result["keywords"].append("COMMENT")
-        i += 1
-    last = -1
-    while i < len(tokens) and tokens[i][1] in _APM_HEADER:
-        number, keyword, value = tokens[i]
-        position = _APM_HEADER.index(keyword)
-        if position <= last:
-            raise KvnError(f"line {number}: {keyword} out of order or repeated in the header")
-        last = position
-        header[keyword] = value
-        result["keywords"].append(keyword)
-        i += 1
-    for mandatory in ("CREATION_DATE", "ORIGINATOR"):
-        if mandatory not in header:
-            raise KvnError(f"header lacks {mandatory}")
+    header, i = _take_section(tokens, 0, _APM_HEADER, result, ("CREATION_DATE", "ORIGINATOR"))
     result["header"] = header
     return tokens[i:]
 

@@ -38,10 +38,6 @@ import http.client
 import json
 import math
 import os
-import signal
-import socket
-import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -49,6 +45,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from app.bench.server import free_port, start_server, stop_server, tail, wait_ready
 
 REPO = Path(__file__).resolve().parents[2]
 SAMPLE_DIR = REPO / "sample_telemetry"
@@ -63,7 +61,6 @@ MIN_FRESH = 60
 #: Scenarios of the fresh sequences: what a ground station receives day to day.
 FRESH_SCENARIOS = ("nominal", "nominal", "clean", "ghosts", "planet", "sparse")
 REQUEST_TIMEOUT_S = 120.0
-STARTUP_TIMEOUT_S = 300.0
 
 
 @dataclass(frozen=True)
@@ -141,59 +138,6 @@ class Workload:
 # ---------------------------------------------------------------------------
 # The server process
 # ---------------------------------------------------------------------------
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def start_server(db: Path, port: int, log_path: Path) -> subprocess.Popen:
-    """``python -m app serve`` on loopback (no token needed) with its output in ``log_path``."""
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    for name in ("STARID_TOKENS", "STARID_TOKENS_FILE", "DATABASE_URL"):
-        env.pop(name, None)  # the benchmark's own loopback server, on its own database
-    with log_path.open("ab") as log:
-        return subprocess.Popen([sys.executable, "-m", "app", "serve", "--port", str(port), "--db", str(db)],
-                                cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
-
-
-def wait_ready(port: int, process: subprocess.Popen, log_path: Path, timeout_s: float = STARTUP_TIMEOUT_S) -> None:
-    """Poll ``/api/health`` until it answers 200; RuntimeError with the log if the server dies or stalls."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if process.poll() is not None:
-            raise RuntimeError(f"the server exited with {process.returncode}:\n{_tail(log_path)}")
-        try:
-            connection = http.client.HTTPConnection("127.0.0.1", port, timeout=5)
-            connection.request("GET", "/api/health")
-            if connection.getresponse().status == 200:
-                connection.close()
-                return
-            connection.close()
-        except OSError:
-            pass
-        time.sleep(0.25)
-    raise RuntimeError(f"the server did not answer within {timeout_s:.0f} s:\n{_tail(log_path)}")
-
-
-def stop_server(process: subprocess.Popen) -> None:
-    """SIGTERM (uvicorn shuts down cleanly), SIGKILL if it has not gone after 20 s."""
-    if process.poll() is None:
-        process.send_signal(signal.SIGTERM)
-        try:
-            process.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait(timeout=20)
-
-
-def _tail(path: Path, n_chars: int = 4000) -> str:
-    try:
-        return path.read_text(errors="replace")[-n_chars:]
-    except OSError:
-        return "(no server log)"
-
 
 # ---------------------------------------------------------------------------
 # The clients
@@ -344,7 +288,7 @@ def run(n_sequences: int = DEFAULT_SECONDS, seed: int = 1, clients: int = DEFAUL
             server_alive = process.poll() is None
         finally:
             stop_server(process)
-        server_log_tail = _tail(log_path, 2000) if not server_alive else None
+        server_log_tail = tail(log_path, 2000) if not server_alive else None
 
     records = [r for mine in records_per_client for r in mine]
     result = summarise(records, elapsed_s)

@@ -115,11 +115,11 @@ def source_stars(solved: SolvedSequence, sky: Sky, rank: int = 1,
 
     Each snapshot's attitude comes from the sequence fit (or, without one,
     from extraction's motion), so sources that tracking had to call ghosts,
-    stars the sensor reported only once, are recognised too.  None when the
-    candidate is not credible enough to label anything.
+    stars the sensor reported only once, are recognised too.  None unless the
+    candidate's false-match probability reaches the "identified" threshold.
     """
     candidate = next((c for c in solved.solution.candidates if c.rank == rank), None)
-    if candidate is None or candidate.false_match_probability > SearchOptions().rival_probability:
+    if candidate is None or candidate.false_match_probability > SearchOptions().identified_probability:
         return None
     sequence, extraction = solved.sequence, solved.extraction
     camera = sequence.camera

@@ -126,26 +126,29 @@ SMALL_SET = 7
 def consensus_subset(body: np.ndarray, ref: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """(n,) mask of the points agreeing with the fit of the best subset of at least 3 of them.
 
-    Every subset of 3 or more points is fitted; a point agrees when its
-    residual is within :data:`FINAL_REJECT_SIGMAS` sigma.  The subset whose
-    fit most points agree with wins, ties going to the smallest chi-square.
+    Every subset of 3 or more points is fitted (all at once: a stack of
+    Wahba SVDs); a point agrees when its residual is within
+    :data:`FINAL_REJECT_SIGMAS` sigma.  The subset whose fit most points
+    agree with wins, ties going to the smallest chi-square.
     """
     from itertools import combinations
 
     n = len(body)
     sigma = 1.0 / np.sqrt(weights)
-    best_key, best_mask = None, np.ones(n, dtype=bool)
-    for size in range(3, n + 1):
-        for subset in combinations(range(n), size):
-            idx = list(subset)
-            R = solve_wahba(body[idx], ref[idx], weights[idx])
-            predicted = ref @ R.T
-            resid = np.arctan2(np.linalg.norm(np.cross(body, predicted), axis=1), np.sum(body * predicted, axis=1))
-            agree = resid <= FINAL_REJECT_SIGMAS * sigma
-            key = (int(agree.sum()), -float(np.sum((resid[agree] / sigma[agree]) ** 2)))
-            if best_key is None or key > best_key:
-                best_key, best_mask = key, agree
-    return best_mask if best_mask.sum() >= 3 else np.ones(n, dtype=bool)
+    subsets = np.array([[i in c for i in range(n)] for k in range(3, n + 1) for c in combinations(range(n), k)])
+    w = subsets * weights[None, :]  # (S, n)
+    B = np.einsum("sn,ni,nj->sij", w, body, ref)
+    U, _, Vt = np.linalg.svd(B)
+    D = np.broadcast_to(np.eye(3), B.shape).copy()
+    D[:, 2, 2] = np.linalg.det(U) * np.linalg.det(Vt)
+    R = U @ D @ Vt
+    predicted = np.einsum("sij,nj->sni", R, ref)
+    resid = np.arctan2(np.linalg.norm(np.cross(body[None], predicted), axis=2),
+                       np.sum(body[None] * predicted, axis=2))  # (S, n)
+    agree = resid <= FINAL_REJECT_SIGMAS * sigma[None, :]
+    chi2 = np.where(agree, (resid / sigma[None, :]) ** 2, 0.0).sum(axis=1)
+    best = np.lexsort((chi2, -agree.sum(axis=1)))[0]
+    return agree[best] if agree[best].sum() >= 3 else np.ones(n, dtype=bool)
 
 
 def leave_one_out_residuals(body: np.ndarray, ref: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -174,7 +177,9 @@ def refine(rotation: np.ndarray, pattern_vectors: np.ndarray, weights: np.ndarra
     time, the matched point whose leave-one-out residual exceeds
     :data:`FINAL_REJECT_SIGMAS` times max(sigma_i, a robust scale of those
     residuals, so that real data with larger errors than stated keeps its
-    stars) the most, and refits, while more than 3 points remain.
+    stars) the most, and refits, while more than :data:`SMALL_SET` points
+    remain; smaller sets keep the largest subset that fits within the noise
+    instead (:func:`consensus_subset`).
     """
     R = rotation
     for it in range(iterations):
@@ -204,7 +209,7 @@ def refine(rotation: np.ndarray, pattern_vectors: np.ndarray, weights: np.ndarra
             resid = np.where(star >= 0, resid, np.nan)
     for _ in range(max(1, len(pattern_vectors) // 3)):
         ok = np.flatnonzero(star >= 0)
-        if len(ok) <= 3:
+        if len(ok) <= SMALL_SET:  # small sets had their subset search; LOO needs redundancy
             break
         # Judge each point by the fit of the others: an outlier cannot hide by pulling the fit.
         loo = leave_one_out_residuals(pattern_vectors[ok], field.vectors[star[ok]], weights[ok])

@@ -12,14 +12,12 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import socket
-import subprocess
-import sys
-import time
 import urllib.request
 from pathlib import Path
 
 import pytest
+
+from app.bench.server import free_port, start_server, stop_server, wait_ready
 
 REPO = Path(__file__).resolve().parents[2]
 SAMPLES = REPO / "sample_telemetry"
@@ -31,12 +29,6 @@ CHROMIUM_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--disable-gpu-sandb
 #: The catalogue and index load before the server listens; a cold first start builds the index.
 SERVER_START_TIMEOUT_S = 180
 VIEWPORT = {"width": 1280, "height": 800}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def api_json(base: str, path: str, method: str = "GET", body: dict | None = None, raw: bytes | None = None,
@@ -56,33 +48,16 @@ def server(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("console")
     port, viewer_port = free_port(), free_port()
     log_path = tmp / "server.log"
-    log = open(log_path, "w")
-    proc = subprocess.Popen([sys.executable, "-m", "app", "serve", "--port", str(port), "--viewer-port",
-                             str(viewer_port), "--db", str(tmp / "console.sqlite3"), "--log-level", "warning"],
-                            cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
-    base = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + SERVER_START_TIMEOUT_S
+    proc = start_server(tmp / "console.sqlite3", port, log_path,
+                        ("--viewer-port", str(viewer_port), "--log-level", "warning"))
     try:
-        while True:
-            if proc.poll() is not None:
-                pytest.fail(f"the server exited with {proc.returncode}:\n{log_path.read_text()}")
-            try:
-                if api_json(base, "/api/health")["status"] == "ok":
-                    break
-            except OSError:
-                pass
-            if time.monotonic() > deadline:
-                pytest.fail(f"the server did not become healthy:\n{log_path.read_text()}")
-            time.sleep(0.3)
-        yield base
-    finally:
-        proc.terminate()
         try:
-            proc.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        log.close()
+            wait_ready(port, proc, log_path, timeout_s=SERVER_START_TIMEOUT_S)
+        except RuntimeError as exc:
+            pytest.fail(str(exc))
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        stop_server(proc)
 
 
 @pytest.fixture(scope="session")
