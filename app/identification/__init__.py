@@ -178,19 +178,19 @@ def fit_sequence(sequence: Sequence, extraction: Extraction, pattern: Pattern, c
     star_vec = dict(zip(hips, sky.apparent_vectors_of(hips, t_ref, sequence.velocity_km_s)))
     noise = extraction.noise_px if math.isfinite(extraction.noise_px) else DEFAULT_SIGHTING_SIGMA_PX
     sigma = max(noise, 0.05) * camera.pixel_scale_rad
+    # Sightings of the identified tracks, snapshot by snapshot.
+    by_snapshot: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for track_id, track in tracks.items():
+        star = star_vec[star_of_track[track_id]]
+        for pos, xy in zip(track.snapshots.tolist(), track.xy):
+            by_snapshot.setdefault(pos, []).append((xy, star))
     snaps = []
-    for pos, snap in enumerate(sequence.snapshots):
-        xy, ref_vectors = [], []
-        for track_id, track in tracks.items():
-            hit = np.flatnonzero(track.snapshots == pos)
-            if len(hit):
-                xy.append(track.xy[hit[0]])
-                ref_vectors.append(star_vec[star_of_track[track_id]])
-        if len(xy) < 2:
+    for pos, sightings in sorted(by_snapshot.items()):
+        if len(sightings) < 3:
             continue
-        body = camera.pixels_to_vectors(np.array(xy))
-        sa = snapshot_attitude(body, np.array(ref_vectors), np.full(len(xy), sigma), position=pos,
-                               dt_s=(snap.time - t_ref).total_seconds())
+        body = camera.pixels_to_vectors(np.array([xy for xy, _ in sightings]))
+        sa = snapshot_attitude(body, np.array([v for _, v in sightings]), np.full(len(sightings), sigma),
+                               position=pos, dt_s=(sequence.snapshots[pos].time - t_ref).total_seconds())
         if sa is not None:
             snaps.append(sa)
     dt = np.array([(s.time - t_ref).total_seconds() for s in sequence.snapshots])

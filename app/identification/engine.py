@@ -33,22 +33,41 @@ from app.index import BrightPairIndex, load_index
 
 @dataclass(frozen=True)
 class SearchOptions:
-    """Tunable parameters of a search, with the reasoning for each default."""
+    """Tunable parameters of a search, with the reasoning for each default.
+
+    FUSE's star identification rules (seed 001, Table 3) map onto these:
+    ``min_pair_ang`` -> :attr:`min_pair_separation_px`, ``max_pair_ang`` -> the
+    index's longest edge, ``pair_ang_tol`` -> :attr:`edge_tolerance_px`,
+    ``addl_mtch_tol`` -> :attr:`match_tolerance_px`, ``max_roll`` ->
+    :attr:`max_roll_change_deg` (tracking from a prior), ``min_mch`` ->
+    :attr:`min_matches`, ``des_mch`` -> :attr:`early_stop_matches`, and the
+    time-out -> :attr:`timeout_s`.
+    """
 
     #: Edge-length window: this many pixels of systematic error (centroiding,
     #: distortion) plus 4 sigma of the two points' random error.
     edge_tolerance_px: float = 1.0
+    #: Pattern points closer than this never form an edge (no usable direction;
+    #: maybe one star reported twice).
+    min_pair_separation_px: float = 2.0
     #: A pattern point matches a star within max(this, 5 sigma) pixels.
     match_tolerance_px: float = 1.5
+    #: Fewest matched stars for a candidate to be reported (FUSE asks 4; with
+    #: the false-match probability judging significance, 3 may be shown).
+    min_matches: int = 3
+    #: Tracking: a solution whose roll differs from the prior's by more than
+    #: this is not accepted as "identified".
+    max_roll_change_deg: float = 5.0
     #: Stars down to the camera's limiting magnitude plus this margin can be
     #: in the pattern (brightness is unreliable and detection is noisy).
     mag_margin: float = 0.75
     #: Use at most this many pattern points, the brightest.
     max_points: int = 16
-    #: Distinct candidates returned for the operator to step through.
-    max_candidates: int = 10
+    #: Distinct candidates returned for the operator to step through (the
+    #: seed's Next/Prev: past the first few, alternatives are chance fits).
+    max_candidates: int = 6
     #: Hypotheses refined (in order of promise) to find those candidates.
-    max_refinements: int = 40
+    max_refinements: int = 24
     #: Status "identified" needs a best false-match probability at most this ...
     identified_probability: float = 1e-6
     #: ... and no other distinct candidate at or below this one with an RMS
@@ -147,8 +166,9 @@ class PreparedPattern:
 
 def prepare_pattern(pattern, camera: Camera, t: datetime, sky: Sky, velocity_km_s=None,
                     options: SearchOptions = SearchOptions()) -> PreparedPattern:
-    # The brightest points only: faint sources are most often ghosts or missing stars.
-    keep = np.sort(np.argsort(-np.nan_to_num(pattern.brightness, nan=0.0), kind="stable")[:options.max_points])
+    # The brightest points only (faint sources are most often ghosts or missing
+    # stars), brightest first: the hypothesis check probes the first few.
+    keep = np.argsort(-np.nan_to_num(pattern.brightness, nan=0.0), kind="stable")[:options.max_points]
     sigma_px = np.maximum(np.nan_to_num(np.asarray(pattern.sigma_px, float)[keep], nan=0.5), 0.05)
     scale = camera.pixel_scale_rad
     mag_limit = min(camera.limiting_magnitude + options.mag_margin, sky.index.mag_limit)
@@ -161,7 +181,7 @@ def prepare_pattern(pattern, camera: Camera, t: datetime, sky: Sky, velocity_km_
 
 def bright_pair_batches(p: PreparedPattern, sky: Sky, options: SearchOptions):
     """Hypotheses from the bright-pair index, edge batches of growing size (see :mod:`.hypotheses`)."""
-    edges = ordered_pattern_edges(p.xy, p.camera)
+    edges = ordered_pattern_edges(p.xy, p.camera, options.min_pair_separation_px)
     if not edges:
         return
     v = p.vectors
@@ -236,7 +256,7 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     n_tried, used = 0, 0
     for hyp, tol, used in HYPOTHESIS_METHODS[method](p, sky, options):
         if len(hyp):
-            n_match, dev = check_hypotheses(hyp.rotations, vectors, field, tol)
+            n_match, dev = check_hypotheses(hyp.rotations, vectors, field, tol, hyp.pattern_edge)
             parts.append((hyp.rotations, hyp.pattern_edge, hyp.catalogue_pair, n_match, dev, tol))
             n_tried += len(hyp)
             for h in np.lexsort((dev, -n_match))[:options.refine_per_batch]:
@@ -253,14 +273,15 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     # More distinct alternatives for the operator's Next/Prev, in order of promise.
     rot, pe, cp, n_match, dev, hyp_tol = (np.concatenate(x) for x in zip(*parts))
     for h in np.lexsort((dev, -n_match)):
-        if n_match[h] < 3 or len(found) >= options.max_candidates or n_refined >= options.max_refinements:
+        if (n_match[h] < max(3, options.min_matches) or len(found) >= options.max_candidates
+                or n_refined >= options.max_refinements):
             break
         if _time.perf_counter() - started > options.timeout_s:
             break
         consider(rot[h], pe[h], cp[h], float(hyp_tol[h]))
 
     candidates = [_candidate(c, p, pattern, sky, n_tried, options, planets) for c in found]
-    candidates = [c for c in candidates if c.n_matched >= 3]
+    candidates = [c for c in candidates if c.n_matched >= max(3, options.min_matches)]
     candidates.sort(key=lambda c: (c.false_match_probability, -c.n_matched, c.deviation_arcsec))
     candidates = candidates[:options.max_candidates]
     candidates.sort(key=lambda c: (-c.n_matched, c.false_match_probability, c.deviation_arcsec))

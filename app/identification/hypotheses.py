@@ -44,7 +44,7 @@ def perturbed(xy: np.ndarray) -> np.ndarray:
     return xy + 1e-4 * np.column_stack([np.sin(1.0 + 2.3999 * i), np.cos(0.5 + 1.6180 * i)])
 
 
-def ordered_pattern_edges(xy: np.ndarray, camera: Camera) -> list[tuple[int, int]]:
+def ordered_pattern_edges(xy: np.ndarray, camera: Camera, min_separation_px: float = 2.0) -> list[tuple[int, int]]:
     """Pattern edges, the surest bright pairs first.
 
     Order: edges of Delaunay triangles whose circumcircle lies inside the
@@ -52,9 +52,9 @@ def ordered_pattern_edges(xy: np.ndarray, camera: Camera) -> list[tuple[int, int
     shorter edges come first (fewer catalogue pairs share a short length).
     """
     m = len(xy)
-    # Points closer than 2 pixels give no usable direction (and may be one star twice).
+    # Points too close give no usable direction (and may be one star twice).
     all_pairs = [(i, j) for i in range(m) for j in range(i + 1, m)
-                 if np.hypot(*(np.asarray(xy[i], float) - np.asarray(xy[j], float))) >= 2.0]
+                 if np.hypot(*(np.asarray(xy[i], float) - np.asarray(xy[j], float))) >= min_separation_px]
     if m < 3:
         return all_pairs
     p = perturbed(np.asarray(xy, dtype=float))

@@ -99,7 +99,10 @@ def track(pattern, camera: Camera, t: datetime, sky: Sky, prior_rotation: np.nda
     # With a prior the question is only "which nearby star", so two matches
     # that agree with the prior suffice; a third must pass the usual test.
     moved = float(angle_between(r.rotation[2], prior[2]))
-    consistent = moved <= search
+    # FUSE's roll check: the roll about the boresight must agree with the prior's.
+    turn = r.rotation @ prior.T
+    roll_change = abs(float(np.degrees(np.arctan2(turn[0, 1] - turn[1, 0], turn[0, 0] + turn[1, 1]))))
+    consistent = moved <= search and roll_change <= max(options.max_roll_change_deg, 3 * prior_sigma_deg)
     if consistent and (len(matched) == 2 or fmp <= options.identified_probability):
         status = IDENTIFIED
     else:

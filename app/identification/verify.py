@@ -62,21 +62,47 @@ def chord_to_angle(c):
     return 2 * np.arcsin(np.clip(np.asarray(c) / 2, 0, 1))
 
 
+def _nearest_angles(rotations: np.ndarray, vectors: np.ndarray, field: StarField, cap: float) -> np.ndarray:
+    """(H, k) angle from each rotated point to its nearest star (2 rad beyond ``cap``)."""
+    sky = np.matmul(vectors[None], rotations)  # rows R^T p
+    d, _ = field.tree.query(sky.reshape(-1, 3), k=1, distance_upper_bound=float(chord(cap)))
+    return chord_to_angle(np.where(np.isfinite(d), d, 2.0)).reshape(len(rotations), len(vectors))
+
+
 def check_hypotheses(rotations: np.ndarray, pattern_vectors: np.ndarray, field: StarField,
-                     tolerance_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                     tolerance_rad: np.ndarray, pattern_edges: np.ndarray | None = None,
+                     probes: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """Matches and capped deviation of every hypothesis.
 
     Returns (n_matched (H,), deviation (H,) = sum over points of
-    min(angle to nearest star, tolerance)).
+    min(angle to nearest star, tolerance)).  With ``pattern_edges`` (H, 2),
+    the rows that generated each hypothesis, a first pass maps only the
+    first ``probes`` other points (the brightest, as the pattern is given
+    brightest first): a hypothesis none of them confirms matches only its own
+    two points and is not checked further (most are, by far, and the full
+    check costs a KD-tree query per point).
     """
     H, m = len(rotations), len(pattern_vectors)
-    sky = np.matmul(pattern_vectors[None], rotations)  # rows R^T p
-    cap = float(np.max(tolerance_rad)) if H else 0.0
-    d, _ = field.tree.query(sky.reshape(-1, 3), k=1, distance_upper_bound=float(chord(cap)))
-    ang = chord_to_angle(np.where(np.isfinite(d), d, 2.0)).reshape(H, m)
-    tol = np.asarray(tolerance_rad).reshape(-1, 1)
-    matched = ang <= tol
-    return matched.sum(axis=1), np.minimum(ang, tol).sum(axis=1)
+    tol = np.asarray(tolerance_rad, dtype=float).reshape(-1)
+    cap = float(np.max(tol)) if H else 0.0
+    if pattern_edges is None or m <= probes + 2 or H == 0:
+        ang = _nearest_angles(rotations, pattern_vectors, field, cap)
+        matched = ang <= tol[:, None]
+        return matched.sum(axis=1), np.minimum(ang, tol[:, None]).sum(axis=1)
+    probe_rows = np.arange(probes + 2)
+    probe_ang = _nearest_angles(rotations, pattern_vectors[probe_rows], field, cap)
+    in_edge = (probe_rows[None, :] == pattern_edges[:, :1]) | (probe_rows[None, :] == pattern_edges[:, 1:])
+    # Up to ``probes`` probes besides the edge's own two points.
+    confirmed = ((probe_ang <= tol[:, None]) & ~in_edge).any(axis=1)
+    n_match = np.full(H, 2)
+    deviation = np.full(H, 0.0)
+    deviation[:] = (m - 2) * tol  # unconfirmed: every other point counted at the cap
+    if confirmed.any():
+        full = _nearest_angles(rotations[confirmed], pattern_vectors, field, cap)
+        t = tol[confirmed][:, None]
+        n_match[confirmed] = (full <= t).sum(axis=1)
+        deviation[confirmed] = np.minimum(full, t).sum(axis=1)
+    return n_match, deviation
 
 
 @dataclass(frozen=True, eq=False)
