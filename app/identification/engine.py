@@ -67,7 +67,7 @@ class SearchOptions:
     #: seed's Next/Prev: past the first few, alternatives are chance fits).
     max_candidates: int = 6
     #: Hypotheses refined (in order of promise) to find those candidates.
-    max_refinements: int = 24
+    max_refinements: int = 16
     #: Status "identified" needs a best false-match probability at most this ...
     identified_probability: float = 1e-6
     #: ... and no other distinct candidate at or below this one with an RMS
@@ -166,8 +166,7 @@ class PreparedPattern:
 
 def prepare_pattern(pattern, camera: Camera, t: datetime, sky: Sky, velocity_km_s=None,
                     options: SearchOptions = SearchOptions()) -> PreparedPattern:
-    # The brightest points only (faint sources are most often ghosts or missing
-    # stars), brightest first: the hypothesis check probes the first few.
+    # The brightest points only (faint sources are most often ghosts or missing stars).
     keep = np.argsort(-np.nan_to_num(pattern.brightness, nan=0.0), kind="stable")[:options.max_points]
     sigma_px = np.maximum(np.nan_to_num(np.asarray(pattern.sigma_px, float)[keep], nan=0.5), 0.05)
     scale = camera.pixel_scale_rad
@@ -256,7 +255,7 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     n_tried, used = 0, 0
     for hyp, tol, used in HYPOTHESIS_METHODS[method](p, sky, options):
         if len(hyp):
-            n_match, dev = check_hypotheses(hyp.rotations, vectors, field, tol, hyp.pattern_edge)
+            n_match, dev = check_hypotheses(hyp.rotations, vectors, field, tol)
             parts.append((hyp.rotations, hyp.pattern_edge, hyp.catalogue_pair, n_match, dev, tol))
             n_tried += len(hyp)
             for h in np.lexsort((dev, -n_match))[:options.refine_per_batch]:
@@ -273,7 +272,8 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     # More distinct alternatives for the operator's Next/Prev, in order of promise.
     rot, pe, cp, n_match, dev, hyp_tol = (np.concatenate(x) for x in zip(*parts))
     for h in np.lexsort((dev, -n_match)):
-        if (n_match[h] < max(3, options.min_matches) or len(found) >= options.max_candidates
+        credible = sum(c["refined"].n_matched >= max(3, options.min_matches) for c in found)
+        if (n_match[h] < max(3, options.min_matches) or credible >= options.max_candidates
                 or n_refined >= options.max_refinements):
             break
         if _time.perf_counter() - started > options.timeout_s:

@@ -70,39 +70,18 @@ def _nearest_angles(rotations: np.ndarray, vectors: np.ndarray, field: StarField
 
 
 def check_hypotheses(rotations: np.ndarray, pattern_vectors: np.ndarray, field: StarField,
-                     tolerance_rad: np.ndarray, pattern_edges: np.ndarray | None = None,
-                     probes: int = 4) -> tuple[np.ndarray, np.ndarray]:
+                     tolerance_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Matches and capped deviation of every hypothesis.
 
     Returns (n_matched (H,), deviation (H,) = sum over points of
-    min(angle to nearest star, tolerance)).  With ``pattern_edges`` (H, 2),
-    the rows that generated each hypothesis, a first pass maps only the
-    first ``probes`` other points (the brightest, as the pattern is given
-    brightest first): a hypothesis none of them confirms matches only its own
-    two points and is not checked further (most are, by far, and the full
-    check costs a KD-tree query per point).
+    min(angle to nearest star, tolerance)).  Every point of every hypothesis
+    is checked: the chance fits found this way are the alternatives an
+    operator compares the best match with (the seed's "best wrong match").
     """
-    H, m = len(rotations), len(pattern_vectors)
     tol = np.asarray(tolerance_rad, dtype=float).reshape(-1)
-    cap = float(np.max(tol)) if H else 0.0
-    if pattern_edges is None or m <= probes + 2 or H == 0:
-        ang = _nearest_angles(rotations, pattern_vectors, field, cap)
-        matched = ang <= tol[:, None]
-        return matched.sum(axis=1), np.minimum(ang, tol[:, None]).sum(axis=1)
-    probe_rows = np.arange(probes + 2)
-    probe_ang = _nearest_angles(rotations, pattern_vectors[probe_rows], field, cap)
-    in_edge = (probe_rows[None, :] == pattern_edges[:, :1]) | (probe_rows[None, :] == pattern_edges[:, 1:])
-    # Up to ``probes`` probes besides the edge's own two points.
-    confirmed = ((probe_ang <= tol[:, None]) & ~in_edge).any(axis=1)
-    n_match = np.full(H, 2)
-    deviation = np.full(H, 0.0)
-    deviation[:] = (m - 2) * tol  # unconfirmed: every other point counted at the cap
-    if confirmed.any():
-        full = _nearest_angles(rotations[confirmed], pattern_vectors, field, cap)
-        t = tol[confirmed][:, None]
-        n_match[confirmed] = (full <= t).sum(axis=1)
-        deviation[confirmed] = np.minimum(full, t).sum(axis=1)
-    return n_match, deviation
+    cap = float(np.max(tol)) if len(rotations) else 0.0
+    ang = _nearest_angles(rotations, pattern_vectors, field, cap)
+    return (ang <= tol[:, None]).sum(axis=1), np.minimum(ang, tol[:, None]).sum(axis=1)
 
 
 @dataclass(frozen=True, eq=False)
