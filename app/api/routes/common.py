@@ -51,7 +51,7 @@ def too_large(limit: int) -> ApiError:
     return ApiError(413, f"the upload is larger than the limit of {limit} bytes")
 
 
-async def read_body_limited(request: Request, limit: int) -> bytes:
+async def read_body_limited(request: Request, limit: int, reported_limit: int | None = None) -> bytes:
     """The request body, refusing (413) as soon as it exceeds ``limit`` bytes.
 
     A declared Content-Length above the limit is refused before anything is
@@ -59,12 +59,12 @@ async def read_body_limited(request: Request, limit: int) -> bytes:
     """
     declared = request.headers.get("content-length", "")
     if declared.isdigit() and int(declared) > limit:
-        raise too_large(limit)
+        raise too_large(reported_limit or limit)
     chunks, size = [], 0
     async for chunk in request.stream():
         size += len(chunk)
         if size > limit:
-            raise too_large(limit)
+            raise too_large(reported_limit or limit)
         chunks.append(chunk)
     return b"".join(chunks)
 

@@ -50,7 +50,8 @@ async def _upload_bytes(request: Request, limit: int) -> tuple[bytes, str | None
     """The telemetry bytes and the client's file name from a multipart or raw body."""
     media_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if media_type == "multipart/form-data":
-        body = await read_body_limited(request, limit + MULTIPART_OVERHEAD)
+        # The envelope may add a little; the message names the file's own limit.
+        body = await read_body_limited(request, limit + MULTIPART_OVERHEAD, reported_limit=limit)
         form = await replay_request(request, body).form(max_files=1, max_fields=10)
         files = [v for v in form.values() if isinstance(v, UploadFile)]
         if not files:
