@@ -104,7 +104,7 @@ class Sky:
         self.names = star_names()
         self._fields: OrderedDict[tuple, StarField] = OrderedDict()
         self._apparent: OrderedDict[tuple, np.ndarray] = OrderedDict()
-        self._row_of_hip: dict[int, int] | None = None
+        self._row_of_hip = self.catalogue.index_of_hip()
 
     def star_mask(self, mag_limit: float) -> np.ndarray:
         return self.index.mag <= mag_limit
@@ -133,8 +133,6 @@ class Sky:
 
     def apparent_vectors_of(self, hips, t: datetime, velocity_km_s=None) -> np.ndarray:
         """Apparent places (unit vectors) of the stars with these HIP numbers at ``t``."""
-        if self._row_of_hip is None:
-            self._row_of_hip = {int(h): i for i, h in enumerate(self.catalogue.hip)}
         rows = np.array([self._row_of_hip[int(h)] for h in hips], dtype=int)
         return self.apparent_vectors(t, velocity_km_s)[rows]
 
