@@ -109,16 +109,24 @@ def observer_velocity_km_s(t: datetime, velocity_km_s=None) -> np.ndarray:
     return v
 
 
+#: TT - UTC since 2017 (37 leap seconds + 32.184 s).  A future leap second
+#: would shift the ephemeris time by 1 s, changing the Earth's velocity by
+#: ~6 mm/s: 2e-8 arcsec of aberration.
+TT_MINUS_UTC_S = 69.184
+AU_KM = 149_597_870.7
+
+
 @functools.lru_cache(maxsize=256)
 def _earth_barycentric_velocity_km_s(t_hour: datetime) -> np.ndarray:
     # Cached per hour: the Earth's velocity turns by 0.04 deg an hour, which
-    # moves the aberration by < 0.02 arcsec.
-    configure_astropy()
-    from astropy.coordinates import get_body_barycentric_posvel
-    from astropy.time import Time
+    # moves the aberration by < 0.02 arcsec.  ERFA's epv00 is the model behind
+    # astropy's "builtin" ephemeris, called directly: astropy's Time and
+    # coordinate layers cost a millisecond per call, most of a new hour's set-up.
+    import erfa
 
-    _, vel = get_body_barycentric_posvel("earth", Time(t_hour), ephemeris="builtin")
-    return vel.xyz.to_value("km/s").astype(float)
+    jd_tt = 2440587.5 + (t_hour.timestamp() + TT_MINUS_UTC_S) / 86400.0
+    _, barycentric = erfa.epv00(jd_tt, 0.0)
+    return np.asarray(barycentric["v"], dtype=float) * AU_KM / 86400.0
 
 
 @functools.lru_cache(maxsize=1)

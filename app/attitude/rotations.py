@@ -71,8 +71,13 @@ def angle_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 def rotation_angle_between(R1: np.ndarray, R2: np.ndarray) -> float:
     """Angle (radians) of the rotation that takes attitude ``R1`` to ``R2``."""
-    c = (np.trace(R1 @ np.asarray(R2).T) - 1.0) / 2.0
-    return float(np.arccos(np.clip(c, -1.0, 1.0)))
+    return float(rotation_angles_between(np.asarray(R1)[None], R2)[0])
+
+
+def rotation_angles_between(stack: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Angles (radians) of the rotations taking each attitude of ``stack`` (n, 3, 3) to ``R``."""
+    c = (np.einsum("nij,ij->n", stack, R) - 1.0) / 2.0  # trace(S_n R^T) = sum(S_n * R)
+    return np.arccos(np.clip(c, -1.0, 1.0))
 
 
 def boresight_and_roll_error(R_est: np.ndarray, R_true: np.ndarray) -> tuple[float, float]:
@@ -92,15 +97,18 @@ def solve_wahba(body: np.ndarray, ref: np.ndarray, weights: np.ndarray | None = 
 
     ``body`` are unit vectors in the camera frame, ``ref`` the matching ICRS
     unit vectors, both (N, 3) with N >= 2.  With B = sum w_i body_i ref_i^T =
-    U S V^T the optimum is R = U diag(1, 1, det U det V) V^T.
+    U S V^T the optimum is R = U diag(1, 1, det U det V) V^T.  Stacks of
+    problems work too: (..., N, 3) vectors and (..., N) weights give
+    (..., 3, 3); a zero weight leaves a pair out.
     """
     body = np.asarray(body, dtype=float)
     ref = np.asarray(ref, dtype=float)
-    w = np.ones(len(body)) if weights is None else np.asarray(weights, dtype=float)
-    B = (body * w[:, None]).T @ ref
+    w = np.ones(body.shape[:-1]) if weights is None else np.asarray(weights, dtype=float)
+    B = np.einsum("...n,...ni,...nj->...ij", w, body, ref)
     U, _, Vt = np.linalg.svd(B)
-    d = np.linalg.det(U) * np.linalg.det(Vt)
-    return U @ np.diag([1.0, 1.0, d]) @ Vt
+    D = np.broadcast_to(np.eye(3), B.shape).copy()
+    D[..., 2, 2] = np.linalg.det(U) * np.linalg.det(Vt)
+    return U @ D @ Vt
 
 
 def rotation_from_pair(b1: np.ndarray, b2: np.ndarray, r1: np.ndarray, r2: np.ndarray) -> np.ndarray:

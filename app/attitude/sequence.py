@@ -62,24 +62,41 @@ def snapshot_attitude(body: np.ndarray, ref: np.ndarray, sigma_rad: np.ndarray, 
     None with fewer than ``min_stars`` consistent stars: two stars always fit
     exactly, so a mixed-up pair could not be noticed.
     """
-    keep = np.ones(len(body), dtype=bool)
+    (found,) = snapshot_attitudes(body[None], ref[None], sigma_rad[None], positions=[position], dt_s=[dt_s],
+                                  reject_sigmas=reject_sigmas, min_stars=min_stars)
+    return found
+
+
+def snapshot_attitudes(body: np.ndarray, ref: np.ndarray, sigma_rad: np.ndarray, *, positions, dt_s,
+                       reject_sigmas: float = 5.0, min_stars: int = 3) -> list[SnapshotAttitude | None]:
+    """:func:`snapshot_attitude` of many snapshots at once.
+
+    ``body`` and ``ref`` are (S, N, 3), ``sigma_rad`` (S, N) with ``inf``
+    where a snapshot has fewer than N sightings.
+    """
+    sigma_rad = np.asarray(sigma_rad, dtype=float)
+    weight = 1.0 / sigma_rad ** 2
+    keep = np.isfinite(sigma_rad)
+    limit = reject_sigmas * sigma_rad * np.sqrt(2)
     for _ in range(3):
-        if keep.sum() < min_stars:
-            return None
-        R = solve_wahba(body[keep], ref[keep], 1.0 / sigma_rad[keep] ** 2)
-        resid = np.linalg.norm(body - ref @ R.T, axis=1)
-        new_keep = resid <= reject_sigmas * sigma_rad * np.sqrt(2)
+        R = solve_wahba(body, ref, np.where(keep, weight, 0.0))
+        resid = np.linalg.norm(body - np.einsum("sij,snj->sni", R, ref), axis=2)
+        new_keep = np.isfinite(sigma_rad) & (resid <= limit) & (keep.sum(axis=1) >= min_stars)[:, None]
         if np.array_equal(new_keep, keep):
             break
         keep = new_keep
-    if keep.sum() < min_stars:
-        return None
-    R = solve_wahba(body[keep], ref[keep], 1.0 / sigma_rad[keep] ** 2)
-    cov = wahba_covariance(body[keep], sigma_rad[keep])
-    if not np.all(np.isfinite(cov)):
-        return None
-    return SnapshotAttitude(position=position, dt_s=dt_s, rotation=R, covariance=cov, n_stars=int(keep.sum()))
+    n_kept = keep.sum(axis=1)
+    R = solve_wahba(body, ref, np.where(keep, weight, 0.0))
+    cov = wahba_covariance(body, np.where(keep, sigma_rad, np.inf))
+    return [SnapshotAttitude(position=int(p), dt_s=float(t), rotation=R[k], covariance=cov[k], n_stars=int(n_kept[k]))
+            if n_kept[k] >= min_stars and np.all(np.isfinite(cov[k])) else None
+            for k, (p, t) in enumerate(zip(positions, dt_s))]
 
+
+#: Gauss-Newton stops once a step moves the attitude (rad) and the rate (rad/s)
+#: by less than this: ~2e-5 arcsec, far below any star camera's noise, and
+#: above the ~1e-13 floor of the rotation-vector arithmetic.
+CONVERGED_STEP = 1e-10
 
 #: A snapshot whose attitude misses the fitted model by more than this chi-square
 #: (3 degrees of freedom; 16.3 is the 99.9 % point) is dropped and the fit redone.
@@ -108,31 +125,33 @@ def _fit_once(snaps: list[SnapshotAttitude], R0: np.ndarray, rate_guess: np.ndar
               iterations: int) -> tuple[SequenceFit | None, np.ndarray]:
     """One Gauss-Newton fit of ``(c, w)``; also each snapshot's chi-square.
 
-    Gauss-Newton with the Jacobian of ``r_i`` taken to first order:
-    ``dr_i/dc = -exp(-[w]x dt_i)`` and ``dr_i/dw = dt_i I`` (exact for the
-    small rotations the fit moves through; the iteration absorbs the rest).
+    The Jacobian of ``r_i`` for small residuals: ``dr_i/dc = -exp(-[w]x dt_i)``
+    (``c`` stays tiny) and ``dr_i/dw = dt_i J_l(-w dt_i)``, with ``J_l`` the
+    left Jacobian of SO(3): turns of several degrees over a sequence would
+    otherwise slow Gauss-Newton's convergence to a linear crawl.
     """
     if len(snaps) < 2 or len({round(s.dt_s, 9) for s in snaps}) < 2:
         return None, np.zeros(0)
     R_obs = np.stack([s.rotation for s in snaps])
     dt = np.array([s.dt_s for s in snaps])
     # Whitening: W_i^T W_i = P_i^-1, so |W_i r_i|^2 = r_i^T P_i^-1 r_i.
-    W = np.stack([np.linalg.cholesky(np.linalg.inv(s.covariance)).T for s in snaps])
+    W = np.swapaxes(np.linalg.cholesky(np.linalg.inv(np.stack([s.covariance for s in snaps]))), 1, 2)
     c = np.zeros(3)
     w = np.zeros(3) if rate_guess is None else np.asarray(rate_guess, dtype=float).copy()
 
     def residuals_and_jacobian(c, w):
-        turn = Rotation.from_rotvec(-w[None, :] * dt[:, None]).as_matrix()  # (S, 3, 3)
+        phi = -w[None, :] * dt[:, None]
+        turn = Rotation.from_rotvec(phi).as_matrix()  # (S, 3, 3)
         pred = turn @ (Rotation.from_rotvec(c).as_matrix() @ R0)
         r = Rotation.from_matrix(R_obs @ np.swapaxes(pred, 1, 2)).as_rotvec()  # (S, 3)
-        J = np.concatenate([-turn, dt[:, None, None] * np.eye(3)[None]], axis=2)  # (S, 3, 6)
+        J = np.concatenate([-turn, dt[:, None, None] * left_jacobian(phi)], axis=2)  # (S, 3, 6)
         return np.einsum("sij,sj->si", W, r).reshape(-1), np.einsum("sij,sjk->sik", W, J).reshape(-1, 6)
 
     for _ in range(iterations):
         f, J = residuals_and_jacobian(c, w)
         delta, *_ = np.linalg.lstsq(J, -f, rcond=None)
         c, w = c + delta[:3], w + delta[3:]
-        if np.max(np.abs(delta)) < 1e-13:
+        if np.max(np.abs(delta)) < CONVERGED_STEP:
             break
     f, J = residuals_and_jacobian(c, w)
     dof = max(1, len(f) - 6)
@@ -145,6 +164,22 @@ def _fit_once(snaps: list[SnapshotAttitude], R0: np.ndarray, rate_guess: np.ndar
     fit = SequenceFit(rotation=rotation, covariance=cov[:3, :3], rate_rad_s=w,
                       rate_covariance=cov[3:, 3:], snapshots=tuple(snaps), chi2_reduced=chi2_red)
     return fit, (f.reshape(-1, 3) ** 2).sum(axis=1)
+
+
+def left_jacobian(phi: np.ndarray) -> np.ndarray:
+    """(S, 3, 3) left Jacobians of SO(3) at rotation vectors ``phi`` (S, 3):
+    ``exp(phi + d) ~ exp([J_l(phi) d]x) exp(phi)``, with
+    ``J_l = I + (1 - cos t)/t^2 [phi]x + (t - sin t)/t^3 [phi]x^2``, t = |phi|.
+    """
+    t = np.linalg.norm(phi, axis=1)
+    small = t < 1e-6
+    ts = np.where(small, 1.0, t)
+    a = np.where(small, 0.5 - t ** 2 / 24, (1 - np.cos(ts)) / ts ** 2)
+    b = np.where(small, 1 / 6 - t ** 2 / 120, (ts - np.sin(ts)) / ts ** 3)
+    K = np.zeros((len(phi), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -phi[:, 2], phi[:, 1], -phi[:, 0]
+    K -= np.swapaxes(K, 1, 2)
+    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
 
 
 def rate_from_motion(motion: np.ndarray, dt_s: np.ndarray) -> np.ndarray | None:

@@ -22,17 +22,22 @@ def wahba_covariance(body: np.ndarray, sigma_rad: np.ndarray) -> np.ndarray:
     """(3, 3) covariance (rad^2) of the attitude from vectors ``body`` (N, 3) with 1-sigma ``sigma_rad`` (N,).
 
     Needs at least two non-parallel vectors; with fewer the information
-    matrix is singular and the result holds ``inf``.
+    matrix is singular and the result holds ``inf``.  Stacks work too:
+    (..., N, 3) and (..., N) give (..., 3, 3); an infinite sigma leaves a
+    vector out.
     """
-    body = np.asarray(body, dtype=float).reshape(-1, 3)
-    w = 1.0 / np.asarray(sigma_rad, dtype=float).reshape(-1) ** 2
-    info = w.sum() * np.eye(3) - (body * w[:, None]).T @ body
-    try:
-        cov = np.linalg.inv(info)
-    except np.linalg.LinAlgError:
-        return np.full((3, 3), np.inf)
-    if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) < 0):
-        return np.full((3, 3), np.inf)
+    body = np.asarray(body, dtype=float)
+    w = 1.0 / np.asarray(sigma_rad, dtype=float) ** 2
+    if body.ndim == 1:
+        body, w = body.reshape(-1, 3), w.reshape(-1)
+    info = w.sum(axis=-1)[..., None, None] * np.eye(3) - np.einsum("...n,...ni,...nj->...ij", w, body, body)
+    # A singular information matrix (fewer than two usable directions): inf, not an exception.
+    well_posed = np.abs(np.linalg.det(info)) > 1e-12 * np.abs(np.trace(info, axis1=-2, axis2=-1)) ** 3
+    cov = np.full(info.shape, np.inf)
+    with np.errstate(all="ignore"):
+        cov[well_posed] = np.linalg.inv(info[well_posed])
+    bad = ~np.all(np.isfinite(cov), axis=(-2, -1)) | np.any(np.diagonal(cov, axis1=-2, axis2=-1) < 0, axis=-1)
+    cov[bad] = np.inf
     return cov
 
 

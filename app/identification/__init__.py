@@ -15,10 +15,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from app.attitude.sequence import SequenceFit, fit_constant_rate, rate_from_motion, snapshot_attitude
+from app.attitude.sequence import SequenceFit, fit_constant_rate, rate_from_motion, snapshot_attitudes
 from app.attitude.wahba import cross_boresight_and_roll_sigma
 from app.extraction import Extraction, Pattern, extract
-from app.identification.engine import SearchOptions, Sky, classify, identify
+from app.identification.engine import SearchOptions, Sky, classify, identify, is_rival
 from app.identification.result import (AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, PlanetMatch, Solution,
                                        StarMatch)
 from app.telemetry import Sequence
@@ -89,9 +89,12 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
                             options=options, planets=planets, method=method)
     fits: dict[int, SequenceFit] = {}
     candidates = []
+    best = solution.candidates[0] if solution.candidates else None
     for c in solution.candidates:
         fit = None
-        if c.false_match_probability <= options.rival_probability and len(sequence.snapshots) > 1:
+        # The sequence fit for the best candidate and its rivals (what an operator weighs up).
+        credible = c.false_match_probability <= options.rival_probability and (c is best or is_rival(c, best, options))
+        if credible and len(sequence.snapshots) > 1:
             fit = fit_sequence(sequence, extraction, pattern, c, sky)
         if fit is not None:
             fits[c.rank] = fit
@@ -168,8 +171,7 @@ def fit_sequence(sequence: Sequence, extraction: Extraction, pattern: Pattern, c
     stars, through the camera model, against the stars' apparent places.
     """
     camera = sequence.camera
-    ref = extraction.reference
-    t_ref = sequence.snapshots[ref].time
+    t_ref = sequence.snapshots[extraction.reference].time
     star_of_track = {m.track: m.hip for m in candidate.matches if m.track is not None}
     if len(star_of_track) < 2:
         return None
@@ -184,14 +186,20 @@ def fit_sequence(sequence: Sequence, extraction: Extraction, pattern: Pattern, c
         star = star_vec[star_of_track[track_id]]
         for pos, xy in zip(track.snapshots.tolist(), track.xy):
             by_snapshot.setdefault(pos, []).append((xy, star))
+    usable = sorted(pos for pos, sightings in by_snapshot.items() if len(sightings) >= 3)
     snaps = []
-    for pos, sightings in sorted(by_snapshot.items()):
-        if len(sightings) < 3:
-            continue
-        body = camera.pixels_to_vectors(np.array([xy for xy, _ in sightings]))
-        sa = snapshot_attitude(body, np.array([v for _, v in sightings]), np.full(len(sightings), sigma),
-                               position=pos, dt_s=(sequence.snapshots[pos].time - t_ref).total_seconds())
-        if sa is not None:
-            snaps.append(sa)
+    if usable:
+        width = max(len(by_snapshot[pos]) for pos in usable)
+        xy = np.zeros((len(usable), width, 2))
+        stars = np.tile([0.0, 0.0, 1.0], (len(usable), width, 1))
+        sigmas = np.full((len(usable), width), np.inf)
+        for k, pos in enumerate(usable):
+            n = len(by_snapshot[pos])
+            xy[k, :n] = [xy_ for xy_, _ in by_snapshot[pos]]
+            stars[k, :n] = [v for _, v in by_snapshot[pos]]
+            sigmas[k, :n] = sigma
+        body = camera.pixels_to_vectors(xy.reshape(-1, 2)).reshape(len(usable), width, 3)
+        dt_of = [(sequence.snapshots[pos].time - t_ref).total_seconds() for pos in usable]
+        snaps = [sa for sa in snapshot_attitudes(body, stars, sigmas, positions=usable, dt_s=dt_of) if sa is not None]
     dt = np.array([(s.time - t_ref).total_seconds() for s in sequence.snapshots])
     return fit_constant_rate(snaps, candidate.rotation_matrix, rate_from_motion(extraction.motion, dt))

@@ -18,7 +18,7 @@ from datetime import datetime
 
 import numpy as np
 
-from app.attitude import rotation_angle_between, wahba_covariance
+from app.attitude import angle_between, rotation_angles_between, wahba_covariance
 from app.attitude.wahba import cross_boresight_and_roll_sigma
 from app.camera import Camera
 from app.catalogue import Catalogue, load_catalogue, star_names
@@ -70,16 +70,20 @@ class SearchOptions:
     max_refinements: int = 16
     #: Status "identified" needs a best false-match probability at most this ...
     identified_probability: float = 1e-6
-    #: ... and no other distinct candidate at or below this one with an RMS
-    #: residual within this factor of the best's.
+    #: ... and no rival: another distinct candidate at or below this
+    #: probability, with an RMS residual within this factor of the best's, and
+    #: at most this many times as likely to be chance as the best (the odds
+    #: of the two explanations: a 15-star match at 1e-60 is not put in doubt
+    #: by a 3-star coincidence at 1e-4, a 4-star match at 1e-8 is).
     rival_probability: float = 1e-3
     rival_rms_factor: float = 3.0
+    rival_odds: float = 1e6
     #: No candidate at or below this false-match probability: "no_match".
     no_match_probability: float = 0.01
     #: Stop generating hypotheses once a hypothesis matches this many points
     #: (or all of them) and at least this many edges were tried.
     early_stop_matches: int = 6
-    early_stop_edges: int = 2
+    early_stop_edges: int = 1
     #: Hypotheses refined right after each batch of edges.
     refine_per_batch: int = 3
     #: Wall-clock budget of one search, seconds.
@@ -182,15 +186,16 @@ def bright_pair_batches(p: PreparedPattern, sky: Sky, options: SearchOptions):
     if not edges:
         return
     v = p.vectors
-    edge_sigma_px = np.array([np.hypot(p.sigma_px[i], p.sigma_px[j]) for i, j in edges])
+    first, second = np.array(edges).T
+    edge_sigma_px = np.hypot(p.sigma_px[first], p.sigma_px[second])
     # Aberration differs across the field by up to ~1e-4 of an edge's length.
-    edge_len = np.array([np.arccos(np.clip(v[i] @ v[j], -1, 1)) for i, j in edges])
+    edge_len = angle_between(v[first], v[second])
     edge_tol = (options.edge_tolerance_px + 4 * edge_sigma_px) * p.scale + 1.1e-4 * edge_len
     # A rotation from one edge errs at distance D from its first point by ~tol * D / L.
-    reach = np.array([np.max(np.arccos(np.clip(v @ v[i], -1, 1))) for i, _ in edges])
+    reach = np.arccos(np.clip(v @ v.T, -1, 1)).max(axis=1)[first]
     check_tol = np.minimum(np.max(p.match_tol) + edge_tol * np.maximum(1.0, reach / np.maximum(edge_len, 1e-9)),
                            10 * p.scale)
-    e, batch = 0, 2
+    e, batch = 0, 1
     while e < len(edges):
         stop = min(len(edges), e + batch)
         hyp = bright_pair_hypotheses(v, edges[e:stop], edge_tol[e:stop], sky.index, p.star_mask)
@@ -232,18 +237,34 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     found: list[dict] = []  # distinct refined hypotheses
     n_refined = 0
 
+    def nearest_found(R: np.ndarray, key: str) -> tuple[dict | None, float]:
+        """The found candidate whose rotation ``key`` is closest to R, and that angle."""
+        if not found:
+            return None, np.inf
+        angles = rotation_angles_between(np.stack([c[key] for c in found]), R)
+        k = int(np.argmin(angles))
+        return found[k], float(angles[k])
+
     def consider(R0, edge, pair, tol) -> None:
-        """Refine one hypothesis unless it repeats a distinct one already found."""
+        """Refine one hypothesis unless it repeats a distinct one already found.
+
+        A hypothesis repeats a candidate when it lies within its own error
+        bound (``tol``: how far an edge's rotation can misplace a point) of
+        the candidate's refined attitude, or within ``merge_angle`` of the
+        hypothesis that candidate came from.
+        """
         nonlocal n_refined
-        same = next((c for c in found if rotation_angle_between(c["R0"], R0) < merge_angle), None)
-        if same is None:
-            n_refined += 1
-            r = refine(R0, vectors, weights, field, match_tol, tol)
-            same = next((c for c in found if rotation_angle_between(c["refined"].rotation, r.rotation)
-                         < merge_angle), None)
-            if same is None:
-                found.append({"R0": R0, "refined": r, "edge": edge, "pair": pair, "merged": 1, "tol": tol})
-                return
+        same, angle = nearest_found(R0, "R0")
+        if angle >= merge_angle:
+            same, angle = nearest_found(R0, "rotation")
+            if angle >= max(merge_angle, tol):
+                n_refined += 1
+                r = refine(R0, vectors, weights, field, match_tol, tol)
+                same, angle = nearest_found(r.rotation, "rotation")
+                if angle >= merge_angle:
+                    found.append({"R0": R0, "rotation": r.rotation, "refined": r, "edge": edge, "pair": pair,
+                                  "merged": 1, "tol": tol})
+                    return
         same["merged"] += 1
 
     # Hypotheses come in batches; after each, the most promising new ones are
@@ -278,8 +299,8 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
             break
         consider(rot[h], pe[h], cp[h], float(hyp_tol[h]))
 
-    candidates = [_candidate(c, p, pattern, sky, n_tried, options, planets) for c in found]
-    candidates = [c for c in candidates if c.n_matched >= max(3, options.min_matches)]
+    candidates = [_candidate(c, p, pattern, sky, n_tried, options, planets) for c in found
+                  if c["refined"].n_matched >= max(3, options.min_matches)]
     candidates.sort(key=lambda c: (c.false_match_probability, -c.n_matched, c.deviation_arcsec))
     candidates = candidates[:options.max_candidates]
     candidates.sort(key=lambda c: (-c.n_matched, c.false_match_probability, c.deviation_arcsec))
@@ -293,19 +314,32 @@ def classify(candidates: list[Candidate], options: SearchOptions) -> str:
     """identified / ambiguous / no_match from the ranked candidates (see SearchOptions).
 
     A rival blocks "identified" when chance does not explain it either
-    (probability at most ``rival_probability``) and its residuals are of the
-    same order as the best candidate's (RMS within ``rival_rms_factor``): a
+    (probability at most ``rival_probability``), its residuals are of the
+    same order as the best candidate's (RMS within ``rival_rms_factor``: a
     true attitude fits its stars to the measurement noise, so a rival fitting
-    several times worse than the best is not a competing explanation.
+    several times worse is not a competing explanation), and the odds
+    between the two are not overwhelming (see :func:`is_rival`).
     """
     if not candidates or min(c.false_match_probability for c in candidates) > options.no_match_probability:
         return NO_MATCH
     best = candidates[0]
-    rivals = [c for c in candidates[1:] if c.false_match_probability <= options.rival_probability
-              and c.rms_arcsec <= options.rival_rms_factor * best.rms_arcsec]
+    rivals = [c for c in candidates[1:] if is_rival(c, best, options)]
     if best.false_match_probability <= options.identified_probability and not rivals:
         return IDENTIFIED
     return AMBIGUOUS
+
+
+def is_rival(candidate: Candidate, best: Candidate, options: SearchOptions) -> bool:
+    """Whether ``candidate`` competes with ``best`` as an explanation of the pattern.
+
+    If the best were the chance fit, the other being true, chance would have
+    produced it with probability ``P_best``; the other way round, ``P_other``.
+    Their ratio is the odds between the two explanations; beyond
+    ``rival_odds`` the weaker one is no rival, however unlikely by chance alone.
+    """
+    p, p_best = candidate.false_match_probability, best.false_match_probability
+    return (p <= options.rival_probability and candidate.rms_arcsec <= options.rival_rms_factor * best.rms_arcsec
+            and p <= options.rival_odds * max(p_best, 1e-300))
 
 
 def _candidate(c, p: PreparedPattern, pattern, sky: Sky, n_tried, options: SearchOptions, planets) -> Candidate:

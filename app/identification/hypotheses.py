@@ -52,45 +52,51 @@ def ordered_pattern_edges(xy: np.ndarray, camera: Camera, min_separation_px: flo
     shorter edges come first (fewer catalogue pairs share a short length).
     """
     m = len(xy)
+    xy = np.asarray(xy, dtype=float)
     # Points too close give no usable direction (and may be one star twice).
-    all_pairs = [(i, j) for i in range(m) for j in range(i + 1, m)
-                 if np.hypot(*(np.asarray(xy[i], float) - np.asarray(xy[j], float))) >= min_separation_px]
+    ii, jj = np.triu_indices(m, k=1)
+    usable_mask = np.hypot(*(xy[ii] - xy[jj]).T) >= min_separation_px
+    all_pairs = list(zip(ii[usable_mask].tolist(), jj[usable_mask].tolist()))
     if m < 3:
         return all_pairs
-    p = perturbed(np.asarray(xy, dtype=float))
+    p = perturbed(xy)
     try:
         tri = Delaunay(p).simplices
     except (QhullError, ValueError):  # all points on a line
         return all_pairs
+    centre, radius = _circumcircles(p[tri[:, 0]], p[tri[:, 1]], p[tri[:, 2]])
+    inside = ((centre[:, 0] - radius >= -0.5) & (centre[:, 0] + radius <= camera.width - 0.5)
+              & (centre[:, 1] - radius >= -0.5) & (centre[:, 1] + radius <= camera.height - 0.5))
     sure: set[tuple[int, int]] = set()
     delaunay: set[tuple[int, int]] = set()
-    for t in tri:
-        a, b, c = p[t]
-        centre, radius = _circumcircle(a, b, c)
-        inside = (centre[0] - radius >= -0.5 and centre[0] + radius <= camera.width - 0.5
-                  and centre[1] - radius >= -0.5 and centre[1] + radius <= camera.height - 0.5)
-        edges = {tuple(sorted((int(t[u]), int(t[v])))) for u, v in ((0, 1), (0, 2), (1, 2))}
-        (sure if inside else delaunay).update(edges)
+    for t, is_inside in zip(np.sort(tri, axis=1).tolist(), inside.tolist()):
+        (sure if is_inside else delaunay).update(((t[0], t[1]), (t[0], t[2]), (t[1], t[2])))
     usable = set(all_pairs)
     sure &= usable
     delaunay = (delaunay - sure) & usable
     rest = usable - sure - delaunay
+    length = np.zeros((m, m))
+    length[ii, jj] = np.hypot(*(p[ii] - p[jj]).T)
 
     def by_length(edges):
-        return sorted(edges, key=lambda e: (np.hypot(*(p[e[0]] - p[e[1]])), e))
+        return sorted(edges, key=lambda e: (length[e], e))
 
     return by_length(sure) + by_length(delaunay) + by_length(rest)
 
 
-def _circumcircle(a, b, c) -> tuple[np.ndarray, float]:
-    d = 2 * (a[0] * (b[1] - c[1]) + b[0] * (c[1] - a[1]) + c[0] * (a[1] - b[1]))
-    if abs(d) < 1e-12:
-        return np.array([np.inf, np.inf]), np.inf
-    a2, b2, c2 = a @ a, b @ b, c @ c
-    ux = (a2 * (b[1] - c[1]) + b2 * (c[1] - a[1]) + c2 * (a[1] - b[1])) / d
-    uy = (a2 * (c[0] - b[0]) + b2 * (a[0] - c[0]) + c2 * (b[0] - a[0])) / d
-    centre = np.array([ux, uy])
-    return centre, float(np.linalg.norm(a - centre))
+def _circumcircles(a, b, c) -> tuple[np.ndarray, np.ndarray]:
+    """Centres (n, 2) and radii (n,) of the circles through a, b, c (each (n, 2)); inf when collinear."""
+    d = 2 * (a[:, 0] * (b[:, 1] - c[:, 1]) + b[:, 0] * (c[:, 1] - a[:, 1]) + c[:, 0] * (a[:, 1] - b[:, 1]))
+    a2, b2, c2 = (a * a).sum(1), (b * b).sum(1), (c * c).sum(1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ux = (a2 * (b[:, 1] - c[:, 1]) + b2 * (c[:, 1] - a[:, 1]) + c2 * (a[:, 1] - b[:, 1])) / d
+        uy = (a2 * (c[:, 0] - b[:, 0]) + b2 * (a[:, 0] - c[:, 0]) + c2 * (b[:, 0] - a[:, 0])) / d
+    centre = np.column_stack([ux, uy])
+    radius = np.hypot(*(a - centre).T)
+    degenerate = np.abs(d) < 1e-12
+    centre[degenerate] = np.inf
+    radius[degenerate] = np.inf
+    return centre, radius
 
 
 def bright_pair_hypotheses(pattern_vectors: np.ndarray, edges: list[tuple[int, int]],

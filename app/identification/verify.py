@@ -139,6 +139,8 @@ def consensus_subset(body: np.ndarray, ref: np.ndarray, weights: np.ndarray) -> 
     from itertools import combinations
 
     n = len(body)
+    if n == 3:  # one subset: it wins whether or not all three agree
+        return np.ones(3, dtype=bool)
     sigma = 1.0 / np.sqrt(weights)
     subsets = np.array([[i in c for i in range(n)] for k in range(3, n + 1) for c in combinations(range(n), k)])
     w = subsets * weights[None, :]  # (S, n)
@@ -187,6 +189,8 @@ def refine(rotation: np.ndarray, pattern_vectors: np.ndarray, weights: np.ndarra
     instead (:func:`consensus_subset`).
     """
     R = rotation
+    fitted = None  # the matches R was last fitted to
+    final = None
     for it in range(iterations):
         f = it / max(1, iterations - 1)
         tol = np.maximum(final_tolerance_rad, start_tolerance_rad * (1 - f) + final_tolerance_rad * f)
@@ -194,8 +198,16 @@ def refine(rotation: np.ndarray, pattern_vectors: np.ndarray, weights: np.ndarra
         ok = star >= 0
         if ok.sum() < 2:
             break
+        if fitted is not None and np.array_equal(star, fitted):
+            # Converged: refitting gives the same R, and once the final
+            # tolerance keeps these matches too, so does every tolerance between.
+            final = match_points(R, pattern_vectors, field, final_tolerance_rad)
+            if np.array_equal(final[0], star):
+                break
+            final = None
         R = solve_wahba(pattern_vectors[ok], field.vectors[star[ok]], weights[ok])
-    star, resid, nearest = match_points(R, pattern_vectors, field, final_tolerance_rad)
+        fitted = star
+    star, resid, nearest = final or match_points(R, pattern_vectors, field, final_tolerance_rad)
     sigma = 1.0 / np.sqrt(weights)
     if 3 <= len(pattern_vectors) and (star >= 0).sum() <= SMALL_SET:
         # Few points: leave-one-out cannot unmask two outliers among five, so
