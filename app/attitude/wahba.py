@@ -31,12 +31,16 @@ def wahba_covariance(body: np.ndarray, sigma_rad: np.ndarray) -> np.ndarray:
     if body.ndim == 1:
         body, w = body.reshape(-1, 3), w.reshape(-1)
     info = w.sum(axis=-1)[..., None, None] * np.eye(3) - np.einsum("...n,...ni,...nj->...ij", w, body, body)
-    # A singular information matrix (fewer than two usable directions): inf, not an exception.
-    well_posed = np.abs(np.linalg.det(info)) > 1e-12 * np.abs(np.trace(info, axis1=-2, axis2=-1)) ** 3
-    cov = np.full(info.shape, np.inf)
+    # The inverse by cofactors, stack-wide: columns r1 x r2, r2 x r0, r0 x r1 over det = r0 . (r1 x r2).
+    r0, r1, r2 = info[..., 0, :], info[..., 1, :], info[..., 2, :]
+    adjugate = np.stack([np.cross(r1, r2), np.cross(r2, r0), np.cross(r0, r1)], axis=-1)
+    det = np.einsum("...i,...i->...", r0, adjugate[..., 0])
+    # A singular information matrix (fewer than two usable directions): inf, not a huge number.
+    well_posed = np.abs(det) > 1e-12 * np.abs(np.trace(info, axis1=-2, axis2=-1)) ** 3
     with np.errstate(all="ignore"):
-        cov[well_posed] = np.linalg.inv(info[well_posed])
-    bad = ~np.all(np.isfinite(cov), axis=(-2, -1)) | np.any(np.diagonal(cov, axis1=-2, axis2=-1) < 0, axis=-1)
+        cov = adjugate / np.where(well_posed, det, np.nan)[..., None, None]
+    bad = ~well_posed | ~np.all(np.isfinite(cov), axis=(-2, -1)) | np.any(np.diagonal(cov, axis1=-2, axis2=-1) < 0,
+                                                                          axis=-1)
     cov[bad] = np.inf
     return cov
 
