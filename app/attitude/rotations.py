@@ -104,11 +104,13 @@ def solve_wahba(body: np.ndarray, ref: np.ndarray, weights: np.ndarray | None = 
     body = np.asarray(body, dtype=float)
     ref = np.asarray(ref, dtype=float)
     w = np.ones(body.shape[:-1]) if weights is None else np.asarray(weights, dtype=float)
-    B = np.einsum("...n,...ni,...nj->...ij", w, body, ref)
+    B = np.swapaxes(body * w[..., None], -1, -2) @ ref
     U, _, Vt = np.linalg.svd(B)
-    D = np.broadcast_to(np.eye(3), B.shape).copy()
-    D[..., 2, 2] = np.linalg.det(U) * np.linalg.det(Vt)
-    return U @ D @ Vt
+    # det U det V = det(U V^T); where it is -1, U diag(1, 1, -1) V^T = U V^T - 2 u3 v3^T.
+    # (Not the sign of det B: with two vectors B has rank 2 and that sign is rounding noise.)
+    R = U @ Vt
+    improper = np.linalg.det(R) < 0
+    return R - 2.0 * improper[..., None, None] * (U[..., :, 2, None] * Vt[..., None, 2, :])
 
 
 def rotation_from_pair(b1: np.ndarray, b2: np.ndarray, r1: np.ndarray, r2: np.ndarray) -> np.ndarray:

@@ -36,7 +36,7 @@ import numpy as np
 
 from scipy.special import gammaln
 
-from app.attitude import rotation_from_pair
+from app.attitude import rotation_from_pair, solve_wahba
 
 #: Slot width separating the chords of different snapshot pairs in one
 #: sorted array; chords are at most 2.
@@ -124,20 +124,6 @@ def _mutual_matches(d2: np.ndarray, gate_sq: float) -> tuple[np.ndarray, np.ndar
     return nearest_b, mutual
 
 
-def batched_wahba(body: np.ndarray, ref: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Per batch item the rotation R minimising sum w |body - R ref|^2 (SVD method).
-
-    ``body``, ``ref`` are (L, N, 3) (finite: pad with zeros), ``weights``
-    (L, N).  B = sum w body ref^T = U S V^T, R = U diag(1, 1, det U det V)
-    V^T, as :func:`app.attitude.solve_wahba` for one item.  det U det V is
-    the sign of det B (the singular values are >= 0), one determinant call.
-    """
-    b = np.matmul(np.swapaxes(body * weights[..., None], -1, -2), ref)
-    u, _, vt = np.linalg.svd(b)
-    u[:, :, 2] *= np.where(np.linalg.det(b) < 0.0, -1.0, 1.0)[:, None]
-    return np.matmul(u, vt)
-
-
 def false_alarms(n_hypotheses, n_a, n_b, n_inliers, radius_sq, field_area) -> np.ndarray:
     """Expected number of hypotheses as good as the winner in unrelated point sets (a contrario).
 
@@ -162,7 +148,7 @@ def _refit(rotation: np.ndarray, va: np.ndarray, vb: np.ndarray, gate: float) ->
     """One Wahba re-solve of each rotation on its mutual matches within the gate (kept if < 2)."""
     d2 = _nearest_chord_sq(rotation, va, vb)
     match, mutual = _mutual_matches(d2, gate**2)
-    refined = batched_wahba(np.take_along_axis(vb, match[..., None], axis=1), va, mutual.astype(float))
+    refined = solve_wahba(np.take_along_axis(vb, match[..., None], axis=1), va, mutual.astype(float))
     return np.where((mutual.sum(axis=1) >= 2)[:, None, None], refined, rotation)
 
 

@@ -56,8 +56,9 @@ import math
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from app.attitude import solve_wahba
 from app.extraction.model import GHOST, HOT_PIXEL, OUTLIER, Extraction, ExtractionParameters, Track
-from app.extraction.motion import batched_wahba, estimate_pair_rotations, expand_ranges
+from app.extraction.motion import estimate_pair_rotations, expand_ranges
 from app.extraction.pattern import seed_pattern, tracks_pattern
 from app.telemetry.model import Sequence
 
@@ -169,7 +170,7 @@ def _refine_to_common(vectors: np.ndarray, snap: np.ndarray, label: np.ndarray,
     body[rows, slots] = means
     ref[rows, slots] = vectors[in_track]
     weight[rows, slots] = 1.0
-    refined = batched_wahba(body, ref, weight)
+    refined = solve_wahba(body, ref, weight)
     return np.where((counts >= 2)[:, None, None], refined, to_common)
 
 

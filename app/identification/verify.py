@@ -59,7 +59,7 @@ def chord(angle_rad):
 
 
 def chord_to_angle(c):
-    return 2 * np.arcsin(np.clip(np.asarray(c) / 2, 0, 1))
+    return 2 * np.arcsin(np.minimum(np.asarray(c) / 2, 1.0))  # chords are >= 0
 
 
 def _nearest_angles(rotations: np.ndarray, vectors: np.ndarray, field: StarField, cap: float) -> np.ndarray:
@@ -109,7 +109,7 @@ def match_points(rotation: np.ndarray, pattern_vectors: np.ndarray, field: StarF
     star = np.where(ang <= tolerance_rad, idx, -1)
     # One point per star: among points claiming the same star, the closest keeps it.
     claimed = np.flatnonzero(star >= 0)
-    if len(claimed) > 1:
+    if len(claimed) > 1 and len(set(star[claimed].tolist())) < len(claimed):
         order = claimed[np.lexsort((ang[claimed], star[claimed]))]
         repeat = np.concatenate([[False], star[order][1:] == star[order][:-1]])
         star[order[repeat]] = -1
