@@ -40,8 +40,13 @@ class Settings:
     #: Wall-clock budget of one identification run, seconds (STARID_SEARCH_TIMEOUT_S).
     search_timeout_s: float = field(
         default_factory=lambda: float(os.environ.get("STARID_SEARCH_TIMEOUT_S", "5.0")))
-    #: Searches run at once; more wait in line (STARID_SEARCH_WORKERS).
-    search_workers: int = field(default_factory=lambda: int(os.environ.get("STARID_SEARCH_WORKERS", "2")))
+    #: Searches run at once; more wait in line (STARID_SEARCH_WORKERS; default: one per core).
+    search_workers: int = field(
+        default_factory=lambda: int(os.environ.get("STARID_SEARCH_WORKERS", "0")) or os.cpu_count() or 1)
+    #: Searches run in worker processes, one per search worker, so that they use every core
+    #: (STARID_SEARCH_PROCESSES=0: in threads of the server process).
+    search_processes: bool = field(
+        default_factory=lambda: os.environ.get("STARID_SEARCH_PROCESSES", "1") not in ("0", "false", "no"))
 
 
 MAX_SNAPSHOTS = 64

@@ -38,6 +38,11 @@ def extended_bounds(camera: Camera, margin: float) -> tuple[float, float, float,
     return (-0.5 - dx, camera.width - 0.5 + dx, -0.5 - dy, camera.height - 0.5 + dy)
 
 
+def section_radius(camera: Camera, margin: float) -> float:
+    """Angle from the boresight (radians) of the cone that holds the section."""
+    return min(np.pi / 2 - 1e-6, 0.5 * camera.diagonal_fov_rad * (1 + 2 * margin))
+
+
 def project_into_section(rotation: np.ndarray, camera: Camera, vectors: np.ndarray,
                          margin: float) -> tuple[np.ndarray, np.ndarray]:
     """Pixels of ICRS ``vectors`` under ``rotation`` and a mask of those inside the section.
@@ -48,7 +53,7 @@ def project_into_section(rotation: np.ndarray, camera: Camera, vectors: np.ndarr
     """
     cam = np.asarray(vectors, float).reshape(-1, 3) @ np.asarray(rotation, float).T
     xy, front = camera.vectors_to_pixels(cam)
-    cone = np.cos(min(np.pi / 2 - 1e-6, 0.5 * camera.diagonal_fov_rad * (1 + 2 * margin)))
+    cone = np.cos(section_radius(camera, margin))
     x0, x1, y0, y1 = extended_bounds(camera, margin)
     with np.errstate(invalid="ignore"):
         inside = front & (cam[:, 2] >= cone) & (xy[:, 0] >= x0) & (xy[:, 0] <= x1) \
@@ -80,12 +85,12 @@ def sky_section(*, rotation: np.ndarray, camera: Camera, t: datetime, catalogue:
     pair_hip = [int(h) for h in candidate.get("generating_pair_hip", [])]
     wanted_hip = {int(m["hip"]) for m in match_of_point.values()} | {h for h in pair_hip if h >= 0}
 
-    # Stars: the bright ones and the ones the candidate names.
-    keep = (catalogue.mag <= mag_limit) | np.isin(catalogue.hip, list(wanted_hip))
-    rows = np.flatnonzero(keep)
-    sub = Catalogue(*(a[rows] for a in (catalogue.hip, catalogue.ra_rad, catalogue.dec_rad,
-                                         catalogue.pm_ra_cosdec_mas_yr, catalogue.pm_dec_mas_yr,
-                                         catalogue.mag)))
+    # Stars: the bright ones around the field and the ones the candidate names.
+    near = catalogue.rows_near(R[2], section_radius(camera, margin))
+    row_of_hip = catalogue.index_of_hip()
+    named = [row_of_hip[h] for h in wanted_hip if h in row_of_hip]
+    rows = np.union1d(near[catalogue.mag[near] <= mag_limit], np.array(named, dtype=int))
+    sub = catalogue.subset(rows)
     vectors = sub.apparent_vectors(t, velocity_km_s)
     xy, inside = project_into_section(R, camera, vectors, margin)
     shown = np.flatnonzero(inside)

@@ -54,12 +54,13 @@ then share one archive); no PRAGMAs.  :meth:`Storage.open` raises
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
 import sqlite3
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -208,7 +209,12 @@ class SequenceRow:
     uploaded_at: datetime
     status: str
     raw_text: str | None = None
-    extraction: dict | None = None
+    extraction_json: str | None = field(default=None, repr=False)
+
+    @functools.cached_property
+    def extraction(self) -> dict | None:
+        """The stored extraction document, parsed on first use (tens of kB of JSON)."""
+        return _loads(self.extraction_json)
 
 
 @dataclass(frozen=True)
@@ -229,10 +235,15 @@ class SearchRow:
     pattern_version: int | None
     method: str
     options: dict
-    result: Any  # the candidates as the API serialises them
+    result_json: str = field(repr=False)  # the candidates as the API serialises them: see ``result``
     status: str
     created_at: datetime
     elapsed_s: float | None
+
+    @functools.cached_property
+    def result(self) -> Any:
+        """The stored result document, parsed on first use."""
+        return _loads(self.result_json)
 
 
 @dataclass(frozen=True)
@@ -337,7 +348,7 @@ def _sequence_row(row: sqlite3.Row, full: bool) -> SequenceRow:
         n_snapshots=row["n_snapshots"], uploaded_at=_time(row["uploaded_at"]),
         status=row["status"],
         raw_text=row["raw_text"] if full else None,
-        extraction=_loads(row["extraction_json"]) if full else None,
+        extraction_json=row["extraction_json"] if full else None,
     )
 
 
@@ -350,7 +361,7 @@ def _pattern_row(row: sqlite3.Row) -> PatternVersion:
 def _search_row(row: sqlite3.Row) -> SearchRow:
     return SearchRow(id=row["id"], seq_id=row["seq_id"], pattern_version=row["pattern_version"],
                      method=row["method"], options=_loads(row["options_json"]),
-                     result=_loads(row["result_json"]), status=row["status"],
+                     result_json=row["result_json"], status=row["status"],
                      created_at=_time(row["created_at"]), elapsed_s=row["elapsed_s"])
 
 
@@ -516,6 +527,12 @@ class Storage:
             created = cursor.rowcount == 1
             row = conn.execute("SELECT * FROM sequences WHERE content_sha256 = ?", (digest,)).fetchone()
         return _sequence_row(row, full=True), created
+
+    def find_sequence(self, content_sha256: str) -> SequenceRow | None:
+        """The stored sequence with this content digest (:func:`content_sha256`), if any."""
+        with self._transaction(write=False) as conn:
+            row = conn.execute("SELECT * FROM sequences WHERE content_sha256 = ?", (content_sha256,)).fetchone()
+        return None if row is None else _sequence_row(row, full=True)
 
     def get_sequence(self, seq_id: int) -> SequenceRow | None:
         with self._transaction(write=False) as conn:

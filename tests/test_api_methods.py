@@ -10,7 +10,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.api import AppContext, create_app
-from app.attitude import angle_between, rotation_from_radec_roll
+from app.attitude import angle_between
 from app.ccsds import parse_kvn
 from app.storage import Storage
 

@@ -76,3 +76,35 @@ def test_boresight_and_roll_error_separate_the_two():
     bore, _ = boresight_and_roll_error(R_moved, R)
     assert np.isclose(np.degrees(bore), 0.1, atol=1e-6)
     assert np.isclose(float(angle_between(R[2], R_moved[2])), bore)
+
+
+def test_wahba_with_two_vectors_is_a_proper_rotation_in_stacks():
+    """Two vectors make B rank 2: the sign of det B is rounding noise and must not pick a reflection."""
+    rng = np.random.default_rng(5)
+    truth = np.stack([rotation_from_radec_roll(*r) for r in zip(rng.uniform(0, 360, 200),
+                                                                 rng.uniform(-89, 89, 200),
+                                                                 rng.uniform(0, 360, 200))])
+    ref = rng.normal(size=(200, 2, 3))
+    ref /= np.linalg.norm(ref, axis=2, keepdims=True)
+    body = np.einsum("sij,snj->sni", truth, ref)
+    R = solve_wahba(body, ref, np.ones((200, 2)))
+    assert np.allclose(np.linalg.det(R), 1.0)
+    assert np.allclose(R, truth, atol=1e-9)
+    assert np.allclose(solve_wahba(body[7], ref[7]), truth[7], atol=1e-9)
+
+
+def test_left_jacobian_matches_finite_differences():
+    from scipy.spatial.transform import Rotation
+
+    from app.attitude.sequence import left_jacobian
+
+    rng = np.random.default_rng(2)
+    phi = np.vstack([rng.normal(size=(5, 3)) * 0.3, [[1e-8, 0, 0]]])
+    J = left_jacobian(phi)
+    h = 1e-7
+    for k in range(3):
+        step = np.zeros(3)
+        step[k] = h
+        # exp(phi + d) exp(phi)^T ~ exp([J_l d]x): its rotation vector / h is column k of J_l.
+        moved = Rotation.from_rotvec(phi + step) * Rotation.from_rotvec(phi).inv()
+        assert np.allclose(moved.as_rotvec() / h, J[:, :, k], atol=1e-6)

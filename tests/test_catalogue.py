@@ -53,3 +53,31 @@ def test_star_names_are_in_their_constellations_and_bright():
     assert all(cat.mag[r] < 4.5 for r in rows)
     vectors = cat.mean_vectors(2000.0)[rows]
     assert constellations(vectors) == [names[h][1] for h in names]
+
+
+def test_constellations_agree_with_astropy_everywhere():
+    """The ERFA shortcut against astropy's get_constellation on random directions (all 88 are hit)."""
+    configure_astropy()
+    import astropy.units as u
+    from astropy.coordinates import SkyCoord, get_constellation
+
+    rng = np.random.default_rng(11)
+    v = rng.normal(size=(5000, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    ra, dec = np.arctan2(v[:, 1], v[:, 0]), np.arcsin(v[:, 2])
+    theirs = get_constellation(SkyCoord(ra=ra * u.rad, dec=dec * u.rad, frame="icrs"), short_name=True)
+    ours = constellations(v)
+    assert ours == [str(c) for c in theirs]
+    assert len(set(ours)) == 88
+
+
+def test_rows_near_is_the_brute_force_cone():
+    cat = load_catalogue()
+    centre = radec_to_vectors(np.radians([83.8]), np.radians([-5.4]))[0]  # Orion
+    radius = np.radians(12.0)
+    near = cat.rows_near(centre, radius)
+    v = cat.mean_vectors(2026.0)
+    angle = np.arccos(np.clip(v @ centre, -1, 1))
+    assert set(np.flatnonzero(angle <= radius)) <= set(near.tolist())
+    assert np.all(angle[near] <= radius + np.radians(0.31))
+    assert np.all(np.diff(near) > 0)

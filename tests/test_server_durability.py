@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import time
+from pathlib import Path
+
 import httpx
 
 from app.bench.server import free_port, kill_server, start_server, wait_ready
@@ -30,7 +33,14 @@ def test_confirmation_and_apm_survive_sigkill(tmp_path, sample_dir):
         aem = httpx.get(f"{base}/api/sequences/{sid}/aem", timeout=30).content
         assert apm.startswith(b"CCSDS_APM_VERS = 2.0") and aem.startswith(b"CCSDS_AEM_VERS = 2.0")
     finally:
+        workers = _children(server.pid)
         kill_server(server)  # no shutdown of any kind: the acknowledged writes must already be on disk
+    # The search worker processes notice and go too (nobody else would ever stop them).
+    assert workers, "the server runs its searches in worker processes"
+    deadline = time.monotonic() + 10
+    while any(_alive(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not [pid for pid in workers if _alive(pid)]
 
     server = start_server(db, port, log)
     try:
@@ -46,3 +56,24 @@ def test_confirmation_and_apm_survive_sigkill(tmp_path, sample_dir):
         assert r.status_code == 200 and r.json()["id"] == sid
     finally:
         kill_server(server)
+
+
+def _children(pid: int) -> list[int]:
+    """Process ids whose parent is ``pid`` (Linux /proc)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.append(int(stat.parent.name))
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"  # a zombie has exited and only waits to be reaped by init

@@ -111,6 +111,7 @@ def test_neighbour_constellations_certain_maybe_and_exchange():
     # (A, C) needs B and D missing - both certain; (B, C) needs D missing.
     # (B, D) needs A missing (maybe): fine, and B/D may swap.  (A, D): B may be measured beyond D.
     assert got == {(A, B), (A, D), (B, D), (D, B)}
+    assert not any(C in pair for pair in got)
     # With no missing neighbour allowed, (B, D) and (D, B) go.
     star, first, second = neighbour_constellations(vectors, mag, liebe_params(position_error_rad=ARCMIN,
                                                                                max_missing=0))

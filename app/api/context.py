@@ -16,11 +16,11 @@ from __future__ import annotations
 import logging
 import threading
 from collections import OrderedDict
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
 from app.api.security import AccessPolicy
+from app.api.workers import ComputePool
 from app.config import Settings, settings as default_settings
 from app.extraction import Extraction, extract
 from app.storage import Storage
@@ -78,15 +78,15 @@ class AppContext:
     viewer: Any = None
     #: The selection the console and the 3D view share (GET/PUT /api/view).
     view: ViewStateStore = field(default_factory=ViewStateStore)
-    _executor: ThreadPoolExecutor | None = None
+    #: Where searches run (CPU-bound); by default threads sharing ``sky``.
+    _compute: ComputePool | None = None
 
     @property
-    def search_executor(self) -> ThreadPoolExecutor:
-        """Searches run here, at most ``settings.search_workers`` at once (CPU-bound work)."""
-        if self._executor is None:
-            self._executor = ThreadPoolExecutor(max_workers=max(1, self.settings.search_workers),
-                                                thread_name_prefix="search")
-        return self._executor
+    def compute(self) -> ComputePool:
+        """Searches run here, at most ``settings.search_workers`` at once."""
+        if self._compute is None:
+            self._compute = ComputePool(0, threads=self.settings.search_workers, sky=self.sky)
+        return self._compute
 
     def load_sequence(self, seq_id: int, raw_text: str, filename: str | None) -> LoadedSequence:
         """The stored upload as Sequence + Extraction, from the cache when possible."""
@@ -104,8 +104,8 @@ class AppContext:
                 self.viewer.stop()
             except Exception:  # a viewer failing to stop must not lose the database close
                 log.exception("the 3D view did not stop cleanly")
-        if self._executor is not None:
-            self._executor.shutdown(wait=False, cancel_futures=True)
+        if self._compute is not None:
+            self._compute.shutdown()
         self.storage.close()
 
 
@@ -121,15 +121,23 @@ def build_context(*, database: str | None = None, host: str = "127.0.0.1",
     config = config or default_settings()
     access = AccessPolicy.for_host(host, load_tokens(config.tokens, config.tokens_file))
     storage = Storage.open(database or config.database)
+    compute = None
     try:
         if sky is None:
             from app.identification import Sky
 
+            if config.search_processes:
+                # The workers load their own catalogue meanwhile (a given Sky cannot be shared with them).
+                compute = ComputePool(config.search_workers)
+                compute.warm_up()
             log.info("loading the star catalogue and the bright-pair index...")
             sky = Sky()
             log.info("catalogue ready: %d stars to Hp %.1f, %d bright pairs", sky.index.n_stars,
                      sky.index.mag_limit, sky.index.n_pairs)
     except BaseException:
+        if compute is not None:
+            compute.shutdown()
         storage.close()
         raise
-    return AppContext(storage=storage, sky=sky, settings=config, access=access)
+    log.info("searches run in %s", compute.kind if compute else f"{config.search_workers} threads")
+    return AppContext(storage=storage, sky=sky, settings=config, access=access, _compute=compute)

@@ -21,7 +21,9 @@ Stored documents
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 from datetime import datetime, timezone
+from typing import Any
 
 import numpy as np
 
@@ -29,7 +31,7 @@ from app.api.context import AppContext, LoadedSequence
 from app.api.errors import ApiError
 from app.attitude import quaternion_from_rotation
 from app.extraction import Pattern, build_pattern, extract, extraction_to_json, pattern_to_json
-from app.storage import ConfirmationRow, PatternVersion, SearchRow, SequenceRow
+from app.storage import ConfirmationRow, PatternVersion, SearchRow, SequenceRow, content_sha256
 from app.telemetry import parse_telemetry
 from app.telemetry.model import format_time
 
@@ -83,29 +85,54 @@ def loaded(ctx: AppContext, row: SequenceRow) -> LoadedSequence:
     return ctx.load_sequence(row.id, row.raw_text, row.filename)
 
 
-def ingest_upload(ctx: AppContext, data: bytes, filename: str | None) -> tuple[dict, bool]:
-    """Validate, extract and store an upload; ``(document, created)``.
+@dataclass(frozen=True, eq=False)
+class ParsedUpload:
+    """A valid upload: the telemetry and the text as sent."""
 
-    The same bytes uploaded again give the stored sequence and ``created``
-    False.  Raises TelemetryError (422) for invalid telemetry.
-    """
+    sequence: Any  # app.telemetry.Sequence
+    raw_text: str
+    filename: str | None
+
+
+def parse_upload(ctx: AppContext, data: bytes, filename: str | None) -> ParsedUpload:
+    """Validate an upload; raises TelemetryError (422) for invalid telemetry."""
     filename = clean_filename(filename)
     sequence = parse_telemetry(data, filename=filename, max_bytes=ctx.settings.max_upload_bytes)
     # parse_telemetry accepted the bytes as UTF-8; keep the text as sent.
-    raw_text = bytes(data).decode("utf-8")
-    extraction = extract(sequence)
+    return ParsedUpload(sequence=sequence, raw_text=bytes(data).decode("utf-8"), filename=filename)
+
+
+def stored_upload(ctx: AppContext, upload: ParsedUpload) -> dict | None:
+    """The document of the stored sequence with the same content, if there is one."""
+    row = ctx.storage.find_sequence(content_sha256(upload.raw_text))
+    return None if row is None else _upload_document(ctx, row, created=False)
+
+
+def extraction_job(sequence, *, sky=None):
+    """Extraction as a compute-pool job (it needs no catalogue)."""
+    return extract(sequence)
+
+
+def store_upload(ctx: AppContext, upload: ParsedUpload, extraction) -> tuple[dict, bool]:
+    """Store a parsed and extracted upload; ``(document, created)`` (False: the same content was
+    stored meanwhile)."""
+    sequence = upload.sequence
     row, created = ctx.storage.add_sequence(
-        raw_text=raw_text, filename=filename, sequence_id=sequence.sequence_id,
+        raw_text=upload.raw_text, filename=upload.filename, sequence_id=sequence.sequence_id,
         spacecraft=sequence.spacecraft, camera=sequence.camera.to_dict(),
         first_time=sequence.snapshots[0].time if sequence.snapshots else None,
         n_snapshots=len(sequence.snapshots), extraction=extraction_to_json(extraction))
     if created:
         ctx.cache.put(row.id, LoadedSequence(sequence, extraction))
         ctx.storage.add_pattern_version(row.id, automatic_definition(), kind="automatic")
+    return _upload_document(ctx, row, created), created
+
+
+def _upload_document(ctx: AppContext, row: SequenceRow, created: bool) -> dict:
     item = loaded(ctx, row)
     return {"id": row.id, "created": created, "sequence": sequence_summary(row),
             "extraction": row.extraction,
-            "pattern": pattern_document(item, current_pattern(ctx, row.id))}, created
+            "pattern": pattern_document(item, current_pattern(ctx, row.id))}
 
 
 def current_pattern(ctx: AppContext, seq_id: int) -> PatternVersion | None:
@@ -217,37 +244,64 @@ def _confirmation_epoch(ctx: AppContext, c: ConfirmationRow) -> datetime | None:
     return datetime.fromisoformat(text.replace("Z", "+00:00")) if text else None
 
 
-def run_search(ctx: AppContext, seq_id: int, method: str, max_candidates: int | None,
-               prior: dict | None = None) -> dict:
-    """Identify the current pattern (within the configured time-out), store the result, set the status."""
-    from app.identification import solve_sequence
+@dataclass(frozen=True, eq=False)
+class SearchJob:
+    """Everything one identification needs, gathered from the archive (picklable: it may run in a
+    worker process)."""
 
+    seq_id: int
+    method: str
+    sequence: Any  # app.telemetry.Sequence
+    extraction: Any  # app.extraction.Extraction
+    pattern: Pattern
+    pattern_version: int | None
+    options: Any  # app.identification.SearchOptions
+    prior: Any  # app.identification.Prior or None
+
+
+def prepare_search(ctx: AppContext, seq_id: int, method: str, max_candidates: int | None,
+                   prior: dict | None = None) -> SearchJob:
+    """The job of a search on the current pattern (404 unknown sequence, 422 unknown method or no prior)."""
     if method not in METHODS:
         raise ApiError(422, f"unknown method {method!r}; known: {', '.join(METHODS)}")
     row = require_sequence(ctx, seq_id)
     item = loaded(ctx, row)
     version = current_pattern(ctx, seq_id)
     definition = version.pattern if version is not None else automatic_definition()
-    pattern = pattern_from_definition(item, definition)
-    options = search_options(ctx, max_candidates)
-    track_from = tracking_prior(ctx, row, prior) if method == "tracking" else None
-    solved = solve_sequence(item.sequence, ctx.sky, options=options, extraction=item.extraction, pattern=pattern,
-                            method=method if method != "tracking" else "bright_pair", prior=track_from)
+    return SearchJob(seq_id=seq_id, method=method, sequence=item.sequence, extraction=item.extraction,
+                     pattern=pattern_from_definition(item, definition),
+                     pattern_version=version.version if version else None,
+                     options=search_options(ctx, max_candidates),
+                     prior=tracking_prior(ctx, row, prior) if method == "tracking" else None)
+
+
+def compute_search(job: SearchJob, *, sky) -> dict:
+    """Identify the job's pattern: the search result document (see the module doc)."""
+    from app.identification import solve_sequence
+
+    solved = solve_sequence(job.sequence, sky, options=job.options, extraction=job.extraction,
+                            pattern=job.pattern, prior=job.prior,
+                            method=job.method if job.method != "tracking" else "bright_pair")
     solution = solved.solution
-    result = {"status": solution.status, "method": method,
-              "reference_snapshot": int(item.extraction.reference),
-              "reference_time": format_time(solved.reference_time),
-              "pattern_version": version.version if version else None,
-              "pattern": pattern_to_json(pattern),
-              "candidates": [_candidate_document(solved, c) for c in solution.candidates],
-              "notes": list(item.extraction.notes) + list(solution.notes),
-              "elapsed_ms": round(solution.elapsed_s * 1000, 2)}
-    search = ctx.storage.add_search(seq_id, pattern_version=result["pattern_version"], method=method,
-                                    options=search_options_record(ctx, options),
-                                    result=result, status=solution.status, elapsed_s=solution.elapsed_s)
+    return {"status": solution.status, "method": job.method,
+            "reference_snapshot": int(job.extraction.reference),
+            "reference_time": format_time(solved.reference_time),
+            "pattern_version": job.pattern_version,
+            "pattern": pattern_to_json(job.pattern),
+            "candidates": [_candidate_document(solved, c) for c in solution.candidates],
+            "notes": list(job.extraction.notes) + list(solution.notes),
+            "elapsed_ms": round(solution.elapsed_s * 1000, 2)}
+
+
+def store_search(ctx: AppContext, job: SearchJob, result: dict) -> dict:
+    """Archive a computed search and set the sequence's status from it."""
+    search = ctx.storage.add_search(job.seq_id, pattern_version=job.pattern_version, method=job.method,
+                                    options=search_options_record(ctx, job.options), result=result,
+                                    status=result["status"], elapsed_s=result["elapsed_ms"] / 1000)
+    row = require_sequence(ctx, job.seq_id)
     # A confirmed sequence stays confirmed: its attitude stands until a new confirmation supersedes it.
     if row.status != "confirmed":
-        ctx.storage.set_status(seq_id, solution.status)
+        ctx.storage.set_status(job.seq_id, result["status"])
     return {**search_document(search), "reused": False}
 
 
@@ -277,7 +331,7 @@ def reusable_search(ctx: AppContext, seq_id: int, method: str, max_candidates: i
     for a search worker.  A search that ran into its time-out is never
     reused: it may have stopped early, and a rerun may find more.  Anything
     unusual (unknown method or sequence) returns None so that
-    :func:`run_search` produces the proper error.
+    :func:`prepare_search` produces the proper error.
     """
     if method not in METHODS or method == "tracking":  # a tracking search depends on its prior too
         return None

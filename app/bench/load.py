@@ -17,6 +17,9 @@ HTTP connection (``http.client``, no extra dependency):
    recognises the content and answers 200 with the stored sequence).
 2. ``POST /api/sequences/{id}/search``.
 3. ``GET /api/sequences/{id}/candidates/1`` when the search found a candidate.
+4. A pause of about ``think_s`` seconds (default 1 s: an operator looks at
+   the result, a script paces itself); with ``think_s=0`` the clients loop
+   without pause and the run measures the server's saturation throughput.
 
 Every request's wall-clock latency is recorded on the client side from
 sending the request to reading the whole body.  An error is any exception
@@ -54,13 +57,25 @@ DEFAULT_SECONDS = 30
 DEFAULT_CLIENTS = 20
 #: Issue 4's acceptance target for the 95th-percentile search latency.
 TARGET_P95_SEARCH_MS = 150.0
-#: Fresh sequences simulated per client and per 30 s before the clock starts (measured: 20
-#: clients used ~310 in 30 s, one client ~40), at least MIN_FRESH; ~60 ms each to simulate.
-FRESH_PER_CLIENT_PER_30S = 25
+#: Loops a client without pause makes per second, at most (measured: 20 clients, ~1.9 each);
+#: with a pause, one loop per pause plus ~50 ms of requests.  Fresh sequences for half the
+#: loops, with 30 % to spare, are simulated (~60 ms each) before the clock starts.
+MAX_LOOPS_PER_CLIENT_S = 2.2
 MIN_FRESH = 60
+
+
+def fresh_needed(clients: int, duration_s: float, think_s: float) -> int:
+    loops_per_s = min(MAX_LOOPS_PER_CLIENT_S, 1.0 / (think_s + 0.05))
+    return max(MIN_FRESH, math.ceil(0.5 * 1.3 * loops_per_s * clients * duration_s))
+
+
 #: Scenarios of the fresh sequences: what a ground station receives day to day.
 FRESH_SCENARIOS = ("nominal", "nominal", "clean", "ghosts", "planet", "sparse")
 REQUEST_TIMEOUT_S = 120.0
+#: Pause of each client between its loops, seconds: an operator looks at the result, a script
+#: paces its uploads.  20 clients at ~1 loop/s are 1,200 sequences a minute, far more than a
+#: ground station receives; ``--think 0`` removes the pause (the saturation test).
+DEFAULT_THINK_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -199,11 +214,25 @@ def _timed(client: Client, records: list[Record], kind: str, expected: tuple[int
     return doc
 
 
-def client_loop(port: int, workload: Workload, stop_at: float, records: list[Record]) -> None:
-    """Upload, search, fetch candidate 1, until ``stop_at`` (perf_counter) or the pool runs out."""
+def client_loop(port: int, workload: Workload, stop_at: float, records: list[Record],
+                think_s: float = 0.0, rng: np.random.Generator | None = None) -> None:
+    """Upload, search, fetch candidate 1, pause, until ``stop_at`` (perf_counter) or the pool runs out.
+
+    The pause (an operator looking at the result, a script's pacing) is
+    uniform in [0.5, 1.5] x ``think_s``, and the first loop starts after a
+    uniform [0, 1] x ``think_s`` so that the clients do not move in step.
+    """
+    rng = rng or np.random.default_rng()
     client = Client(port)
     try:
+        time.sleep(min(max(0.0, stop_at - time.perf_counter()), rng.uniform(0.0, think_s)))
+        first = True
         while time.perf_counter() < stop_at:
+            if not first and think_s > 0:
+                time.sleep(min(max(0.0, stop_at - time.perf_counter()), rng.uniform(0.5, 1.5) * think_s))
+                if time.perf_counter() >= stop_at:
+                    return
+            first = False
             upload = workload.next()
             if upload is None:
                 return
@@ -251,17 +280,20 @@ def summarise(records: list[Record], duration_s: float) -> dict:
     return {"requests": len(records), "errors": len(errors), "error_examples": errors[:5], "by_kind": kinds}
 
 
-def run(n_sequences: int = DEFAULT_SECONDS, seed: int = 1, clients: int = DEFAULT_CLIENTS) -> dict:
+def run(n_sequences: int = DEFAULT_SECONDS, seed: int = 1, clients: int = DEFAULT_CLIENTS,
+        think_s: float = DEFAULT_THINK_S) -> dict:
     """Start the server, run ``clients`` client threads for ``n_sequences`` *seconds*, stop it.
 
-    (The bench command's ``--n`` is seconds for this suite.)  Returns the
+    Each client pauses about ``think_s`` between its loops (0: none, the
+    saturation test).  (The bench command's ``--n`` is seconds for this suite.)  Returns the
     figures of :func:`summarise` plus the set-up and whether the target held.
     Raises RuntimeError when the server cannot be started.
     """
     duration_s = float(n_sequences)
-    if duration_s <= 0 or clients < 1:
-        raise ValueError("the load benchmark needs a positive duration and at least one client")
-    n_fresh = max(MIN_FRESH, math.ceil(FRESH_PER_CLIENT_PER_30S * clients * duration_s / 30.0))
+    if duration_s <= 0 or clients < 1 or not think_s >= 0:
+        raise ValueError("the load benchmark needs a positive duration, at least one client and a "
+                         "pause of zero or more seconds")
+    n_fresh = fresh_needed(clients, duration_s, think_s)
     t0 = time.perf_counter()
     workload = Workload(fresh_uploads(n_fresh, seed), sample_uploads())
     prepare_s = time.perf_counter() - t0
@@ -277,7 +309,9 @@ def run(n_sequences: int = DEFAULT_SECONDS, seed: int = 1, clients: int = DEFAUL
             startup_s = time.perf_counter() - t1
             records_per_client: list[list[Record]] = [[] for _ in range(clients)]
             start = time.perf_counter()
-            threads = [threading.Thread(target=client_loop, args=(port, workload, start + duration_s, mine),
+            threads = [threading.Thread(target=client_loop,
+                                        args=(port, workload, start + duration_s, mine, think_s,
+                                              np.random.default_rng([seed, i])),
                                         name=f"load-client-{i}", daemon=True)
                        for i, mine in enumerate(records_per_client)]
             for thread in threads:
@@ -294,7 +328,7 @@ def run(n_sequences: int = DEFAULT_SECONDS, seed: int = 1, clients: int = DEFAUL
     result = summarise(records, elapsed_s)
     search = result["by_kind"]["search"]
     result.update(
-        clients=clients, duration_s=round(elapsed_s, 1), seed=seed, fresh_pool=n_fresh,
+        clients=clients, think_s=think_s, duration_s=round(elapsed_s, 1), seed=seed, fresh_pool=n_fresh,
         fresh_uploaded=n_fresh - len(workload._fresh), pool_exhausted=workload.exhausted.is_set(),
         prepare_s=round(prepare_s, 1), server_startup_s=round(startup_s, 1), server_survived=server_alive,
         server_log_tail=server_log_tail, cpu_count=os.cpu_count(),
@@ -306,7 +340,9 @@ def run(n_sequences: int = DEFAULT_SECONDS, seed: int = 1, clients: int = DEFAUL
 
 
 def format_table(result: dict) -> str:
-    lines = [f"{result['clients']} clients for {result['duration_s']} s on loopback "
+    pause = (f"pausing ~{result['think_s']:g} s between loops" if result["think_s"] > 0
+             else "without pause (saturation)")
+    lines = [f"{result['clients']} clients {pause}, for {result['duration_s']} s on loopback "
              f"({result['cpu_count']} CPUs; server start {result['server_startup_s']} s; "
              f"{result['fresh_uploaded']} fresh simulated sequences of {result['fresh_pool']} prepared"
              f"{', POOL EXHAUSTED' if result['pool_exhausted'] else ''})",

@@ -1,10 +1,11 @@
-"""`python -m app bench [--suite NAME] [--n N] [--seed S] [--json]`: benchmark figures.
+"""`python -m app bench [--suite NAME] [--n N] [--seed S] [--think S] [--json]`: benchmark figures.
 
 Suites: ``extraction`` (issue 2: tracked stars kept, ghosts and hot pixels
 rejected, time per sequence), ``identification`` (issue 3: top-1/top-5
 correct, wrong "identified" answers, attitude errors, time per sequence and
 the seed's deviation table), ``load`` (issue 4: the real server under 20
-concurrent clients; here ``--n`` is the duration in seconds, default 30).
+concurrent clients; here ``--n`` is the duration in seconds, default 30, and
+``--think`` each client's pause between loops, default 1 s, 0 for saturation).
 ``seeds`` (issue 6, also ``--seeds``: Liebe's Tables 2 and 3 and Fig. 2,
 see :mod:`app.bench.seeds`).
 Every figure is measured now, on this machine, in one process (the load
@@ -31,6 +32,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="sequences per table row (default: 100 identification, 300 extraction); "
                         "for the load suite, seconds of load (default 30)")
     p.add_argument("--seed", type=int, default=1, help="random seed of the simulated data (default 1)")
+    p.add_argument("--think", type=float, default=None, metavar="SECONDS",
+                   help="load suite: each client's pause between its loops (default 1; 0 = saturation)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
 
 
@@ -38,6 +41,9 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     if args.n is not None and args.n < 1:
         print("error: --n must be at least 1", file=sys.stderr)
+        return 2
+    if args.think is not None and not (0 <= args.think <= 60):
+        print("error: --think must be between 0 and 60 seconds", file=sys.stderr)
         return 2
     suites = SUITES if args.suite == "all" else (args.suite,)
     results = {}
@@ -47,6 +53,8 @@ def run(args: argparse.Namespace) -> int:
         kwargs = {"seed": args.seed}
         if args.n is not None:
             kwargs["n_sequences"] = args.n
+        if name == "load" and args.think is not None:
+            kwargs["think_s"] = args.think
         results[name] = module.run(**kwargs)
         results[name]["wall_s"] = round(time.perf_counter() - t0, 1)
         if not args.json:

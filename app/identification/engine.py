@@ -26,8 +26,7 @@ from app.identification.hypotheses import bright_pair_hypotheses, ordered_patter
 from app.identification.triangle_features import tf_batches
 from app.identification.result import (AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, PlanetMatch,
                                        Solution, StarMatch)
-from app.identification.verify import (StarField, check_hypotheses, false_match_probability,
-                                       match_points, refine)
+from app.identification.verify import StarField, check_hypotheses, false_match_probability, refine
 from app.index import BrightPairIndex, load_index
 
 
@@ -230,7 +229,7 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
         return Solution(status=NO_MATCH, candidates=(), elapsed_s=_time.perf_counter() - started,
                         notes=(f"the pattern has {m_all} point(s); at least 3 are needed",))
     p = prepare_pattern(pattern, camera, t, sky, velocity_km_s, options)
-    vectors, keep, m, scale, field = p.vectors, p.keep, p.m, p.scale, p.field
+    vectors, m, scale, field = p.vectors, p.m, p.scale, p.field
     match_tol, weights = p.match_tol, p.weights
 
     merge_angle = 20 * scale

@@ -74,7 +74,13 @@ async def upload(request: Request,
                                               description="name of the file, for a raw body (a label only)"),
                  _operator: str | None = Depends(writer), ctx: AppContext = Depends(get_context)):
     data, form_name = await _upload_bytes(request, ctx.settings.max_upload_bytes)
-    doc, created = await run_in_threadpool(service.ingest_upload, ctx, data, form_name or filename)
+    upload = await run_in_threadpool(service.parse_upload, ctx, data, form_name or filename)
+    stored = await run_in_threadpool(service.stored_upload, ctx, upload)
+    if stored is not None:
+        return JSONResponse(stored, status_code=200)
+    # Extraction is CPU-bound: in the compute pool, beside the searches.
+    extraction = await asyncio.wrap_future(ctx.compute.submit(service.extraction_job, upload.sequence))
+    doc, created = await run_in_threadpool(service.store_upload, ctx, upload, extraction)
     return JSONResponse(doc, status_code=201 if created else 200)
 
 
@@ -112,22 +118,25 @@ async def search(body: SearchRequest | None = Body(None), seq_id: int = SeqId,
     reused = await run_in_threadpool(service.reusable_search, ctx, seq_id, body.method, body.max_candidates)
     if reused is not None:
         return reused
-    # A dedicated pool: at most search_workers CPU-bound searches at once, the event loop stays free.
-    future = ctx.search_executor.submit(service.run_search, ctx, seq_id, body.method, body.max_candidates,
-                                        body.prior.model_dump() if body.prior else None)
+    job = await run_in_threadpool(service.prepare_search, ctx, seq_id, body.method, body.max_candidates,
+                                  body.prior.model_dump() if body.prior else None)
+    # The compute pool: at most search_workers CPU-bound searches at once, the event loop stays free.
+    future = ctx.compute.submit(service.compute_search, job)
     deadline = ctx.settings.search_timeout_s + SEARCH_GRACE_S
     try:
-        return await asyncio.wait_for(asyncio.wrap_future(future), timeout=deadline)
+        result = await asyncio.wait_for(asyncio.wrap_future(future), timeout=deadline)
     except asyncio.TimeoutError:
         raise ApiError(503, f"the search did not finish within {deadline:.0f} s (the server is busy); "
                             "try again") from None
+    return JSONResponse(await run_in_threadpool(service.store_search, ctx, job, result))
 
 
 @router.get("/{seq_id}/candidates/{rank}", summary="One candidate of the latest search with its sky section")
-def get_candidate(seq_id: int = SeqId, rank: int = Path(**ID_LIMITS),
+async def get_candidate(seq_id: int = SeqId, rank: int = Path(**ID_LIMITS),
                   mag: float = Query(6.0, ge=-2.0, le=7.0, description="faintest catalogue star shown (Hp)"),
                   ctx: AppContext = Depends(get_context)):
-    return service.candidate_view(ctx, seq_id, rank, mag)
+    # Plain JSON already (a large document): skip FastAPI's recursive encoder.
+    return JSONResponse(await run_in_threadpool(service.candidate_view, ctx, seq_id, rank, mag))
 
 
 @router.post("/{seq_id}/confirm", status_code=201, summary="Confirm a candidate of the latest search")
