@@ -90,8 +90,8 @@ def test_seeds_bench_returns_the_documented_shape():
         assert set(row) == {"situation", "paper", "bright_pair", "tf"}
         assert row["bright_pair"] in (0.0, 0.5, 1.0) and row["tf"] in (0.0, 0.5, 1.0)
     for row in result["table3"]:
-        assert set(row) == {"situation", "paper", "pe_arcsec"}
-        assert row["pe_arcsec"] is None or 0 < row["pe_arcsec"] < 360
+        assert set(row) == {"situation", "paper", "pe_arcsec", "pe_rms_arcsec"}
+        assert row["pe_arcsec"] is None or 0 < row["pe_arcsec"] <= row["pe_rms_arcsec"] < 360
     assert 3 <= result["stars_in_field_mean"] <= 60
     assert result["pe_method"] in ("track", "ie_refined")
     json.dumps(result, allow_nan=False)
