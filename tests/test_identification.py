@@ -166,3 +166,30 @@ def test_solve_cli_contract(sample_dir, tmp_path):
     assert any(m["name"] == "Dubhe" for m in c["matches"])
     assert len(ok["sources"]) == 16
     assert invalid["status"] == "invalid" and invalid["error"] and invalid["candidates"] == []
+
+
+def test_a_near_miss_in_a_dense_field_gives_way_to_the_attitude_that_fits_every_star(sky):
+    """Regression: trial 62 of Liebe's 'all stars' situation (31 stars on his 30 deg camera).
+
+    The first sure edge refines to an attitude 0.18 deg off that catches 6
+    stars; a later edge finds the true one, which catches nearly all 31.
+    The search must not stop at the first, and merging the two (they are
+    within the merge angle) must keep the better.
+    """
+    from app.bench import seeds
+    from app.identification import SearchOptions
+
+    camera = CAMERAS[seeds.CAMERA_NAME]
+    star_sky = seeds.StarSky.at(seeds.OBSERVATION_TIME)
+    rng = np.random.default_rng([1, 0])
+    for _ in range(63):  # the bench's draws: a trial, then its tracking prior
+        pattern, R, _ = seeds.make_trial(rng, star_sky, camera, seeds.SITUATIONS[0])
+        seeds.perturbed_rotation(rng, R, seeds.PRIOR_OFFSET_DEG)
+    solution = identify(pattern, camera, seeds.OBSERVATION_TIME, sky,
+                        options=SearchOptions(max_points=seeds.MAX_PATTERN_POINTS,
+                                              match_tolerance_px=seeds.MATCH_TOLERANCE_PX))
+    best = solution.candidates[0]
+    bore, _ = boresight_and_roll_error(best.rotation_matrix, R)
+    assert np.degrees(bore) < 0.01
+    assert best.n_matched >= 0.8 * len(pattern.vectors)
+    assert solution.status == IDENTIFIED

@@ -79,9 +79,12 @@ class SearchOptions:
     rival_odds: float = 1e6
     #: No candidate at or below this false-match probability: "no_match".
     no_match_probability: float = 0.01
-    #: Stop generating hypotheses once a hypothesis matches this many points
-    #: (or all of them) and at least this many edges were tried.
+    #: Stop generating hypotheses once a refined hypothesis matches this many
+    #: points (or all of them) and this fraction of them, and at least this
+    #: many edges were tried.  The fraction matters in dense fields: a slightly
+    #: wrong attitude can catch 6 of 30 points, the right one catches nearly all.
     early_stop_matches: int = 6
+    early_stop_fraction: float = 0.5
     early_stop_edges: int = 1
     #: Hypotheses refined right after each batch of edges.
     refine_per_batch: int = 3
@@ -247,23 +250,27 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     def consider(R0, edge, pair, tol) -> None:
         """Refine one hypothesis unless it repeats a distinct one already found.
 
-        A hypothesis repeats a candidate when it lies within its own error
-        bound (``tol``: how far an edge's rotation can misplace a point) of
-        the candidate's refined attitude, or within ``merge_angle`` of the
-        hypothesis that candidate came from.
+        A hypothesis repeats a candidate when it starts within ``merge_angle``
+        of the hypothesis that candidate came from, or when its refinement
+        ends within ``merge_angle`` of the candidate's; then the better of
+        the two refinements (more matches, then the smaller deviation)
+        stays: in a dense field a first edge can settle on a slightly wrong
+        attitude that catches a few stars, and a later edge finds the one
+        that catches them all.
         """
         nonlocal n_refined
         same, angle = nearest_found(R0, "R0")
         if angle >= merge_angle:
-            same, angle = nearest_found(R0, "rotation")
-            if angle >= max(merge_angle, tol):
-                n_refined += 1
-                r = refine(R0, vectors, weights, field, match_tol, tol)
-                same, angle = nearest_found(r.rotation, "rotation")
-                if angle >= merge_angle:
-                    found.append({"R0": R0, "rotation": r.rotation, "refined": r, "edge": edge, "pair": pair,
-                                  "merged": 1, "tol": tol})
-                    return
+            n_refined += 1
+            r = refine(R0, vectors, weights, field, match_tol, tol)
+            same, angle = nearest_found(r.rotation, "rotation")
+            if angle >= merge_angle:
+                found.append({"R0": R0, "rotation": r.rotation, "refined": r, "edge": edge, "pair": pair,
+                              "merged": 1, "tol": tol})
+                return
+            old = same["refined"]
+            if (r.n_matched, -float(np.sum(r.nearest_rad))) > (old.n_matched, -float(np.sum(old.nearest_rad))):
+                same.update(R0=R0, rotation=r.rotation, refined=r, edge=edge, pair=pair, tol=tol)
         same["merged"] += 1
 
     # Hypotheses come in batches; after each, the most promising new ones are
@@ -280,7 +287,8 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
                 if n_match[h] >= 3:
                     consider(hyp.rotations[h], hyp.pattern_edge[h], hyp.catalogue_pair[h], float(tol[h]))
         best = max((c["refined"].n_matched for c in found), default=0)
-        if best >= min(m, options.early_stop_matches) and used >= options.early_stop_edges:
+        if (best >= min(m, options.early_stop_matches) and best >= options.early_stop_fraction * m
+                and used >= options.early_stop_edges):
             break
         if _time.perf_counter() - started > options.timeout_s:
             break
