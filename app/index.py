@@ -36,6 +36,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -159,52 +160,74 @@ def _neighbours_exact(vectors: np.ndarray, k: int) -> np.ndarray:
     return np.flatnonzero(mask)
 
 
+def _hulls_among_nearest(vectors: np.ndarray, tree: cKDTree, ks: np.ndarray,
+                         candidates: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bright pairs (a, k) of the stars ``ks`` from their ``candidates`` nearest brighter stars.
+
+    The hull of those candidates' images holds the hull of all brighter
+    stars' when it contains the disc beyond which every left-out star's image
+    lies; for the stars where that cannot be proven, the third array lists
+    them (they need more candidates).
+    """
+    n = len(vectors)
+    # Query enough nearest stars of any brightness that about `candidates`
+    # of them are brighter than k: the fraction brighter is k / n.
+    want = np.minimum(n, np.ceil(candidates * n / ks * 1.3).astype(int) + 8)
+    kmax = int(want.max())
+    dist, nbr = tree.query(vectors[ks], k=kmax, workers=1)
+    nbr = np.where(np.arange(kmax)[None, :] < want[:, None], nbr, n)
+    brighter = nbr < ks[:, None]
+    # Keep the first `candidates` brighter neighbours of each star.
+    rank = np.cumsum(brighter, axis=1)
+    keep = brighter & (rank <= candidates)
+    order = np.argsort(~keep, axis=1, kind="stable")[:, :candidates]
+    sel = np.take_along_axis(nbr, order, axis=1)
+    valid = np.take_along_axis(keep, order, axis=1)
+    # Every brighter star left out is at least this far (chord) from k.
+    cut_chord = np.where(valid.sum(axis=1) >= candidates,
+                         np.take_along_axis(dist, order, axis=1)[:, -1],
+                         dist[np.arange(len(ks)), want - 1])
+    cut_angle = 2 * np.arcsin(np.clip(cut_chord / 2, 0, 1))
+    pts = vectors[np.where(valid, sel, 0)]
+    y = stereographic_from(vectors[ks], pts)
+    y = np.where(valid[..., None], y, 0.0)
+    vert = hull_vertex_mask(y, valid)
+    with np.errstate(divide="ignore"):
+        rho = 1.0 / np.tan(cut_angle / 2)  # images of left-out stars lie within rho
+    proven = _hull_contains_disc(y, vert, rho) & (valid.sum(axis=1) >= 3)
+    rows, cols = np.nonzero(vert & proven[:, None])
+    return sel[rows, cols], ks[rows], ks[~proven]
+
+
 def bright_pairs(vectors: np.ndarray, max_edge_rad: float = np.pi,
-                 candidates: int = 48, chunk: int = 512) -> tuple[np.ndarray, np.ndarray]:
-    """All bright pairs (a, b), a < b, of unit vectors sorted brightest first."""
+                 candidates: tuple[int, ...] = (48, 384), chunk: int = 512) -> tuple[np.ndarray, np.ndarray]:
+    """All bright pairs (a, b), a < b, of unit vectors sorted brightest first.
+
+    Each star's hull neighbours come from its nearest brighter stars, with
+    more of them for the few stars where the first ``candidates`` cannot
+    prove the hull complete, and from all brighter stars as the last resort.
+    """
     n = len(vectors)
     tree = cKDTree(vectors)
     pairs_a: list[np.ndarray] = []
     pairs_b: list[np.ndarray] = []
     first_local = min(n, 64)
+    todo = list(range(first_local, n))
     for k in range(first_local):  # few stars: use them all
         nb = _neighbours_exact(vectors, k)
         pairs_a.append(nb)
         pairs_b.append(np.full(len(nb), k))
-
-    redo: list[int] = []
-    for start in range(first_local, n, chunk):
-        ks = np.arange(start, min(n, start + chunk))
-        # Query enough nearest stars of any brightness that about `candidates`
-        # of them are brighter than k: the fraction brighter is k / n.
-        want = np.minimum(n, np.ceil(candidates * n / ks * 1.3).astype(int) + 8)
-        kmax = int(want.max())
-        dist, nbr = tree.query(vectors[ks], k=kmax, workers=1)
-        nbr = np.where(np.arange(kmax)[None, :] < want[:, None], nbr, n)
-        brighter = nbr < ks[:, None]
-        # Keep the first `candidates` brighter neighbours of each star.
-        rank = np.cumsum(brighter, axis=1)
-        keep = brighter & (rank <= candidates)
-        order = np.argsort(~keep, axis=1, kind="stable")[:, :candidates]
-        sel = np.take_along_axis(nbr, order, axis=1)
-        valid = np.take_along_axis(keep, order, axis=1)
-        # Every brighter star left out is at least this far (chord) from k.
-        cut_chord = np.where(valid.sum(axis=1) >= candidates,
-                             np.take_along_axis(dist, order, axis=1)[:, -1],
-                             dist[np.arange(len(ks)), want - 1])
-        cut_angle = 2 * np.arcsin(np.clip(cut_chord / 2, 0, 1))
-        pts = vectors[np.where(valid, sel, 0)]
-        y = stereographic_from(vectors[ks], pts)
-        y = np.where(valid[..., None], y, 0.0)
-        vert = hull_vertex_mask(y, valid)
-        with np.errstate(divide="ignore"):
-            rho = 1.0 / np.tan(cut_angle / 2)  # images of left-out stars lie within rho
-        proven = _hull_contains_disc(y, vert, rho) & (valid.sum(axis=1) >= 3)
-        rows, cols = np.nonzero(vert & proven[:, None])
-        pairs_a.append(sel[rows, cols])
-        pairs_b.append(ks[rows])
-        redo.extend(int(k) for k in ks[~proven])
-    for k in redo:
+    for count in candidates:
+        # The hull test holds (stars x count x count) arrays: keep that size as for the first pass.
+        size = max(1, chunk * candidates[0] ** 2 // count ** 2)
+        unproven: list[np.ndarray] = []
+        for start in range(0, len(todo), size):
+            a, b, left = _hulls_among_nearest(vectors, tree, np.array(todo[start:start + size]), count)
+            pairs_a.append(a)
+            pairs_b.append(b)
+            unproven.append(left)
+        todo = [int(k) for k in np.concatenate(unproven)] if unproven else []
+    for k in todo:
         nb = _neighbours_exact(vectors, k)
         pairs_a.append(nb)
         pairs_b.append(np.full(len(nb), k))
@@ -213,8 +236,8 @@ def bright_pairs(vectors: np.ndarray, max_edge_rad: float = np.pi,
     lengths = np.arctan2(np.linalg.norm(np.cross(vectors[a], vectors[b]), axis=1),
                          np.sum(vectors[a] * vectors[b], axis=1))
     keep = lengths <= max_edge_rad
-    if redo:
-        log.debug("bright pairs: %d of %d stars needed the exact path", len(redo), n)
+    if todo:
+        log.debug("bright pairs: %d of %d stars needed the exact path", len(todo), n)
     return a[keep], b[keep]
 
 
@@ -271,7 +294,7 @@ def load_index(mag_limit: float = DEFAULT_INDEX_MAG_LIMIT, max_edge_deg: float =
     log.info("bright-pair index: %d stars, %d pairs (%.1f per star), built in %.2f s",
              index.n_stars, index.n_pairs, index.n_pairs / max(1, index.n_stars), time.perf_counter() - t0)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npz")
+    tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")  # one per process: two may build at once
     np.savez(tmp, star_a=index.star_a, star_b=index.star_b, length_rad=index.length_rad,
              vectors=index.vectors, hip=index.hip, mag=index.mag, mag_limit=index.mag_limit,
              max_edge_rad=index.max_edge_rad, epoch_jyear=index.epoch_jyear)

@@ -83,3 +83,16 @@ def test_cache_round_trip(tmp_path):
     files[0].write_bytes(b"not an npz file")
     again = load_index(mag_limit=4.0, cache_dir=tmp_path)
     assert np.array_equal(again.star_b, built.star_b)
+
+
+def test_every_path_of_the_construction_agrees_with_brute_force():
+    """Few candidates per star, so the second (wider) pass and the exact fallback both run."""
+    rng = np.random.default_rng(8)
+    spread = rng.normal(size=(100, 3))
+    cluster = rng.normal(size=(50, 3)) * 0.03 + [0.0, 0.0, 1.0]  # a tight group: its stars' nearest are each other
+    vectors = np.vstack([spread, cluster])
+    vectors /= np.linalg.norm(vectors, axis=1, keepdims=True)
+    truth = brute_force_bright_pairs(vectors)
+    for candidates in ((4, 12), (6,), (48, 384)):
+        a, b = bright_pairs(vectors, candidates=candidates, chunk=64)
+        assert set(zip(a.tolist(), b.tolist())) == truth, candidates

@@ -126,14 +126,14 @@ def build_context(*, database: str | None = None, host: str = "127.0.0.1",
         if sky is None:
             from app.identification import Sky
 
-            if config.search_processes:
-                # The workers load their own catalogue meanwhile (a given Sky cannot be shared with them).
-                compute = ComputePool(config.search_workers)
-                compute.warm_up()
             log.info("loading the star catalogue and the bright-pair index...")
             sky = Sky()
             log.info("catalogue ready: %d stars to Hp %.1f, %d bright pairs", sky.index.n_stars,
                      sky.index.mag_limit, sky.index.n_pairs)
+            if config.search_processes:
+                # After the Sky: on a first start it built the index cache the workers now load.
+                compute = ComputePool(config.search_workers)
+                compute.warm_up()
     except BaseException:
         if compute is not None:
             compute.shutdown()
