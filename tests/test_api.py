@@ -265,3 +265,12 @@ def test_token_operator_wins_over_body_operator(tmp_path, sky, sample_dir):
         assert edit["operator"] == "carol"
     finally:
         ctx.close()
+
+
+def test_docs_page_uses_only_local_assets(api):
+    html = api.get("/docs").text
+    assert "/vendor/swagger-ui/swagger-ui-bundle.js" in html and "/openapi.json" in html
+    assert not re.search(r"https?://", html.split("<body>")[0] + "".join(re.findall(r'src="[^"]*"', html)))
+    assert api.get("/vendor/swagger-ui/swagger-ui-bundle.js").status_code == 200
+    assert api.get("/vendor/swagger-ui/swagger-ui.css").status_code == 200
+    assert api.get("/redoc").status_code == 404

@@ -1,7 +1,8 @@
 """``create_app(context)``: the FastAPI application over an :class:`AppContext`.
 
 The API lives under ``/api``, the OpenAPI description at ``/openapi.json``
-and ``/docs``, and the browser console (``static/``) at ``/``.  The context
+and ``/docs`` (Swagger UI from ``static/vendor``: no CDN, so it works
+offline), and the browser console (``static/``) at ``/``.  The context
 is built by the caller (``python -m app serve`` or a test) and stays its
 property: the application never opens or closes the archive itself.
 """
@@ -11,6 +12,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from fastapi import FastAPI
+from fastapi.openapi.docs import get_swagger_ui_html
+from fastapi.responses import HTMLResponse
 from fastapi.staticfiles import StaticFiles
 
 from app.api.context import AppContext
@@ -19,6 +22,8 @@ from app.api.routes import ROUTERS
 
 #: The console's files (issue 5), served at /.
 STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
+#: Where the vendored Swagger UI is served (static/vendor/swagger-ui).
+SWAGGER_UI = "/vendor/swagger-ui"
 
 
 def create_app(context: AppContext, static_dir: Path | None = STATIC_DIR) -> FastAPI:
@@ -26,8 +31,16 @@ def create_app(context: AppContext, static_dir: Path | None = STATIC_DIR) -> Fas
                   description="Upload TUBSAT star-camera telemetry, edit the star pattern, identify it, "
                               "confirm an attitude and export it as CCSDS APM/AEM 2.0. Every error is "
                               '`{"detail": "..."}`; 422 responses add located `problems`.',
-                  version="1.0")
+                  version="1.0", docs_url=None, redoc_url=None)
     app.state.context = context
+
+    @app.get("/docs", include_in_schema=False)
+    def docs() -> HTMLResponse:
+        return get_swagger_ui_html(openapi_url=app.openapi_url, title=f"{app.title}: API",
+                                   swagger_js_url=f"{SWAGGER_UI}/swagger-ui-bundle.js",
+                                   swagger_css_url=f"{SWAGGER_UI}/swagger-ui.css",
+                                   swagger_favicon_url=f"{SWAGGER_UI}/favicon-32x32.png")
+
     install_error_handlers(app)
     for router in ROUTERS:
         app.include_router(router)

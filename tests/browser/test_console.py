@@ -237,3 +237,20 @@ def test_3d_view_follows_and_drives_the_console(server, api, new_page):
     viewer.screenshot("09-viewer-rank2")
     assert console.errors == []
     assert viewer.errors == []
+
+
+def test_api_docs_render_without_internet(server, new_page):
+    """/docs serves Swagger UI from the application itself: every operation is listed offline."""
+    watched = new_page()
+    page = watched.page
+    external = []
+    page.on("request", lambda request: external.append(request.url)
+            if not request.url.startswith(server) and not request.url.startswith("data:") else None)
+    page.goto(server + "/docs")
+    page.wait_for_selector(".opblock", timeout=20000)
+    paths = {page.locator(".opblock-summary-path").nth(k).inner_text().replace("\u200b", "")
+             for k in range(page.locator(".opblock-summary-path").count())}
+    assert {"/api/sequences", "/api/sequences/{seq_id}/search", "/api/attitudes/{attitude_id}/apm"} <= paths
+    assert external == []
+    watched.screenshot("07-api-docs")
+    assert watched.errors == []
