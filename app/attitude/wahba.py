@@ -31,16 +31,20 @@ def wahba_covariance(body: np.ndarray, sigma_rad: np.ndarray) -> np.ndarray:
     if body.ndim == 1:
         body, w = body.reshape(-1, 3), w.reshape(-1)
     info = w.sum(axis=-1)[..., None, None] * np.eye(3) - np.einsum("...n,...ni,...nj->...ij", w, body, body)
-    # The inverse by cofactors, stack-wide: columns r1 x r2, r2 x r0, r0 x r1 over det = r0 . (r1 x r2).
-    r0, r1, r2 = info[..., 0, :], info[..., 1, :], info[..., 2, :]
-    adjugate = np.stack([np.cross(r1, r2), np.cross(r2, r0), np.cross(r0, r1)], axis=-1)
-    det = np.einsum("...i,...i->...", r0, adjugate[..., 0])
+    # The inverse by cofactors, stack-wide (numpy's inverse raises for the whole stack on one
+    # singular matrix; a 3x3 adjugate is also cheaper than its call overhead).
+    a, b, c = info[..., 0, 0], info[..., 0, 1], info[..., 0, 2]
+    d, e, f = info[..., 1, 0], info[..., 1, 1], info[..., 1, 2]
+    g, h, i = info[..., 2, 0], info[..., 2, 1], info[..., 2, 2]
+    adjugate = np.stack([e * i - f * h, c * h - b * i, b * f - c * e,
+                         f * g - d * i, a * i - c * g, c * d - a * f,
+                         d * h - e * g, b * g - a * h, a * e - b * d], axis=-1).reshape(info.shape)
+    det = a * adjugate[..., 0, 0] + b * adjugate[..., 1, 0] + c * adjugate[..., 2, 0]
     # A singular information matrix (fewer than two usable directions): inf, not a huge number.
-    well_posed = np.abs(det) > 1e-12 * np.abs(np.trace(info, axis1=-2, axis2=-1)) ** 3
+    well_posed = np.abs(det) > 1e-12 * np.abs(a + e + i) ** 3
     with np.errstate(all="ignore"):
         cov = adjugate / np.where(well_posed, det, np.nan)[..., None, None]
-    bad = ~well_posed | ~np.all(np.isfinite(cov), axis=(-2, -1)) | np.any(np.diagonal(cov, axis1=-2, axis2=-1) < 0,
-                                                                          axis=-1)
+    bad = ~well_posed | ~np.isfinite(cov).all(axis=(-2, -1)) | (np.diagonal(cov, axis1=-2, axis2=-1) < 0).any(axis=-1)
     cov[bad] = np.inf
     return cov
 
