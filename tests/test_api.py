@@ -59,6 +59,7 @@ def test_health_reports_database_and_index(api, sky):
     assert "path" not in doc["db"]
     assert doc["index"] == {"loaded": True, "stars": sky.index.n_stars, "pairs": sky.index.n_pairs,
                             "mag_limit": sky.index.mag_limit}
+    assert doc["search_workers"].endswith("threads")  # a test's own Sky: searches stay in-process
 
 
 def test_upload_returns_extraction_matching_the_file_and_truth(api, uploaded, sample_dir):

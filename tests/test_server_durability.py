@@ -18,6 +18,7 @@ def test_confirmation_and_apm_survive_sigkill(tmp_path, sample_dir):
     server = start_server(db, port, log)
     try:
         wait_ready(port, server, log)
+        assert httpx.get(f"{base}/api/health", timeout=30).json()["search_workers"].endswith("processes")
         data = (sample_dir / "04-big-dipper.json").read_bytes()
         r = httpx.post(f"{base}/api/sequences", files={"file": ("04-big-dipper.json", data, "application/json")},
                        timeout=60)

@@ -139,5 +139,6 @@ def build_context(*, database: str | None = None, host: str = "127.0.0.1",
             compute.shutdown()
         storage.close()
         raise
-    log.info("searches run in %s", compute.kind if compute else f"{config.search_workers} threads")
-    return AppContext(storage=storage, sky=sky, settings=config, access=access, _compute=compute)
+    context = AppContext(storage=storage, sky=sky, settings=config, access=access, _compute=compute)
+    log.info("searches run in %s", context.compute.kind)
+    return context

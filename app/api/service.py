@@ -575,7 +575,8 @@ def health(ctx: AppContext) -> dict:
     ok = bool(db.get("ok")) and index is not None
     return {"status": "ok" if ok else "degraded", "db": db, "index": index_doc,
             "auth_required_for_writes": ctx.access.require_token,
-            "max_upload_bytes": ctx.settings.max_upload_bytes, "search_timeout_s": ctx.settings.search_timeout_s}
+            "max_upload_bytes": ctx.settings.max_upload_bytes, "search_timeout_s": ctx.settings.search_timeout_s,
+            "search_workers": ctx.compute.kind}
 
 
 

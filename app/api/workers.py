@@ -79,6 +79,7 @@ class ComputePool:
 
     def __init__(self, processes: int, *, threads: int = 1, sky: Any = None) -> None:
         self.processes = max(0, int(processes))
+        self._threads = max(1, threads)
         self._sky = sky
         self._executor: Executor
         if self.processes:
@@ -88,11 +89,12 @@ class ComputePool:
         else:
             if sky is None:
                 raise ValueError("a thread pool needs the server's Sky")
-            self._executor = ThreadPoolExecutor(max_workers=max(1, threads), thread_name_prefix="compute")
+            self._executor = ThreadPoolExecutor(max_workers=self._threads, thread_name_prefix="compute")
 
     @property
     def kind(self) -> str:
-        return f"{self.processes} processes" if self.processes else "threads"
+        """What the pool is, in words (``/api/health`` shows it)."""
+        return f"{self.processes} processes" if self.processes else f"{self._threads} threads"
 
     def submit(self, fn: Callable, *args, **kwargs) -> Future:
         """Run ``fn(*args, sky=<Sky>, **kwargs)`` in the pool."""
