@@ -6,8 +6,9 @@ every request waits behind them.  :class:`ComputePool` runs that work in
 worker processes instead (``spawn``ed: safe beside the server's threads, and
 nothing of the server - sockets, the database - is inherited).  Each worker
 builds its own :class:`app.identification.Sky` once, at start-up (about a
-second, in parallel with the server's), so a job carries only its sequence
-and pattern.
+second; the server loads its own first, so that on a first start the index
+cache the workers read exists), and a job carries only its sequence and
+pattern.
 
 With ``processes=0`` (tests, or a server given its own ``Sky``) the same
 jobs run in a thread pool with the server's ``Sky``.
@@ -18,7 +19,6 @@ process it is filled in from :data:`worker_context`.
 
 from __future__ import annotations
 
-import logging
 import multiprocessing
 import os
 import threading
@@ -26,8 +26,6 @@ import time
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Callable
-
-log = logging.getLogger(__name__)
 
 
 @dataclass
