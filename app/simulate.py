@@ -50,11 +50,12 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from app.attitude import quaternion_from_rotation, radec_roll_from_rotation, rotation_from_radec_roll
+from app.attitude import propagate, quaternion_from_rotation, radec_roll_from_rotation, rotation_from_radec_roll
 from app.camera import CAMERAS, Camera
 from app.catalogue import load_catalogue
 from app.planets import TYPICAL_MAGNITUDES, planet_vectors, sun_vector
-from app.telemetry.model import Sequence, Snapshot, format_time
+from app.telemetry.model import Sequence, Snapshot
+from app.timefmt import utc_text
 
 #: Scenario name -> one-line description.
 SCENARIOS: dict[str, str] = {
@@ -140,7 +141,7 @@ def random_unit_vector(rng: np.random.Generator) -> np.ndarray:
 
 def attitude_at(R_ref: np.ndarray, body_rate: np.ndarray, dt_s: float) -> np.ndarray:
     """``exp(-[w]x dt) R_ref``: the attitude ``dt_s`` seconds after ``R_ref`` at body rate ``w``."""
-    return Rotation.from_rotvec(-np.asarray(body_rate) * dt_s).as_matrix() @ R_ref
+    return propagate(R_ref, body_rate, dt_s)
 
 
 def pixel_motion_per_radian(camera: Camera, axis: np.ndarray) -> float:
@@ -475,7 +476,7 @@ def simulate_sequence(rng: np.random.Generator, camera: Camera, scenario: str = 
         "sequence_id": sequence_id,
         "camera": camera.name,
         "scenario": scenario,
-        "times": [format_time(t) for t in times],
+        "times": [utc_text(t) for t in times],
         # 12 decimals (1e-12 rad, 2e-7 arcsec) keep the truth files small.
         "rotation_matrices": [np.round(R, 12).tolist() for R in rotations],
         "quaternions": [np.round(quaternion_from_rotation(R), 12).tolist() for R in rotations],

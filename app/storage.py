@@ -87,6 +87,19 @@ class UnknownSequence(StorageError, LookupError):
 # Schema
 # ---------------------------------------------------------------------------
 
+def _confirmations_only_supersede(extra_columns: tuple[str, ...] = ()) -> str:
+    """The guard that lets only ``superseded_by`` change, once, from NULL to a newer record of the same
+    sequence; every other column (``extra_columns``: those added by later migrations) is frozen."""
+    columns = ("id", "seq_id", "search_id", "rank", "operator", "confirmed_at", "comment", "quaternion_json",
+               "rotation_matrix_json", "ra_deg", "dec_deg", "roll_deg", "deviation_arcsec",
+               "false_match_probability", "pattern_json", "candidate_json", "apm_text", "aem_text", *extra_columns)
+    frozen = " OR ".join(f"NEW.{c} IS NOT OLD.{c}" for c in columns)
+    return f"""CREATE TRIGGER confirmations_only_supersede BEFORE UPDATE ON confirmations
+        WHEN OLD.superseded_by IS NOT NULL OR NEW.superseded_by IS NULL OR NEW.superseded_by <= OLD.id
+          OR {frozen}
+        BEGIN SELECT RAISE(ABORT, 'confirmations are append-only'); END"""
+
+
 _APPEND_ONLY_GUARDS = [
     f"""CREATE TRIGGER {table}_no_delete BEFORE DELETE ON {table}
         BEGIN SELECT RAISE(ABORT, '{table} is append-only'); END"""
@@ -96,21 +109,7 @@ _APPEND_ONLY_GUARDS = [
         BEGIN SELECT RAISE(ABORT, '{table} is append-only'); END"""
     for table in ("pattern_versions", "searches")
 ] + [
-    # Only superseded_by may change, once, from NULL to a newer record of the same sequence.
-    """CREATE TRIGGER confirmations_only_supersede BEFORE UPDATE ON confirmations
-        WHEN OLD.superseded_by IS NOT NULL OR NEW.superseded_by IS NULL
-          OR NEW.superseded_by <= OLD.id
-          OR NEW.id IS NOT OLD.id OR NEW.seq_id IS NOT OLD.seq_id OR NEW.search_id IS NOT OLD.search_id
-          OR NEW.rank IS NOT OLD.rank OR NEW.operator IS NOT OLD.operator
-          OR NEW.confirmed_at IS NOT OLD.confirmed_at OR NEW.comment IS NOT OLD.comment
-          OR NEW.quaternion_json IS NOT OLD.quaternion_json
-          OR NEW.rotation_matrix_json IS NOT OLD.rotation_matrix_json
-          OR NEW.ra_deg IS NOT OLD.ra_deg OR NEW.dec_deg IS NOT OLD.dec_deg
-          OR NEW.roll_deg IS NOT OLD.roll_deg OR NEW.deviation_arcsec IS NOT OLD.deviation_arcsec
-          OR NEW.false_match_probability IS NOT OLD.false_match_probability
-          OR NEW.pattern_json IS NOT OLD.pattern_json OR NEW.candidate_json IS NOT OLD.candidate_json
-          OR NEW.apm_text IS NOT OLD.apm_text OR NEW.aem_text IS NOT OLD.aem_text
-        BEGIN SELECT RAISE(ABORT, 'confirmations are append-only'); END""",
+    _confirmations_only_supersede(),
     """CREATE TRIGGER sequences_keep_content BEFORE UPDATE ON sequences
         WHEN NEW.id IS NOT OLD.id OR NEW.content_sha256 IS NOT OLD.content_sha256
           OR NEW.raw_text IS NOT OLD.raw_text OR NEW.uploaded_at IS NOT OLD.uploaded_at
@@ -184,6 +183,26 @@ MIGRATIONS: list[list[str]] = [
         )""",
         "CREATE INDEX confirmations_seq ON confirmations (seq_id, id)",
         *_APPEND_ONLY_GUARDS,
+    ],
+    # 2: a confirmation's epoch and fitted body rate as columns (they were only inside the APM text and
+    # the candidate); the stored extraction of an upload becomes immutable (it is authoritative: pattern
+    # versions refer to its track ids).
+    [
+        "ALTER TABLE confirmations ADD COLUMN epoch TEXT",
+        "ALTER TABLE confirmations ADD COLUMN rate_deg_s_json TEXT",
+        "DROP TRIGGER confirmations_only_supersede",
+        # The APM's "EPOCH = 2024-01-01T00:00:00.000000" line, as the archive's fixed-width UTC text.
+        """UPDATE confirmations SET
+             epoch = substr(apm_text, instr(apm_text, char(10) || 'EPOCH = ') + 9, 26) || '+00:00',
+             rate_deg_s_json = json_extract(candidate_json, '$.sequence_fit.rate_deg_s')""",
+        _confirmations_only_supersede(("epoch", "rate_deg_s_json")),
+        "CREATE INDEX confirmations_current ON confirmations (seq_id) WHERE superseded_by IS NULL",
+        "DROP TRIGGER sequences_keep_content",
+        """CREATE TRIGGER sequences_keep_content BEFORE UPDATE ON sequences
+            WHEN NEW.id IS NOT OLD.id OR NEW.content_sha256 IS NOT OLD.content_sha256
+              OR NEW.raw_text IS NOT OLD.raw_text OR NEW.uploaded_at IS NOT OLD.uploaded_at
+              OR NEW.extraction_json IS NOT OLD.extraction_json
+            BEGIN SELECT RAISE(ABORT, 'an upload is never changed'); END""",
     ],
 ]
 
@@ -267,6 +286,8 @@ class ConfirmationRow:
     apm_text: str
     aem_text: str | None
     superseded_by: int | None
+    epoch: datetime | None = None  # the reference snapshot's time, the APM's EPOCH
+    rate_deg_s: list[float] | None = None  # fitted body rate, camera axes (None: no sequence fit)
 
     @property
     def is_current(self) -> bool:
@@ -376,6 +397,7 @@ def _confirmation_row(row: sqlite3.Row) -> ConfirmationRow:
         false_match_probability=row["false_match_probability"],
         pattern=_loads(row["pattern_json"]), candidate=_loads(row["candidate_json"]),
         apm_text=row["apm_text"], aem_text=row["aem_text"], superseded_by=row["superseded_by"],
+        epoch=_time(row["epoch"]), rate_deg_s=_loads(row["rate_deg_s_json"]),
     )
 
 
@@ -631,6 +653,7 @@ class Storage:
                          deviation_arcsec: float | None, false_match_probability: float | None,
                          pattern: dict, candidate: dict, apm_text: str, aem_text: str | None = None,
                          comment: str | None = None, confirmed_at: datetime | None = None,
+                         epoch: datetime | None = None, rate_deg_s: list[float] | None = None,
                          ) -> ConfirmationRow:
         """Append a confirmation; in the same transaction mark the sequence's
         earlier current confirmation as superseded by it and set the sequence's
@@ -644,15 +667,16 @@ class Storage:
             cursor = conn.execute(
                 "INSERT INTO confirmations (seq_id, search_id, rank, operator, confirmed_at, comment, "
                 "quaternion_json, rotation_matrix_json, ra_deg, dec_deg, roll_deg, deviation_arcsec, "
-                "false_match_probability, pattern_json, candidate_json, apm_text, aem_text) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "false_match_probability, pattern_json, candidate_json, apm_text, aem_text, epoch, "
+                "rate_deg_s_json) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (seq_id, search_id, int(rank), operator, _time_text(confirmed_at or _now()), comment,
                  _dumps([float(v) for v in quaternion]),
                  _dumps([[float(v) for v in row] for row in rotation_matrix]),
                  float(ra_deg), float(dec_deg), float(roll_deg),
                  None if deviation_arcsec is None else float(deviation_arcsec),
                  None if false_match_probability is None else float(false_match_probability),
-                 _dumps(pattern), _dumps(candidate), apm_text, aem_text))
+                 _dumps(pattern), _dumps(candidate), apm_text, aem_text, _time_text(epoch),
+                 None if rate_deg_s is None else _dumps([float(w) for w in rate_deg_s])))
             new_id = cursor.lastrowid
             conn.execute("UPDATE confirmations SET superseded_by = ? "
                          "WHERE seq_id = ? AND superseded_by IS NULL AND id < ?",
@@ -682,6 +706,14 @@ class Storage:
         with self._transaction(write=False) as conn:
             row = conn.execute("SELECT * FROM confirmations WHERE seq_id = ? AND superseded_by IS NULL "
                                "ORDER BY id DESC LIMIT 1", (seq_id,)).fetchone()
+        return None if row is None else _confirmation_row(row)
+
+    def latest_confirmation_of_spacecraft(self, spacecraft: str | None) -> ConfirmationRow | None:
+        """The newest current confirmation of any sequence of ``spacecraft`` (None: of unnamed spacecraft)."""
+        with self._transaction(write=False) as conn:
+            row = conn.execute("SELECT c.* FROM confirmations c JOIN sequences s ON s.id = c.seq_id "
+                               "WHERE c.superseded_by IS NULL AND s.spacecraft IS ? ORDER BY c.id DESC LIMIT 1",
+                               (spacecraft,)).fetchone()
         return None if row is None else _confirmation_row(row)
 
     def confirmation_history(self, seq_id: int) -> list[ConfirmationRow]:

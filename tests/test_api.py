@@ -9,10 +9,12 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from app.api import AppContext, create_app
-from app.api.security import AccessPolicy
+from app.api import create_app
+from app.workflow import AppContext
+from app.workflow.access import AccessPolicy
 from app.attitude import angle_between, rotation_from_radec_roll
-from app.ccsds import parse_epoch, parse_kvn, rotation_from_ccsds_quaternion
+from app.ccsds import rotation_from_ccsds_quaternion
+from kvn_reader import parse_epoch, parse_kvn
 from app.config import Settings
 from app.storage import Storage
 

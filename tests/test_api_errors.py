@@ -10,8 +10,9 @@ import pytest
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given, settings as hyp_settings, strategies as st
 
-from app.api import AppContext, create_app
-from app.api.security import AccessPolicy, TokenConfigError, load_tokens, parse_token_file
+from app.api import create_app
+from app.workflow import AppContext
+from app.workflow.access import AccessPolicy, TokenConfigError, load_tokens, parse_token_file
 from app.config import Settings
 from app.storage import Storage
 

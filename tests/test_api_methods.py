@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from app.api import AppContext, create_app
+from app.api import create_app
+from app.workflow import AppContext
 from app.attitude import angle_between
-from app.ccsds import parse_kvn
+from kvn_reader import parse_kvn
 from app.storage import Storage
 
 

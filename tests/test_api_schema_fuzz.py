@@ -23,7 +23,8 @@ from hypothesis.errors import Unsatisfiable
 from schemathesis.checks import not_a_server_error
 from schemathesis.generation import GenerationMode
 
-from app.api import AppContext, create_app
+from app.api import create_app
+from app.workflow import AppContext
 from app.config import Settings
 from app.storage import Storage
 

@@ -17,10 +17,9 @@ from app.ccsds import (
     aem_kvn,
     apm_kvn,
     ccsds_quaternion_from_rotation,
-    parse_epoch,
-    parse_kvn,
     rotation_from_ccsds_quaternion,
 )
+from kvn_reader import parse_epoch, parse_kvn
 
 EPOCH = datetime(2024, 3, 1, 12, 0, 0, 250000, tzinfo=timezone.utc)
 CREATED = datetime(2024, 3, 2, 8, 30, 0, tzinfo=timezone.utc)

@@ -27,7 +27,8 @@ import pytest
 from fastapi.testclient import TestClient
 from scipy.spatial.transform import Rotation
 
-from app.api import AppContext, create_app
+from app.api import create_app
+from app.workflow import AppContext
 from app.storage import Storage
 
 SAMPLES = ("01-clean.json", "09-wide-30deg.json")

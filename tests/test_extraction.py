@@ -20,7 +20,8 @@ from scipy.spatial.transform import Rotation
 from app.attitude import rotation_angle_between, solve_wahba
 from app.camera import CAMERAS
 from app.catalogue import load_catalogue
-from app.extraction import (GHOST, HOT_PIXEL, build_pattern, extract, extraction_to_json)
+from app.extraction import GHOST, HOT_PIXEL, build_pattern, extract
+from app.workflow.documents import ExtractionDocument
 from app.extraction.motion import estimate_pair_rotations
 from app.telemetry.model import Sequence, Snapshot
 
@@ -231,7 +232,7 @@ def test_empty_snapshots_are_fine():
                            brightness=np.zeros(0)) for i in range(3))
     ex = extract(Sequence("empty", None, camera, snaps))
     assert ex.tracks == () and [len(t) for t in ex.track_of_source] == [0, 0, 0]
-    json.dumps(extraction_to_json(ex), allow_nan=False)
+    json.dumps(ExtractionDocument.of(ex).model_dump(mode="json"), allow_nan=False)
 
 
 def test_a_snapshot_that_links_to_nothing_is_bridged_and_rejected():
@@ -292,7 +293,7 @@ def test_build_pattern_edits():
 def test_json_form_mirrors_the_extraction():
     case = synthetic(2, CAMERAS["liebe-576x604-30deg"])
     ex = extract(case.sequence)
-    doc = json.loads(json.dumps(extraction_to_json(ex), allow_nan=False))
+    doc = json.loads(json.dumps(ExtractionDocument.of(ex).model_dump(mode="json"), allow_nan=False))
     assert doc["reference_snapshot"] == ex.reference
     assert doc["sources"] == [[None if t < 0 else int(t) for t in per] for per in ex.track_of_source]
     assert doc["rejected"] == [list(per) for per in ex.rejection]
@@ -343,7 +344,7 @@ def test_cli_json_lines_in_input_order_and_bad_files_do_not_stop_the_batch(tmp_p
     assert [d["file"] for d in docs] == [good, bad, good]
     assert [d["status"] for d in docs] == ["ok", "invalid", "ok"]
     assert docs[1]["error"] and docs[1]["tracks"] is None
-    expected = extraction_to_json(extract(case.sequence))
+    expected = ExtractionDocument.of(extract(case.sequence)).model_dump(mode="json")
     for key in ("reference_snapshot", "sources", "rejected", "tracks", "pattern"):
         assert docs[0][key] == json.loads(json.dumps(expected[key]))
     assert docs[0]["sequence_id"] == "synthetic-1"

@@ -218,7 +218,7 @@ def test_open_sets_wal_full_sync_foreign_keys_and_schema_version(store, db_path)
     assert conn.execute("PRAGMA foreign_keys").fetchone()[0] == 1
     raw = sqlite3.connect(db_path)
     assert raw.execute("PRAGMA journal_mode").fetchone()[0] == "wal"  # persistent in the file
-    assert raw.execute("SELECT version FROM schema_version").fetchall() == [(len(MIGRATIONS),)]
+    assert raw.execute("SELECT version FROM schema_version").fetchall() == [(v,) for v in range(1, len(MIGRATIONS) + 1)]
     raw.close()
 
 

@@ -13,7 +13,7 @@ from app.attitude.sequence import fit_constant_rate, snapshot_attitude
 from app.camera import CAMERAS
 from app.catalogue import load_catalogue
 from app.identification import IDENTIFIED
-from app.identification.tracking import track
+from app.identification.near_prior import identify_near_prior as track
 
 T = datetime(2005, 2, 1, 12, 0, tzinfo=timezone.utc)
 

@@ -1,13 +1,12 @@
-"""The REST API (issue 4): FastAPI over the archive, extraction and identification.
+"""The REST API: thin FastAPI routes over the application workflow (:mod:`app.workflow`).
 
-``build_context`` opens what the server needs once; ``create_app(context)``
-makes the application.  Modules: ``context`` (start-up state), ``app``
-(factory), ``routes`` (HTTP), ``service`` (what the endpoints do),
-``schemas`` (request bodies), ``security`` (bearer tokens), ``errors``
-(the ``{"detail": ...}`` error shape).
+``create_app(context)`` makes the application over an
+:class:`app.workflow.AppContext` that the caller built.  Modules: ``app``
+(factory), ``routes`` (HTTP, one module per resource), ``schemas`` (request
+bodies and their limits), ``errors`` (the ``{"detail": ...}`` error shape and
+the mapping of workflow refusals to statuses).
 """
 
 from app.api.app import create_app
-from app.api.context import AppContext, build_context
 
-__all__ = ["AppContext", "build_context", "create_app"]
+__all__ = ["create_app"]

@@ -16,9 +16,9 @@ from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse
 from fastapi.staticfiles import StaticFiles
 
-from app.api.context import AppContext
 from app.api.errors import install_error_handlers
 from app.api.routes import ROUTERS
+from app.workflow import AppContext
 
 #: The console's files (issue 5), served at /.
 STATIC_DIR = Path(__file__).resolve().parents[2] / "static"

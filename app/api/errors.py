@@ -19,12 +19,17 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.storage import StorageError, UnknownSequence
 from app.telemetry.errors import TelemetryError
+from app.workflow.errors import Busy, Conflict, Invalid, NotFound, TooLarge, WorkflowError
 
 log = logging.getLogger(__name__)
 
 
+#: HTTP status of each kind of workflow refusal.
+STATUS_OF = {NotFound: 404, Conflict: 409, Invalid: 422, TooLarge: 413, Busy: 503}
+
+
 class ApiError(Exception):
-    """An expected failure with its HTTP status and message (raised by the service layer)."""
+    """An expected failure of the HTTP layer itself (authentication, media type, body size), with its status."""
 
     def __init__(self, status_code: int, detail: str, problems: list[dict] | None = None,
                  headers: dict[str, str] | None = None) -> None:
@@ -76,6 +81,11 @@ def install_error_handlers(app: FastAPI) -> None:
     async def api_error(_: Request, exc: ApiError) -> JSONResponse:
         return JSONResponse(error_body(exc.detail, exc.problems), status_code=exc.status_code,
                             headers=exc.headers)
+
+    @app.exception_handler(WorkflowError)
+    async def workflow_error(_: Request, exc: WorkflowError) -> JSONResponse:
+        status = next((code for kind, code in STATUS_OF.items() if isinstance(exc, kind)), 400)
+        return JSONResponse(error_body(exc.detail, exc.problems), status_code=status)
 
     @app.exception_handler(TelemetryError)
     async def telemetry_error(_: Request, exc: TelemetryError) -> JSONResponse:

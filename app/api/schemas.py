@@ -2,7 +2,7 @@
 
 Unknown fields are refused (``extra="forbid"``) so that a typo such as
 ``"exclude_track"`` is an error rather than an edit silently ignored.
-Responses are plain JSON documents described in :mod:`app.api.service`.
+Responses are the documents of :mod:`app.workflow.documents`.
 """
 
 from __future__ import annotations
@@ -10,6 +10,10 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
+
+from app.identification import METHODS
+from app.workflow.documents import ManualPointDefinition, PatternDefinition
+from app.workflow.search import PriorRequest
 
 #: Largest list an edit may carry (a sequence has at most 64 x 64 sources).
 MAX_LIST = 4096
@@ -44,10 +48,11 @@ class PatternEdit(_Strict):
     manual_points: list[ManualPoint] = Field(default_factory=list, max_length=256)
     operator: str | None = Field(default=None, max_length=MAX_OPERATOR)
 
-    def definition(self) -> dict:
-        return {"exclude_tracks": sorted(set(self.exclude_tracks)),
-                "include_tracks": None if self.include_tracks is None else sorted(set(self.include_tracks)),
-                "manual_points": [p.model_dump() for p in self.manual_points]}
+    def definition(self) -> PatternDefinition:
+        return PatternDefinition(
+            exclude_tracks=sorted(set(self.exclude_tracks)),
+            include_tracks=None if self.include_tracks is None else sorted(set(self.include_tracks)),
+            manual_points=[ManualPointDefinition(**p.model_dump()) for p in self.manual_points])
 
 
 class PatternReset(_Strict):
@@ -62,12 +67,15 @@ class PriorAttitude(_Strict):
     roll_deg: float = Field(ge=-360.0, le=360.0)
     sigma_deg: float = Field(default=1.0, gt=0.0, le=10.0)
 
+    def request(self) -> PriorRequest:
+        return PriorRequest(**self.model_dump())
+
 
 class SearchRequest(_Strict):
     """``bright_pair`` (default) and ``tf`` search the whole sky; ``tracking`` matches near ``prior``, or
     near the newest confirmed attitude of the same spacecraft propagated with its rate."""
 
-    method: Literal["bright_pair", "tf", "tracking"] = "bright_pair"
+    method: Literal[tuple(METHODS)] = "bright_pair"  # type: ignore[valid-type]
     max_candidates: int | None = Field(default=None, ge=1, le=50)
     prior: PriorAttitude | None = None
 

@@ -130,3 +130,15 @@ def rotation_from_pair(b1: np.ndarray, b2: np.ndarray, r1: np.ndarray, r2: np.nd
     Tb = triad(np.asarray(b1, float), np.asarray(b2, float))
     Tr = triad(np.asarray(r1, float), np.asarray(r2, float))
     return Tb @ np.swapaxes(Tr, -1, -2)
+
+
+def propagate(rotation: np.ndarray, rate_rad_s, dt_s: float) -> np.ndarray:
+    """The attitude ``dt_s`` seconds later of a frame turning at the constant body rate ``rate_rad_s``.
+
+    A fixed direction seen from a frame turning at ``w`` (rad/s, body axes)
+    moves as ``dv/dt = -w x v``, so ``R(t + dt) = exp(-[w]x dt) R(t)``
+    (``rotation`` maps ICRS to the body frame, as everywhere here).
+    """
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(-np.asarray(rate_rad_s, dtype=float) * dt_s).as_matrix() @ np.asarray(rotation)

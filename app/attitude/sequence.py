@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from app.attitude.rotations import solve_wahba
+from app.attitude.rotations import propagate, solve_wahba
 from app.attitude.wahba import wahba_covariance
 
 
@@ -52,7 +52,7 @@ class SequenceFit:
 
     def attitude_at(self, dt_s: float) -> np.ndarray:
         """The fitted attitude ``dt_s`` seconds after the reference time."""
-        return Rotation.from_rotvec(-self.rate_rad_s * dt_s).as_matrix() @ self.rotation
+        return propagate(self.rotation, self.rate_rad_s, dt_s)
 
 
 def snapshot_attitude(body: np.ndarray, ref: np.ndarray, sigma_rad: np.ndarray, *, position: int = 0,
@@ -62,12 +62,12 @@ def snapshot_attitude(body: np.ndarray, ref: np.ndarray, sigma_rad: np.ndarray, 
     None with fewer than ``min_stars`` consistent stars: two stars always fit
     exactly, so a mixed-up pair could not be noticed.
     """
-    (found,) = snapshot_attitudes(body[None], ref[None], sigma_rad[None], positions=[position], dt_s=[dt_s],
+    (found,) = wahba_per_snapshot(body[None], ref[None], sigma_rad[None], positions=[position], dt_s=[dt_s],
                                   reject_sigmas=reject_sigmas, min_stars=min_stars)
     return found
 
 
-def snapshot_attitudes(body: np.ndarray, ref: np.ndarray, sigma_rad: np.ndarray, *, positions, dt_s,
+def wahba_per_snapshot(body: np.ndarray, ref: np.ndarray, sigma_rad: np.ndarray, *, positions, dt_s,
                        reject_sigmas: float = 5.0, min_stars: int = 3) -> list[SnapshotAttitude | None]:
     """:func:`snapshot_attitude` of many snapshots at once.
 

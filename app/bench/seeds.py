@@ -36,7 +36,7 @@ the figure of his Table 3's first row.  ``pe_rms_arcsec``, the RMS of the
 same errors, is reported beside it (it weighs the few-star fields' large
 errors more: ~15 % above the mean for 2-D Gaussian errors); ``pe_failures``
 counts the trials answered wrongly.  The predictional estimate is
-:func:`app.identification.tracking.track` from a prior attitude off the truth
+:func:`app.identification.identify_near_prior` from a prior attitude off the truth
 by a random rotation of up to :data:`PRIOR_OFFSET_DEG`; when that module is
 not installed, the bright-pair initial estimate refined by Wahba over all
 its matched stars stands in (``pe_method`` says which).
@@ -44,7 +44,6 @@ its matched stars stands in (``pe_method`` says which).
 
 from __future__ import annotations
 
-import importlib
 import time
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -199,11 +198,10 @@ def boresight_error_deg(solution, R_true: np.ndarray) -> float:
 # The benchmark
 # --------------------------------------------------------------------------
 def _tracker():
-    """``app.identification.tracking.track`` when it exists, else None."""
-    try:
-        return importlib.import_module("app.identification.tracking").track
-    except (ImportError, AttributeError):
-        return None
+    """Tracking mode from a prior (:func:`app.identification.identify_near_prior`)."""
+    from app.identification import identify_near_prior
+
+    return identify_near_prior
 
 
 def run_situation(id_sky, star_sky: StarSky, camera: Camera, situation: Situation, n: int, seed: int,

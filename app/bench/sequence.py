@@ -26,7 +26,7 @@ from app.bench.identification import is_correct
 from app.camera import CAMERAS
 from app.extraction import extract
 from app.identification import Sky, solve_sequence
-from app.identification.tracking import track
+from app.identification.near_prior import identify_near_prior as track
 from app.simulate import simulate_sequence
 
 

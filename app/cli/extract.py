@@ -19,10 +19,7 @@ from __future__ import annotations
 import argparse
 from collections import Counter
 
-from app.cli.common import for_each_file, format_error
-
-_EXTRACTION_MEMBERS = ("reference_snapshot", "sources", "rejected", "tracks", "pattern", "seed_pattern",
-                       "noise_px", "notes")
+from app.cli.common import for_each_file
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -31,35 +28,30 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from app.extraction import extract, extraction_to_json
+    from app.workflow.documents import ExtractDocument
+    from app.workflow.files import extract_document
 
-    def extract_one(path, sequence):
-        return {"file": path, "sequence_id": sequence.sequence_id, "status": "ok", "error": None,
-                **extraction_to_json(extract(sequence))}
+    def invalid(path, message):
+        return ExtractDocument(file=path, sequence_id=None, status="invalid", error=message)
 
-    def invalid(path, error):
-        return {"file": path, "sequence_id": None, "status": "invalid", "error": format_error(error),
-                **{member: None for member in _EXTRACTION_MEMBERS}}
-
-    return for_each_file(args.files, extract_one, invalid, args.json, print_summary)
+    return for_each_file(args.files, extract_document, invalid, args.json, print_summary)
 
 
-def print_summary(doc: dict) -> None:
-    """A few readable lines per file."""
-    if doc["status"] != "ok":
-        print(f"{doc['file']}: invalid\n  {doc['error']}")
+def print_summary(doc) -> None:
+    """A few readable lines per file (an :class:`app.workflow.documents.ExtractDocument`)."""
+    if doc.status != "ok":
+        print(f"{doc.file}: invalid\n  {doc.error}")
         return
-    n_sources = sum(len(s) for s in doc["sources"])
-    reasons = Counter(r for per in doc["rejected"] for r in per if r is not None)
+    n_sources = sum(len(s) for s in doc.sources)
+    reasons = Counter(r for per in doc.rejected for r in per if r is not None)
     rejected = ", ".join(f"{n} {reason}" for reason, n in sorted(reasons.items())) or "none"
-    print(f"{doc['file']}: {doc['sequence_id']}  {len(doc['sources'])} snapshots, {n_sources} sources, "
-          f"{len(doc['tracks'])} tracks; rejected: {rejected}")
-    print(f"  reference snapshot {doc['reference_snapshot']}, noise {doc['noise_px']} px; "
-          f"pattern of {len(doc['pattern'])} points (seed's pattern: {len(doc['seed_pattern'])})")
-    for point in doc["pattern"]:
-        x = "-" if point["x"] is None else f"{point['x']:8.2f}"
-        y = "-" if point["y"] is None else f"{point['y']:8.2f}"
-        print(f"    track {point['track']:>3}  x {x}  y {y}  brightness {point['brightness']}"
-              f"  seen {point['sightings']}x")
-    for note in doc["notes"]:
+    print(f"{doc.file}: {doc.sequence_id}  {len(doc.sources)} snapshots, {n_sources} sources, "
+          f"{len(doc.tracks)} tracks; rejected: {rejected}")
+    print(f"  reference snapshot {doc.reference_snapshot}, noise {doc.noise_px:.3f} px; "
+          f"pattern of {len(doc.pattern)} points (seed's pattern: {len(doc.seed_pattern)})")
+    for point in doc.pattern:
+        x = "-" if point.x is None else f"{point.x:8.2f}"
+        y = "-" if point.y is None else f"{point.y:8.2f}"
+        print(f"    track {point.track:>3}  x {x}  y {y}  brightness {point.brightness}  seen {point.sightings}x")
+    for note in doc.notes:
         print(f"  note: {note}")

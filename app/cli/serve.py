@@ -43,9 +43,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from app.api import build_context, create_app
-    from app.api.security import TokenConfigError
+    from app.api import create_app
     from app.storage import StorageError
+    from app.workflow import build_context
+    from app.workflow.access import TokenConfigError
 
     logging.basicConfig(level=getattr(logging, args.log_level.upper()),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)

@@ -1,4 +1,4 @@
-"""Extraction: tracked stars vs ghosts, hot pixels and outliers (issue 2, item 3).
+"""Extraction: tracked stars vs ghosts, hot pixels and outliers.
 
 ``extract(sequence)`` links each source to the same star in the other
 snapshots through the robustly estimated inter-snapshot rotation and
@@ -8,14 +8,14 @@ identification (the seed's reference-snapshot pattern and the better
 averaged one).  ``build_pattern`` applies an operator's edits.
 
 Modules: ``model`` (data classes and parameters), ``motion`` (robust
-snapshot-to-snapshot rotation), ``tracking`` (the method, see its
-docstring), ``pattern`` (patterns and the JSON form).
+snapshot-to-snapshot rotation), ``linking`` (the method: sources linked into
+tracks, see its docstring), ``pattern`` (patterns from tracks).
 """
 
-from app.extraction.model import (GHOST, HOT_PIXEL, OUTLIER, REASONS, Extraction, ExtractionParameters,
-                                  Pattern, Track)
-from app.extraction.pattern import build_pattern, extraction_to_json, pattern_to_json
-from app.extraction.tracking import extract
+from app.extraction.linking import extract
+from app.extraction.model import (DEFAULT_SIGHTING_SIGMA_PX, EXTRACTION_VERSION, GHOST, HOT_PIXEL, OUTLIER, REASONS, Extraction,
+                                  ExtractionParameters, Pattern, Track)
+from app.extraction.pattern import build_pattern, carried_tracks, seed_pattern, tracks_pattern
 
-__all__ = ["GHOST", "HOT_PIXEL", "OUTLIER", "REASONS", "Extraction", "ExtractionParameters", "Pattern",
-           "Track", "build_pattern", "extract", "extraction_to_json", "pattern_to_json"]
+__all__ = ["DEFAULT_SIGHTING_SIGMA_PX", "EXTRACTION_VERSION", "GHOST", "HOT_PIXEL", "OUTLIER", "REASONS", "Extraction", "ExtractionParameters",
+           "Pattern", "Track", "build_pattern", "carried_tracks", "extract", "seed_pattern", "tracks_pattern"]

@@ -7,6 +7,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: Version of the extraction method.  Stored extractions carry it; patterns refer to their
+#: track ids, so a change that can number tracks differently must raise it (the archive then
+#: refuses to re-extract old uploads silently: see app.workflow.archive).
+EXTRACTION_VERSION = 1
+
+#: 1-sigma position noise of one sighting, pixels per axis, wherever it could not be measured
+#: (a single snapshot, too few tracks); the estimate's bounds are in ExtractionParameters.
+DEFAULT_SIGHTING_SIGMA_PX = 0.7
+
 #: Rejection reasons of a source.
 GHOST = "ghost"  # no consistent partner in any other snapshot
 HOT_PIXEL = "hot_pixel"  # stays on the same pixel while the sky moves away from it
@@ -57,7 +66,7 @@ class ExtractionParameters:
     sigma_min_px: float = 0.3
     sigma_max_px: float = 3.0
     #: Noise assumed when nothing could be measured.
-    sigma_default_px: float = 0.7
+    sigma_default_px: float = DEFAULT_SIGHTING_SIGMA_PX
 
 
 @dataclass(frozen=True, eq=False)

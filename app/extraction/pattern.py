@@ -16,7 +16,7 @@ from collections.abc import Iterable, Sequence as SequenceOf
 import numpy as np
 
 from app.camera import Camera
-from app.extraction.model import Extraction, Pattern, Track
+from app.extraction.model import DEFAULT_SIGHTING_SIGMA_PX, Extraction, Pattern, Track
 from app.telemetry.model import Sequence
 
 #: A hand-picked point takes the brightness of a reported source this close (pixels).
@@ -68,6 +68,15 @@ def seed_pattern(camera: Camera, reference: int, tracks: SequenceOf[Track], nois
                    vectors=camera.pixels_to_vectors(xy),
                    brightness=np.array([t.mean_brightness for t, _ in rows]),
                    sightings=np.ones(n, dtype=int), sigma_px=np.full(n, noise_px))
+
+
+def carried_tracks(tracks: SequenceOf[Track], motion: np.ndarray) -> list[Track]:
+    """The tracks that can be carried into the reference frame: their first snapshot's motion is known.
+
+    (Extraction knows the motion of every snapshot linked to the reference
+    and of no other, so one sighting decides for the whole track.)
+    """
+    return [t for t in tracks if np.all(np.isfinite(motion[t.snapshots[0]]))]
 
 
 def _motion_known(motion: np.ndarray, snapshots: np.ndarray) -> bool:
@@ -129,7 +138,7 @@ def _manual_pattern(sequence: Sequence, extraction: Extraction, manual_points) -
             d = np.hypot(snapshot.xy[:, 0] - x, snapshot.xy[:, 1] - y)
             if d.min() <= MANUAL_BRIGHTNESS_RADIUS_PX:
                 brightness[k] = float(snapshot.brightness[np.argmin(d)])
-    noise = extraction.noise_px if math.isfinite(extraction.noise_px) else 1.0
+    noise = extraction.noise_px if math.isfinite(extraction.noise_px) else DEFAULT_SIGHTING_SIGMA_PX
     return Pattern(track_ids=np.full(len(rows), -1, dtype=int), xy=ref_xy, vectors=vectors,
                    brightness=brightness, sightings=np.ones(len(rows), dtype=int),
                    sigma_px=np.full(len(rows), noise))
@@ -153,39 +162,7 @@ def build_pattern(sequence: Sequence, extraction: Extraction, *, exclude_tracks:
     a bad point, or a track/point whose snapshot has no estimated motion.
     """
     tracks = _select_tracks(extraction, exclude_tracks, include_tracks)
-    noise = extraction.noise_px if math.isfinite(extraction.noise_px) else 1.0
+    noise = extraction.noise_px if math.isfinite(extraction.noise_px) else DEFAULT_SIGHTING_SIGMA_PX
     pattern = tracks_pattern(sequence.camera, extraction.motion, tracks, noise)
     manual = _manual_pattern(sequence, extraction, list(manual_points))
     return _concat(pattern, manual) if len(manual) else pattern
-
-
-def _finite_or_none(value: float, digits: int = 3):
-    return round(float(value), digits) if math.isfinite(value) else None
-
-
-def pattern_to_json(pattern: Pattern) -> list[dict]:
-    return [{"track": int(t) if t >= 0 else None, "x": _finite_or_none(xy[0]), "y": _finite_or_none(xy[1]),
-             "brightness": _finite_or_none(b), "sightings": int(n), "sigma_px": _finite_or_none(s)}
-            for t, xy, b, n, s in zip(pattern.track_ids, pattern.xy, pattern.brightness,
-                                      pattern.sightings, pattern.sigma_px)]
-
-
-def extraction_to_json(extraction: Extraction) -> dict:
-    """The extraction members of the `extract --json` object.
-
-    ``reference_snapshot`` and the tracks' ``snapshots`` are 0-based
-    positions in file order; ``sources`` holds the track id (or None) and
-    ``rejected`` the reason (or None) of every input source, in input order.
-    """
-    return {
-        "reference_snapshot": int(extraction.reference),
-        "sources": [[int(t) if t >= 0 else None for t in per] for per in extraction.track_of_source],
-        "rejected": [list(per) for per in extraction.rejection],
-        "tracks": [{"id": int(t.id), "snapshots": [int(s) for s in t.snapshots],
-                    "xy": [[round(float(x), 3), round(float(y), 3)] for x, y in t.xy],
-                    "mean_brightness": _finite_or_none(t.mean_brightness)} for t in extraction.tracks],
-        "pattern": pattern_to_json(extraction.pattern),
-        "seed_pattern": pattern_to_json(extraction.seed_pattern),
-        "noise_px": _finite_or_none(extraction.noise_px),
-        "notes": list(extraction.notes),
-    }

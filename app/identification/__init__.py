@@ -1,11 +1,17 @@
 """Identification: from an extracted pattern to ranked attitude candidates.
 
-``solve_sequence`` is the one function the CLI, the API and the benchmarks
+``solve_sequence`` is the one function the workflow and the benchmarks
 call: extraction (unless given) -> pattern (unless given) -> identification
-at the reference snapshot's time, with planets labelled -> for every
-credible candidate, the attitude of the whole sequence (one per snapshot,
-the body rate, and the attitude at the reference time averaged over all
-snapshots: :mod:`app.attitude.sequence`).
+at the reference snapshot's time by one of :data:`METHODS`, with planets
+labelled -> for every credible candidate, the attitude of the whole sequence
+(one per snapshot, the body rate, and the attitude at the reference time
+averaged over all snapshots: :mod:`app.attitude.sequence`).
+
+Modules: ``options`` (:class:`SearchOptions`), ``sky`` (catalogue + index),
+``methods`` (the registry), ``hypotheses`` and ``triangle_features``
+(hypothesis generators), ``verify`` (check, refine, score), ``candidates``
+(the one candidate builder), ``engine`` (lost in space), ``near_prior``
+(tracking from a prior), ``result`` (what identification returns).
 """
 
 from __future__ import annotations
@@ -15,20 +21,22 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from app.attitude.sequence import SequenceFit, fit_constant_rate, rate_from_motion, snapshot_attitudes
+from app.attitude import propagate
+from app.attitude.sequence import SequenceFit, fit_constant_rate, rate_from_motion, wahba_per_snapshot
 from app.attitude.wahba import cross_boresight_and_roll_sigma
-from app.extraction import Extraction, Pattern, extract
-from app.identification.engine import SearchOptions, Sky, classify, identify, is_rival
+from app.extraction import DEFAULT_SIGHTING_SIGMA_PX, Extraction, Pattern, extract
+from app.identification.engine import classify, identify, is_rival
+from app.identification.methods import METHODS, Method
+from app.identification.near_prior import identify_near_prior
+from app.identification.options import SearchOptions
 from app.identification.result import (AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, PlanetMatch, Solution,
                                        StarMatch)
+from app.identification.sky import Sky
 from app.telemetry import Sequence
 
-__all__ = ["AMBIGUOUS", "IDENTIFIED", "NO_MATCH", "Candidate", "PlanetMatch", "Prior", "SearchOptions", "Sky",
-           "Solution", "SolvedSequence", "StarMatch", "candidate_json", "classify", "fit_sequence", "identify",
-           "solve_sequence", "source_stars"]
-
-#: Noise of one sighting when extraction could not measure it, pixels.
-DEFAULT_SIGHTING_SIGMA_PX = 0.5
+__all__ = ["AMBIGUOUS", "IDENTIFIED", "METHODS", "NO_MATCH", "Candidate", "Method", "PlanetMatch", "Prior",
+           "SearchOptions", "Sky", "Solution", "SolvedSequence", "StarMatch", "classify", "fit_sequence",
+           "identify", "identify_near_prior", "solve_sequence", "source_stars"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,13 +64,10 @@ class Prior:
     rate_rad_s: np.ndarray | None = None
 
     def at(self, t) -> np.ndarray:
-        """The prior propagated to ``t`` with its rate (R(t) = exp(-[w]x dt) R)."""
-        from scipy.spatial.transform import Rotation
-
+        """The prior propagated to ``t`` with its rate (:func:`app.attitude.propagate`)."""
         if self.time is None or self.rate_rad_s is None:
             return np.asarray(self.rotation, dtype=float)
-        dt = (t - self.time).total_seconds()
-        return Rotation.from_rotvec(-np.asarray(self.rate_rad_s) * dt).as_matrix() @ self.rotation
+        return propagate(self.rotation, self.rate_rad_s, (t - self.time).total_seconds())
 
 
 def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = SearchOptions(),
@@ -71,18 +76,22 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
                    prior: Prior | None = None) -> SolvedSequence:
     """Extract (unless ``extraction`` is given) and identify ``pattern`` (default: the averaged one).
 
-    With a ``prior`` the pattern is tracked from it (:func:`app.identification.tracking.track`)
-    instead of identified lost-in-space with ``method``.
+    ``method`` names one of :data:`METHODS`.  With a ``prior`` (required by
+    ``tracking``, and turning any lost-in-space method into tracking) the
+    pattern is matched near it (:func:`identify_near_prior`).
     """
-    from app.identification.tracking import track
     from app.planets import planet_vectors
 
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    if METHODS[method].needs_prior and prior is None:
+        raise ValueError(f"the {method} method needs a prior attitude")
     extraction = extraction if extraction is not None else extract(sequence)
     pattern = pattern if pattern is not None else extraction.pattern
     t = sequence.snapshots[extraction.reference].time
     if prior is not None:
-        solution = track(pattern, sequence.camera, t, sky, prior.at(t), prior_sigma_deg=prior.sigma_deg,
-                         velocity_km_s=sequence.velocity_km_s, options=options)
+        solution = identify_near_prior(pattern, sequence.camera, t, sky, prior.at(t), prior_sigma_deg=prior.sigma_deg,
+                                       velocity_km_s=sequence.velocity_km_s, options=options)
     else:
         planets = (lambda: planet_vectors(t)) if with_planets else None
         solution = identify(pattern, sequence.camera, t, sky, velocity_km_s=sequence.velocity_km_s,
@@ -151,18 +160,6 @@ def source_stars(solved: SolvedSequence, sky: Sky, rank: int = 1,
     return out
 
 
-def candidate_json(solved: SolvedSequence, candidate: Candidate) -> dict:
-    """A candidate's JSON with its sequence fit (body rate and its 1-sigma, snapshots used)."""
-    doc = candidate.to_json()
-    fit = solved.sequence_fits.get(candidate.rank)
-    if fit is not None:
-        doc["sequence_fit"] = {
-            "rate_deg_s": [round(math.degrees(w), 7) for w in fit.rate_rad_s],
-            "rate_sigma_deg_s": [round(math.degrees(math.sqrt(v)), 7) for v in np.diag(fit.rate_covariance)],
-            "snapshots_used": len(fit.snapshots), "chi2_reduced": round(fit.chi2_reduced, 3)}
-    return doc
-
-
 def fit_sequence(sequence: Sequence, extraction: Extraction, pattern: Pattern, candidate: Candidate,
                  sky: Sky) -> SequenceFit | None:
     """Per-snapshot attitudes from the candidate's identified tracks, then the constant-rate fit.
@@ -200,6 +197,6 @@ def fit_sequence(sequence: Sequence, extraction: Extraction, pattern: Pattern, c
             sigmas[k, :n] = sigma
         body = camera.pixels_to_vectors(xy.reshape(-1, 2)).reshape(len(usable), width, 3)
         dt_of = [(sequence.snapshots[pos].time - t_ref).total_seconds() for pos in usable]
-        snaps = [sa for sa in snapshot_attitudes(body, stars, sigmas, positions=usable, dt_s=dt_of) if sa is not None]
+        snaps = [sa for sa in wahba_per_snapshot(body, stars, sigmas, positions=usable, dt_s=dt_of) if sa is not None]
     dt = np.array([(s.time - t_ref).total_seconds() for s in sequence.snapshots])
     return fit_constant_rate(snaps, candidate.rotation_matrix, rate_from_motion(extraction.motion, dt))

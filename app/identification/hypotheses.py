@@ -22,6 +22,9 @@ from scipy.spatial import Delaunay, QhullError
 
 from app.attitude import angle_between, rotation_from_pair
 from app.camera import Camera
+from app.identification.candidates import PreparedPattern
+from app.identification.options import SearchOptions
+from app.identification.sky import Sky
 from app.index import BrightPairIndex
 
 
@@ -133,3 +136,26 @@ def bright_pair_hypotheses(pattern_vectors: np.ndarray, edges: list[tuple[int, i
         return Hypotheses(np.empty((0, 3, 3)), np.empty((0, 2), int), np.empty((0, 2), int), np.empty(0, int))
     return Hypotheses(np.concatenate(rot), np.concatenate(pe).astype(int), np.concatenate(cp).astype(int),
                       np.concatenate(en))
+
+
+def bright_pair_batches(p: PreparedPattern, sky: Sky, options: SearchOptions):
+    """Hypotheses from the bright-pair index, edge batches of growing size (see :mod:`.hypotheses`)."""
+    edges = ordered_pattern_edges(p.xy, p.camera, options.min_pair_separation_px)
+    if not edges:
+        return
+    v = p.vectors
+    first, second = np.array(edges).T
+    edge_sigma_px = np.hypot(p.sigma_px[first], p.sigma_px[second])
+    # Aberration differs across the field by up to ~1e-4 of an edge's length.
+    edge_len = angle_between(v[first], v[second])
+    edge_tol = (options.edge_tolerance_px + 4 * edge_sigma_px) * p.scale + 1.1e-4 * edge_len
+    # A rotation from one edge errs at distance D from its first point by ~tol * D / L.
+    reach = np.arccos(np.clip(v @ v.T, -1, 1)).max(axis=1)[first]
+    check_tol = np.minimum(np.max(p.match_tol) + edge_tol * np.maximum(1.0, reach / np.maximum(edge_len, 1e-9)),
+                           10 * p.scale)
+    e, batch = 0, 1
+    while e < len(edges):
+        stop = min(len(edges), e + batch)
+        hyp = bright_pair_hypotheses(v, edges[e:stop], edge_tol[e:stop], sky.index, p.star_mask)
+        yield hyp, check_tol[e + hyp.edge_number], stop
+        e, batch = stop, batch * 2

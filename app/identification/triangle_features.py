@@ -64,7 +64,6 @@ import logging
 import time
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -72,12 +71,12 @@ from scipy.spatial import cKDTree
 from app.attitude import angle_between, rotation_from_pair
 from app.camera import Camera
 from app.config import settings
+from app.identification.candidates import PreparedPattern
 from app.identification.hypotheses import Hypotheses
+from app.identification.options import SearchOptions
+from app.identification.sky import Sky
 from app.identification.verify import chord, chord_to_angle
 from app.index import BrightPairIndex
-
-if TYPE_CHECKING:  # the engine imports this module
-    from app.identification.engine import PreparedPattern, SearchOptions, Sky
 
 log = logging.getLogger(__name__)
 

@@ -42,7 +42,8 @@ import numpy as np
 from app.camera import CAMERAS, Camera
 from app.config import MAX_SNAPSHOTS, MAX_SOURCES_PER_SNAPSHOT, settings
 from app.telemetry.errors import Problem, ProblemCollector, TelemetryError
-from app.telemetry.model import FORMAT_NAME, Sequence, Snapshot, format_time
+from app.telemetry.model import FORMAT_NAME, Sequence, Snapshot
+from app.timefmt import utc_text
 
 # --- limits ------------------------------------------------------------------
 #: Required CSV columns, in the order :func:`dump_csv` writes them.
@@ -158,7 +159,7 @@ def dump_csv(seq: Sequence) -> str:
         lines.append("# velocity_km_s: " + " ".join(repr(float(v)) for v in seq.velocity_km_s))
     lines.append(",".join(CSV_COLUMNS))
     for snap in seq.snapshots:
-        time = format_time(snap.time)
+        time = utc_text(snap.time)
         if snap.n_sources == 0:
             lines.append(f"{snap.index},{time},,,")
         for (x, y), b in zip(snap.xy, snap.brightness):
@@ -294,7 +295,7 @@ def _as_time(value: Any, loc: str, problems: ProblemCollector) -> datetime | Non
         problems.add(loc, f"not an ISO 8601 time such as 1994-03-12T21:04:10.000Z: {_describe(value)}")
         return None
     if not EARLIEST_TIME <= parsed < LATEST_TIME:
-        problems.add(loc, f"time {format_time(parsed)} is outside the supported years 1900 to 2099")
+        problems.add(loc, f"time {utc_text(parsed)} is outside the supported years 1900 to 2099")
         return None
     return parsed
 
@@ -445,8 +446,8 @@ def _check_order(drafts: list[_Draft], problems: ProblemCollector) -> None:
             continue
         if previous is not None and draft.time <= previous.time:
             problems.add(draft.time_loc,
-                         f"times must strictly increase: {format_time(draft.time)} is not after "
-                         f"{format_time(previous.time)} ({previous.time_loc})")
+                         f"times must strictly increase: {utc_text(draft.time)} is not after "
+                         f"{utc_text(previous.time)} ({previous.time_loc})")
         previous = draft
 
 

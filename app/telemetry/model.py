@@ -8,11 +8,12 @@ way to build one from untrusted bytes.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import datetime
 
 import numpy as np
 
 from app.camera import Camera
+from app.timefmt import utc_text
 
 FORMAT_NAME = "tubsat-snapshots/1"
 
@@ -66,7 +67,7 @@ class Sequence:
             "snapshots": [
                 {
                     "index": s.index,
-                    "time": format_time(s.time),
+                    "time": utc_text(s.time),
                     "sources": [
                         {"x": float(x), "y": float(y), "brightness": float(b)}
                         for (x, y), b in zip(s.xy, s.brightness)
@@ -80,15 +81,3 @@ class Sequence:
         for key, value in self.extra.items():
             doc.setdefault(key, value)
         return doc
-
-
-def format_time(t: datetime) -> str:
-    """ISO 8601 UTC with milliseconds and a Z, as in the format's examples.
-
-    Microseconds are written only when the time has sub-millisecond digits,
-    so that parsing the text gives back exactly the same time.
-    """
-    if t.tzinfo is not None:
-        t = t.astimezone(timezone.utc)
-    fraction = f"{t.microsecond // 1000:03d}" if t.microsecond % 1000 == 0 else f"{t.microsecond:06d}"
-    return t.strftime("%Y-%m-%dT%H:%M:%S.") + fraction + "Z"

@@ -1,12 +1,10 @@
-"""The console's 3D view (issue 5) and the view state it shares with the browser console.
+"""The console's 3D view: a viser server drawing the view state the console shares.
 
-* :mod:`app.viewer.state` - the shared selection (sequence, rank, magnitude limit);
-  no third-party imports, the API context holds one.
-* :mod:`app.viewer.scene` - the geometry of the 3D scene as numpy functions.
+* :mod:`app.viewer.scene` - the geometry of the 3D scene as numpy functions;
 * :mod:`app.viewer.server` - the viser server (imported only when the view starts).
-"""
 
-from app.viewer.state import ViewState, ViewStateStore
+The shared selection itself is application state: :mod:`app.workflow.view`.
+"""
 
 
 def start_viewer(context, port: int):
@@ -16,4 +14,4 @@ def start_viewer(context, port: int):
     return start(context, port)
 
 
-__all__ = ["ViewState", "ViewStateStore", "start_viewer"]
+__all__ = ["start_viewer"]

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.camera import Camera
+from app.workflow.documents import PatternDefinition
 
 #: Radius of the celestial sphere in scene units.
 SPHERE_RADIUS = 10.0
@@ -126,28 +127,27 @@ def ray_segments(directions: np.ndarray, radius: float = SPHERE_RADIUS) -> np.nd
     return segments
 
 
-def toggle_track(definition: dict, track: int) -> dict:
+def toggle_track(definition: PatternDefinition, track: int) -> PatternDefinition:
     """The pattern definition with ``track`` taken out if it is in, put back if it is out.
 
     With ``include_tracks`` null (every track) membership is ``exclude_tracks``;
-    with an explicit list it is that list.  Returns a new dictionary.
+    with an explicit list it is that list.
     """
-    exclude = sorted(set(int(t) for t in definition.get("exclude_tracks") or []))
-    include = definition.get("include_tracks")
-    manual = list(definition.get("manual_points") or [])
+    track = int(track)
+    exclude = sorted(set(definition.exclude_tracks))
+    include = definition.include_tracks
     if include is None:
-        exclude = sorted(set(exclude) ^ {int(track)})
+        exclude = sorted(set(exclude) ^ {track})
     else:
-        include = sorted(set(int(t) for t in include) ^ {int(track)})
-        exclude = [t for t in exclude if t != int(track)]
-    return {"exclude_tracks": exclude, "include_tracks": include, "manual_points": manual}
+        include = sorted(set(include) ^ {track})
+        exclude = [t for t in exclude if t != track]
+    return definition.model_copy(update={"exclude_tracks": exclude, "include_tracks": include})
 
 
-def remove_manual_point(definition: dict, index: int) -> dict:
+def remove_manual_point(definition: PatternDefinition, index: int) -> PatternDefinition:
     """The pattern definition without its ``index``-th hand-picked point."""
-    manual = list(definition.get("manual_points") or [])
+    manual = list(definition.manual_points)
     if not 0 <= index < len(manual):
         raise ValueError(f"the pattern has no hand-picked point {index}")
     del manual[index]
-    return {"exclude_tracks": list(definition.get("exclude_tracks") or []),
-            "include_tracks": definition.get("include_tracks"), "manual_points": manual}
+    return definition.model_copy(update={"manual_points": manual})

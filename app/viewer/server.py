@@ -13,7 +13,7 @@ What it shows (scene units: see :mod:`app.viewer.scene`):
   named.
 
 The GUI has Prev / Next, the magnitude slider and Confirm (operator name,
-optional comment).  Every action writes through :mod:`app.api.service`, the
+optional comment).  Every action goes through :mod:`app.workflow`, the
 same code the REST API runs, and a poll thread redraws whenever the shared
 state or the archive behind it changes, so the console and this view stay
 in step without talking to each other.
@@ -31,6 +31,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.viewer import scene as geo
+from app.workflow import archive, confirm as confirming, search as searching, view
+from app.workflow.documents import ViewerDocument
+from app.workflow.errors import WorkflowError
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +77,7 @@ class SkyModel:
 
 
 class Viewer:
-    """The running 3D view of one :class:`app.api.context.AppContext`."""
+    """The running 3D view of one :class:`app.workflow.AppContext`."""
 
     def __init__(self, context, server, sky: SkyModel) -> None:
         self._ctx = context
@@ -110,9 +113,9 @@ class Viewer:
         """The port viser really listens on (it moves to the next free one when asked for a busy one)."""
         return int(self._server.get_port())
 
-    def describe(self) -> dict:
-        return {"available": True, "url": f"http://{VIEWER_HOST}:{self.port}/", "host": VIEWER_HOST,
-                "port": self.port, "detail": None}
+    def describe(self) -> ViewerDocument:
+        return ViewerDocument(available=True, url=f"http://{VIEWER_HOST}:{self.port}/", host=VIEWER_HOST,
+                              port=self.port)
 
     def stop(self) -> None:
         self._stop.set()
@@ -146,11 +149,9 @@ class Viewer:
 
     def _act(self, action) -> None:
         """Run a GUI action; its error is shown in the panel instead of being lost in a thread."""
-        from app.api.errors import ApiError
-
         try:
             message = action()
-        except ApiError as exc:
+        except WorkflowError as exc:
             message = f"**Error:** {exc.detail}"
         except Exception as exc:  # keep the view alive whatever went wrong
             log.exception("3D view action failed")
@@ -159,49 +160,40 @@ class Viewer:
         self._wake.set()
 
     def _write_view(self, changes: dict) -> str:
-        from app.api import service
-
-        service.set_view(self._ctx, changes, "viewer")
+        view.set_view(self._ctx, changes, "viewer")
         return ""
 
     def _step(self, delta: int) -> None:
         def action() -> str:
-            from app.api import service
-
-            doc = service.view_document(self._ctx)
-            if doc["sequence"] is None or not doc["n_candidates"]:
+            doc = view.view_document(self._ctx)
+            if doc.sequence is None or not doc.n_candidates:
                 return "No candidates to step through: search the sequence first."
-            rank = min(max(1, (doc["rank"] or 1) + delta), doc["n_candidates"])
-            if rank == doc["rank"]:
-                return f"Already at rank {rank} of {doc['n_candidates']}."
+            rank = min(max(1, (doc.rank or 1) + delta), doc.n_candidates)
+            if rank == doc.rank:
+                return f"Already at rank {rank} of {doc.n_candidates}."
             return self._write_view({"rank": rank})
         self._act(action)
 
     def _confirm_shown(self) -> None:
         def action() -> str:
-            from app.api import service
-
-            doc = service.view_document(self._ctx)
-            if doc["sequence"] is None or doc["rank"] is None:
+            doc = view.view_document(self._ctx)
+            if doc.sequence is None or doc.rank is None:
                 return "Nothing to confirm: no candidate is shown."
             operator = self._operator.value.strip()
             if not operator:
                 return "**Error:** enter the operator's name before confirming."
             comment = self._comment.value.strip() or None
-            result = service.confirm(self._ctx, doc["sequence"], doc["rank"], operator, comment)
-            return f"Confirmed rank {result['rank']} as attitude {result['id']} by {operator}."
+            result = confirming.confirm(self._ctx, doc.sequence, doc.rank, operator, comment)
+            return f"Confirmed rank {result.rank} as attitude {result.id} by {operator}."
         self._act(action)
 
     def _toggle(self, definition_change) -> None:
         def action() -> str:
-            from app.api import service
-
-            doc = service.view_document(self._ctx)
-            if doc["sequence"] is None:
+            doc = view.view_document(self._ctx)
+            if doc.sequence is None:
                 return "No sequence shown."
-            version = self._ctx.storage.current_pattern(doc["sequence"])
-            definition = version.pattern if version is not None else service.automatic_definition()
-            service.set_pattern(self._ctx, doc["sequence"], definition_change(definition), None)
+            definition = archive.current_pattern(self._ctx, doc.sequence).definition
+            archive.set_pattern(self._ctx, doc.sequence, definition_change(definition), None)
             return "Pattern changed: search again to identify the new pattern."
         self._act(action)
 
@@ -236,16 +228,13 @@ class Viewer:
         self._candidate_nodes = []
 
     def _poll(self) -> None:
-        from app.api import service
-
         while not self._stop.is_set():
             try:
-                doc = service.view_document(self._ctx)
-                key = (doc["sequence"], doc["search_id"], doc["rank"], doc["pattern_version"],
-                       doc["confirmation_id"], doc["status"])
-                if doc["mag"] != self._drawn_mag:
-                    self._draw_stars(doc["mag"])
-                    self._mag.value = float(min(7.0, max(1.0, doc["mag"])))
+                doc = view.view_document(self._ctx)
+                key = (doc.sequence, doc.search_id, doc.rank, doc.pattern_version, doc.confirmation_id, doc.status)
+                if doc.mag != self._drawn_mag:
+                    self._draw_stars(doc.mag)
+                    self._mag.value = float(min(7.0, max(1.0, doc.mag)))
                 if key != self._drawn_key:
                     self._draw_candidate(doc)
                     self._drawn_key = key
@@ -254,67 +243,63 @@ class Viewer:
             self._wake.wait(POLL_S)
             self._wake.clear()
 
-    def _draw_candidate(self, doc: dict) -> None:
-        from app.api import service
-
+    def _draw_candidate(self, doc) -> None:
         self._clear_candidate()
-        if doc["sequence"] is None:
+        if doc.sequence is None:
             self._info.content = "No sequence selected yet: open one in the console."
             return
-        row = service.require_sequence(self._ctx, doc["sequence"])
+        row = archive.require_sequence(self._ctx, doc.sequence)
         title = f"**{row.sequence_id or row.id}** ({row.spacecraft or 'unknown spacecraft'}), status {row.status}"
-        search = self._ctx.storage.latest_search(row.id)
-        if search is None or doc["rank"] is None:
+        if doc.search_id is None or doc.rank is None:
             self._info.content = f"{title}\n\nNot searched yet, or no candidate."
             return
-        candidate = service.candidate_of(search, doc["rank"], 404)
-        item = service.loaded(self._ctx, row)
+        search, result = searching.latest_search(self._ctx, row.id)
+        candidate = searching.candidate_of(search, result, doc.rank)
+        item = archive.loaded(self._ctx, row)
         camera = item.sequence.camera
-        rotation = np.array(candidate["rotation_matrix"], dtype=float)
+        rotation = candidate.rotation
         scene = self._server.scene
         pose = geo.frustum_pose(rotation, camera)
         self._candidate_nodes.append(scene.add_camera_frustum(
             "/candidate/frustum", fov=pose.fov_rad, aspect=pose.aspect, scale=2.5, color=FRUSTUM_COLOUR,
             wxyz=pose.wxyz, thickness=2.0, thickness_units="screen"))
 
-        version = self._ctx.storage.current_pattern(row.id)
-        definition = version.pattern if version is not None else service.automatic_definition()
-        points = service.pattern_document(item, version)["points"]
-        matched_tracks = {m.get("track") for m in candidate.get("matches", [])}
+        points = archive.pattern_document(item, self._ctx.storage.current_pattern(row.id)).points
+        matched_tracks = {m.track for m in candidate.matches}
         self._draw_pattern(rotation, camera, points, matched_tracks)
-        self._draw_excluded(rotation, camera, item, definition, {p.get("track") for p in points})
+        self._draw_excluded(rotation, camera, item, {p.track for p in points})
 
-        hips = [m["hip"] for m in candidate.get("matches", [])]
+        hips = [m.hip for m in candidate.matches]
         matched = self._sky.vectors_of(hips)
         if len(matched):
             self._candidate_nodes.append(scene.add_point_cloud(
                 "/candidate/matched", geo.SPHERE_RADIUS * matched, MATCHED_COLOUR, point_size=0.2,
                 point_shape="rounded"))
-        for m in candidate.get("matches", []):
-            vector = self._sky.vectors_of([m["hip"]])
-            if m.get("name") and len(vector):
+        for m in candidate.matches:
+            vector = self._sky.vectors_of([m.hip])
+            if m.name and len(vector):
                 self._candidate_nodes.append(scene.add_label(
-                    f"/candidate/names/{m['hip']}", m["name"], position=tuple(geo.SPHERE_RADIUS * 1.01 * vector[0]),
+                    f"/candidate/names/{m.hip}", m.name, position=tuple(geo.SPHERE_RADIUS * 1.01 * vector[0]),
                     anchor="bottom-left", font_screen_scale=0.9))
         boresight = rotation[2]
         self._candidate_nodes.append(scene.add_label(
-            "/candidate/rank", f"candidate {doc['rank']} of {doc['n_candidates']}",
+            "/candidate/rank", f"candidate {doc.rank} of {doc.n_candidates}",
             position=tuple(geo.SPHERE_RADIUS * 0.7 * boresight), anchor="top-center"))
         self._info.content = (
-            f"{title}\n\nCandidate **{doc['rank']} of {doc['n_candidates']}**: RA {candidate['ra_deg']:.3f}°, "
-            f"Dec {candidate['dec_deg']:.3f}°, roll {candidate['roll_deg']:.3f}°  \n"
-            f"deviation {candidate.get('deviation_arcsec')}″, false-match probability "
-            f"{candidate.get('false_match_probability'):.3g}, {len(hips)} of {len(points)} points matched"
-            + ("" if doc["confirmation_id"] is None else f"  \nconfirmed as attitude {doc['confirmation_id']}"))
-        camera_key = (doc["sequence"], doc["search_id"], doc["rank"])
+            f"{title}\n\nCandidate **{doc.rank} of {doc.n_candidates}**: RA {candidate.ra_deg:.3f}°, "
+            f"Dec {candidate.dec_deg:.3f}°, roll {candidate.roll_deg:.3f}°  \n"
+            f"deviation {candidate.deviation_arcsec}″, false-match probability "
+            f"{candidate.false_match_probability:.3g}, {len(hips)} of {len(points)} points matched"
+            + ("" if doc.confirmation_id is None else f"  \nconfirmed as attitude {doc.confirmation_id}"))
+        camera_key = (doc.sequence, doc.search_id, doc.rank)
         if camera_key != self._camera_key:
             self._point_cameras(boresight)
             self._camera_key = camera_key
 
-    def _draw_pattern(self, rotation, camera, points: list[dict], matched_tracks: set) -> None:
-        xy = np.array([[p["x"], p["y"]] for p in points], dtype=float).reshape(-1, 2)
+    def _draw_pattern(self, rotation, camera, points: list, matched_tracks: set) -> None:
+        xy = np.array([[p.x, p.y] for p in points], dtype=float).reshape(-1, 2)
         directions = geo.pixel_directions(rotation, camera, xy)
-        colours = np.array([RAY_MATCHED if p.get("track") in matched_tracks and p.get("track") is not None
+        colours = np.array([RAY_MATCHED if p.track in matched_tracks and p.track is not None
                             else RAY_UNMATCHED for p in points], dtype=np.uint8).reshape(-1, 3)
         scene = self._server.scene
         if len(points):
@@ -323,7 +308,7 @@ class Viewer:
                 np.repeat(colours[:, None, :], 2, axis=1), thickness=1.5, thickness_units="screen"))
         manual_index = 0
         for i, (point, direction) in enumerate(zip(points, directions)):
-            track = point.get("track")
+            track = point.track
             handle = scene.add_icosphere(f"/candidate/pattern/{i}", radius=0.09, color=tuple(int(c) for c in colours[i]),
                                          position=tuple(geo.SPHERE_RADIUS * direction), subdivisions=2)
             if track is None:
@@ -335,16 +320,14 @@ class Viewer:
                 handle.on_click(lambda event, track=track: self._toggle(lambda d: geo.toggle_track(d, track)))
             self._candidate_nodes.append(handle)
 
-    def _draw_excluded(self, rotation, camera, item, definition: dict, in_pattern: set) -> None:
+    def _draw_excluded(self, rotation, camera, item, in_pattern: set) -> None:
         """Grey spheres for tracks the operator took out, at their automatic pattern positions."""
-        from app.extraction import pattern_to_json
-
         scene = self._server.scene
-        for point in pattern_to_json(item.extraction.pattern):
-            track = point.get("track")
-            if track is None or track in in_pattern or point["x"] is None or point["y"] is None:
+        automatic = item.extraction.pattern
+        for track, xy in zip(automatic.track_ids.tolist(), automatic.xy):
+            if track < 0 or track in in_pattern or not np.all(np.isfinite(xy)):
                 continue
-            direction = geo.pixel_directions(rotation, camera, [[point["x"], point["y"]]])[0]
+            direction = geo.pixel_directions(rotation, camera, [xy])[0]
             handle = scene.add_icosphere(f"/candidate/excluded/{track}", radius=0.07, color=EXCLUDED_COLOUR,
                                          position=tuple(geo.SPHERE_RADIUS * direction), subdivisions=2)
             handle.on_click(lambda event, track=track: self._toggle(lambda d: geo.toggle_track(d, track)))

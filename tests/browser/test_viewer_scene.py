@@ -9,7 +9,8 @@ import pytest
 
 from app.camera import Camera
 from app.viewer import scene as geo
-from app.viewer.state import ViewStateStore
+from app.workflow.documents import PatternDefinition
+from app.workflow.view_state import ViewStateStore
 
 
 def random_rotation(rng) -> np.ndarray:
@@ -69,15 +70,16 @@ def test_constellation_anchors_need_enough_bright_stars():
 
 
 def test_toggle_track_both_ways_and_with_an_explicit_list():
-    automatic = {"exclude_tracks": [], "include_tracks": None, "manual_points": [{"snapshot": 1, "x": 2, "y": 3}]}
+    automatic = PatternDefinition.model_validate(
+        {"exclude_tracks": [], "include_tracks": None, "manual_points": [{"snapshot": 1, "x": 2, "y": 3}]})
     out = geo.toggle_track(automatic, 4)
-    assert out["exclude_tracks"] == [4] and out["include_tracks"] is None and out["manual_points"] == automatic["manual_points"]
-    assert geo.toggle_track(out, 4)["exclude_tracks"] == []
-    chosen = {"exclude_tracks": [4], "include_tracks": [1, 2], "manual_points": []}
-    assert geo.toggle_track(chosen, 2)["include_tracks"] == [1]
+    assert out.exclude_tracks == [4] and out.include_tracks is None and out.manual_points == automatic.manual_points
+    assert geo.toggle_track(out, 4).exclude_tracks == []
+    chosen = PatternDefinition(exclude_tracks=[4], include_tracks=[1, 2])
+    assert geo.toggle_track(chosen, 2).include_tracks == [1]
     back = geo.toggle_track(chosen, 4)
-    assert back["include_tracks"] == [1, 2, 4] and back["exclude_tracks"] == []
-    assert geo.remove_manual_point(automatic, 0)["manual_points"] == []
+    assert back.include_tracks == [1, 2, 4] and back.exclude_tracks == []
+    assert geo.remove_manual_point(automatic, 0).manual_points == []
     with pytest.raises(ValueError):
         geo.remove_manual_point(automatic, 1)
 

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from fastapi import Depends, Request
+from fastapi.responses import PlainTextResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from app.api.context import AppContext
 from app.api.errors import ApiError
 from app.api.schemas import MAX_ID
+from app.workflow import AppContext
 
 #: Path parameters are database integers.
 ID_LIMITS = {"ge": 1, "le": MAX_ID}
@@ -45,6 +46,12 @@ def operator_name(token_operator: str | None, body_operator: str | None) -> str 
         return token_operator
     name = (body_operator or "").strip()
     return name or None
+
+
+def attachment(text: str, filename: str) -> PlainTextResponse:
+    """A text download (CCSDS messages) under ``filename`` (already reduced to safe characters)."""
+    return PlainTextResponse(text, media_type="text/plain; charset=utf-8",
+                             headers={"Content-Disposition": f'attachment; filename="{filename}"'})
 
 
 def too_large(limit: int) -> ApiError:

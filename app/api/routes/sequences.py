@@ -10,12 +10,14 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, PlainTextResponse
 from starlette.datastructures import UploadFile
 
-from app.api import service
-from app.api.context import AppContext
 from app.api.errors import ApiError
-from app.api.routes.common import (ID_LIMITS, get_context, operator_name, read_body_limited, replay_request,
-                                   too_large, writer)
+from app.api.routes.common import (ID_LIMITS, attachment, get_context, operator_name, read_body_limited,
+                                   replay_request, too_large, writer)
 from app.api.schemas import ConfirmRequest, PatternEdit, PatternReset, SearchRequest
+from app.workflow import AppContext, archive, confirm as confirming, search as searching
+from app.workflow.documents import (AttitudeDocument, CandidateView, PatternDocument, SearchDocument, SequenceDetail,
+                                    SequencePage, UploadDocument)
+from app.workflow.errors import Busy
 
 router = APIRouter(prefix="/api/sequences", tags=["sequences"])
 
@@ -67,79 +69,82 @@ async def _upload_bytes(request: Request, limit: int) -> tuple[bytes, str | None
     return await read_body_limited(request, limit), None
 
 
-@router.post("", status_code=201, openapi_extra=_UPLOAD_BODY,
+@router.post("", status_code=201, openapi_extra=_UPLOAD_BODY, response_model=UploadDocument,
              summary="Upload a telemetry file (201 created, 200 if the same content exists)")
 async def upload(request: Request,
                  filename: str | None = Query(None, max_length=255,
                                               description="name of the file, for a raw body (a label only)"),
                  _operator: str | None = Depends(writer), ctx: AppContext = Depends(get_context)):
     data, form_name = await _upload_bytes(request, ctx.settings.max_upload_bytes)
-    upload = await run_in_threadpool(service.parse_upload, ctx, data, form_name or filename)
-    stored = await run_in_threadpool(service.stored_upload, ctx, upload)
+    upload = await run_in_threadpool(archive.parse_upload, ctx, data, form_name or filename)
+    stored = await run_in_threadpool(archive.stored_upload, ctx, upload)
     if stored is not None:
-        return JSONResponse(stored, status_code=200)
+        return JSONResponse(stored.model_dump(mode="json"), status_code=200)
     # Extraction is CPU-bound: in the compute pool, beside the searches.
-    extraction = await asyncio.wrap_future(ctx.compute.submit(service.extraction_job, upload.sequence))
-    doc, created = await run_in_threadpool(service.store_upload, ctx, upload, extraction)
-    return JSONResponse(doc, status_code=201 if created else 200)
+    extraction = await asyncio.wrap_future(ctx.compute.submit(archive.extraction_job, upload.sequence))
+    doc = await run_in_threadpool(archive.store_upload, ctx, upload, extraction)
+    return JSONResponse(doc.model_dump(mode="json"), status_code=201 if doc.created else 200)
 
 
-@router.get("", summary="A page of sequences, newest first")
+@router.get("", response_model=SequencePage, summary="A page of sequences, newest first")
 def list_sequences(offset: int = Query(0, ge=0, le=2**62), limit: int = Query(50, ge=1, le=1000),
                    spacecraft: str | None = Query(None, max_length=128),
                    status: Literal["new", "identified", "ambiguous", "no_match", "confirmed"] | None = None,
                    ctx: AppContext = Depends(get_context)):
-    return service.list_sequences(ctx, offset, limit, spacecraft, status)
+    return archive.list_sequences(ctx, offset, limit, spacecraft, status)
 
 
-@router.get("/{seq_id}", summary="A sequence: telemetry, extraction, current pattern, latest search, confirmation")
+@router.get("/{seq_id}", response_model=SequenceDetail,
+            summary="A sequence: telemetry, extraction, current pattern, latest search, confirmation")
 def get_sequence(seq_id: int = SeqId, ctx: AppContext = Depends(get_context)):
-    return service.sequence_detail(ctx, seq_id)
+    return archive.sequence_detail(ctx, seq_id)
 
 
-@router.put("/{seq_id}/pattern", summary="Set the operator's pattern (a new version)")
+@router.put("/{seq_id}/pattern", response_model=PatternDocument, summary="Set the operator's pattern (a new version)")
 def put_pattern(edit: PatternEdit, seq_id: int = SeqId, token_operator: str | None = Depends(writer),
                 ctx: AppContext = Depends(get_context)):
-    return service.set_pattern(ctx, seq_id, edit.definition(), operator_name(token_operator, edit.operator))
+    return archive.set_pattern(ctx, seq_id, edit.definition(), operator_name(token_operator, edit.operator))
 
 
-@router.post("/{seq_id}/pattern/reset", summary="Restore the automatic pattern (a new version)")
+@router.post("/{seq_id}/pattern/reset", response_model=PatternDocument,
+             summary="Restore the automatic pattern (a new version)")
 def reset_pattern(body: PatternReset | None = Body(None), seq_id: int = SeqId,
                   token_operator: str | None = Depends(writer), ctx: AppContext = Depends(get_context)):
-    return service.reset_pattern(ctx, seq_id, operator_name(token_operator, body.operator if body else None))
+    return archive.reset_pattern(ctx, seq_id, operator_name(token_operator, body.operator if body else None))
 
 
-@router.post("/{seq_id}/search", summary="Identify the current pattern; ranked candidates and the status")
+@router.post("/{seq_id}/search", response_model=SearchDocument,
+             summary="Identify the current pattern; ranked candidates and the status")
 async def search(body: SearchRequest | None = Body(None), seq_id: int = SeqId,
                  _operator: str | None = Depends(writer), ctx: AppContext = Depends(get_context)):
     body = body or SearchRequest()
     # An unchanged pattern searched again is answered from the archive without queueing behind
-    # the CPU-bound searches of other sequences (see service.reusable_search).
-    reused = await run_in_threadpool(service.reusable_search, ctx, seq_id, body.method, body.max_candidates)
+    # the CPU-bound searches of other sequences (see workflow.search.reusable_search).
+    reused = await run_in_threadpool(searching.reusable_search, ctx, seq_id, body.method, body.max_candidates)
     if reused is not None:
         return reused
-    job = await run_in_threadpool(service.prepare_search, ctx, seq_id, body.method, body.max_candidates,
-                                  body.prior.model_dump() if body.prior else None)
+    job = await run_in_threadpool(searching.prepare_search, ctx, seq_id, body.method, body.max_candidates,
+                                  body.prior.request() if body.prior else None)
     # The compute pool: at most search_workers CPU-bound searches at once, the event loop stays free.
-    future = ctx.compute.submit(service.compute_search, job)
+    future = ctx.compute.submit(searching.compute_search, job)
     deadline = ctx.settings.search_timeout_s + SEARCH_GRACE_S
     try:
         result = await asyncio.wait_for(asyncio.wrap_future(future), timeout=deadline)
     except asyncio.TimeoutError:
-        raise ApiError(503, f"the search did not finish within {deadline:.0f} s (the server is busy); "
-                            "try again") from None
-    return JSONResponse(await run_in_threadpool(service.store_search, ctx, job, result))
+        raise Busy(f"the search did not finish within {deadline:.0f} s (the server is busy); try again") from None
+    return await run_in_threadpool(searching.store_search, ctx, job, result)
 
 
-@router.get("/{seq_id}/candidates/{rank}", summary="One candidate of the latest search with its sky section")
-async def get_candidate(seq_id: int = SeqId, rank: int = Path(**ID_LIMITS),
+@router.get("/{seq_id}/candidates/{rank}", response_model=CandidateView,
+            summary="One candidate of the latest search with its sky section")
+def get_candidate(seq_id: int = SeqId, rank: int = Path(**ID_LIMITS),
                   mag: float = Query(6.0, ge=-2.0, le=7.0, description="faintest catalogue star shown (Hp)"),
                   ctx: AppContext = Depends(get_context)):
-    # Plain JSON already (a large document): skip FastAPI's recursive encoder.
-    return JSONResponse(await run_in_threadpool(service.candidate_view, ctx, seq_id, rank, mag))
+    return searching.candidate_view(ctx, seq_id, rank, mag)
 
 
-@router.post("/{seq_id}/confirm", status_code=201, summary="Confirm a candidate of the latest search")
+@router.post("/{seq_id}/confirm", status_code=201, response_model=AttitudeDocument,
+             summary="Confirm a candidate of the latest search")
 def confirm(body: ConfirmRequest, seq_id: int = SeqId, token_operator: str | None = Depends(writer),
             ctx: AppContext = Depends(get_context)):
     operator = operator_name(token_operator, body.operator)
@@ -147,14 +152,10 @@ def confirm(body: ConfirmRequest, seq_id: int = SeqId, token_operator: str | Non
         raise ApiError(422, "a confirmation needs the operator's name",
                        problems=[{"location": "body.operator", "message": "missing operator"}])
     comment = (body.comment or "").strip() or None
-    return service.confirm(ctx, seq_id, body.rank, operator, comment)
+    return confirming.confirm(ctx, seq_id, body.rank, operator, comment)
 
 
 @router.get("/{seq_id}/aem", response_class=PlainTextResponse,
             summary="CCSDS AEM 2.0 (KVN): one quaternion per snapshot of the confirmed sequence")
 def get_aem(seq_id: int = SeqId, ctx: AppContext = Depends(get_context)):
-    text, c = service.sequence_aem(ctx, seq_id)
-    row = ctx.storage.get_sequence(seq_id)
-    name = service.download_name(row.sequence_id if row else None, f"sequence-{seq_id}", ".aem")
-    return PlainTextResponse(text, media_type="text/plain; charset=utf-8",
-                             headers={"Content-Disposition": f'attachment; filename="{name}"'})
+    return attachment(*confirming.sequence_aem(ctx, seq_id))

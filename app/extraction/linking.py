@@ -59,7 +59,7 @@ from scipy.optimize import linear_sum_assignment
 from app.attitude import solve_wahba
 from app.extraction.model import GHOST, HOT_PIXEL, OUTLIER, Extraction, ExtractionParameters, Track
 from app.extraction.motion import estimate_pair_rotations, expand_ranges
-from app.extraction.pattern import seed_pattern, tracks_pattern
+from app.extraction.pattern import carried_tracks, seed_pattern, tracks_pattern
 from app.telemetry.model import Sequence
 
 DEFAULT_PARAMETERS = ExtractionParameters()
@@ -447,7 +447,7 @@ def extract(sequence: Sequence, parameters: ExtractionParameters = DEFAULT_PARAM
                      f"cannot be told from stars and stationary sources are kept as tracks")
     if not tracks:
         notes.append("no source was seen moving consistently with the sky in two snapshots: no tracks")
-    carried = [t for t in tracks if same[t.snapshots[0]]]
+    carried = carried_tracks(tracks, motion)
     if len(carried) < len(tracks):
         notes.append(f"{len(tracks) - len(carried)} track(s) in snapshots not linked to the reference "
                      f"snapshot are left out of the pattern")

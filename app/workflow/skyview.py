@@ -22,6 +22,7 @@ from datetime import datetime
 import numpy as np
 
 from app.camera import Camera
+from app.workflow.documents import CandidateDocument, PatternPoint
 from app.catalogue import Catalogue, constellations, vectors_to_radec
 
 #: Extra room around the sensor, as a fraction of its width and height on each side.
@@ -62,14 +63,13 @@ def project_into_section(rotation: np.ndarray, camera: Camera, vectors: np.ndarr
 
 
 def sky_section(*, rotation: np.ndarray, camera: Camera, t: datetime, catalogue: Catalogue,
-                names: dict[int, tuple[str, str]], mag_limit: float, pattern: list[dict],
-                candidate: dict, planets: dict[str, np.ndarray] | None = None,
+                names: dict[int, tuple[str, str]], mag_limit: float, pattern: list[PatternPoint],
+                candidate: CandidateDocument, planets: dict[str, np.ndarray] | None = None,
                 velocity_km_s=None, margin: float = DEFAULT_MARGIN) -> dict:
     """The candidate view's data.
 
-    ``pattern`` is the searched pattern as :func:`app.extraction.pattern_to_json`
-    rows (``x``, ``y``, ``track``); ``candidate`` the stored candidate with
-    ``matches``/``planets`` carrying ``pattern_index`` and ``hip``/``name``,
+    ``pattern`` is the searched pattern; ``candidate`` the stored candidate,
+    whose ``matches``/``planets`` name pattern rows (``pattern_index``),
     ``generating_edge`` (two pattern rows) and ``generating_pair_hip``.
     Stars down to ``mag_limit`` are listed, plus every matched or generating
     star whatever its magnitude.  ``planets`` maps names to apparent ICRS
@@ -80,10 +80,10 @@ def sky_section(*, rotation: np.ndarray, camera: Camera, t: datetime, catalogue:
     coordinates follow the camera convention (x right, y down).
     """
     R = np.asarray(rotation, dtype=float)
-    match_of_point = {int(m["pattern_index"]): m for m in candidate.get("matches", [])}
-    planet_of_point = {int(p["pattern_index"]): p for p in candidate.get("planets", [])}
-    pair_hip = [int(h) for h in candidate.get("generating_pair_hip", [])]
-    wanted_hip = {int(m["hip"]) for m in match_of_point.values()} | {h for h in pair_hip if h >= 0}
+    match_of_point = {m.pattern_index: m for m in candidate.matches}
+    planet_of_point = {p.pattern_index: p for p in candidate.planets}
+    pair_hip = list(candidate.generating_pair_hip)
+    wanted_hip = {m.hip for m in match_of_point.values()} | {h for h in pair_hip if h >= 0}
 
     # Stars: the bright ones around the field and the ones the candidate names.
     near = catalogue.rows_near(R[2], section_radius(camera, margin))
@@ -99,7 +99,7 @@ def sky_section(*, rotation: np.ndarray, camera: Camera, t: datetime, catalogue:
     # Stars of the candidate outside the section (a bad candidate) still get their pixels.
     for k in np.flatnonzero(np.isin(sub.hip, list(wanted_hip)) & ~inside):
         pixel_of_hip[int(sub.hip[k])] = (float(xy[k, 0]), float(xy[k, 1]))
-    point_of_hip = {int(m["hip"]): i for i, m in match_of_point.items()}
+    point_of_hip = {m.hip: i for i, m in match_of_point.items()}
 
     # One astropy call for the field centre and every star shown.
     centre = R[2]
@@ -122,7 +122,7 @@ def sky_section(*, rotation: np.ndarray, camera: Camera, t: datetime, catalogue:
 
     # Planets in the section, and which pattern point each explains.
     planet_rows = []
-    planet_points = {p["name"]: i for i, p in planet_of_point.items()}
+    planet_points = {p.name: i for i, p in planet_of_point.items()}
     for name, vector in sorted((planets or {}).items()):
         pxy, pin = project_into_section(R, camera, vector, margin)
         if pin[0] or name in planet_points:
@@ -135,28 +135,27 @@ def sky_section(*, rotation: np.ndarray, camera: Camera, t: datetime, catalogue:
     for i, row in enumerate(pattern):
         match = match_of_point.get(i)
         planet = planet_of_point.get(i)
-        point = {"index": i, "track": row.get("track"), "x": row.get("x"), "y": row.get("y"),
+        point = {"index": i, "track": row.track, "x": row.x, "y": row.y,
                  "hip": None, "name": None, "planet": None, "star_x": None, "star_y": None,
                  "residual_x": None, "residual_y": None, "residual_arcsec": None}
         target = None
         if match is not None:
-            target = pixel_of_hip.get(int(match["hip"]))
-            point.update(hip=int(match["hip"]), name=match.get("name"),
-                         residual_arcsec=match.get("residual_arcsec"))
+            target = pixel_of_hip.get(match.hip)
+            point.update(hip=match.hip, name=match.name, residual_arcsec=match.residual_arcsec)
         elif planet is not None:
-            target = planet_pixel.get(planet["name"])
-            point.update(planet=planet["name"], residual_arcsec=planet.get("residual_arcsec"))
-        if target is not None and None not in target and row.get("x") is not None and row.get("y") is not None:
+            target = planet_pixel.get(planet.name)
+            point.update(planet=planet.name, residual_arcsec=planet.residual_arcsec)
+        if target is not None and None not in target and row.x is not None and row.y is not None:
             point.update(star_x=_round(target[0]), star_y=_round(target[1]),
-                         residual_x=_round(target[0] - row["x"], 3), residual_y=_round(target[1] - row["y"], 3))
+                         residual_x=_round(target[0] - row.x, 3), residual_y=_round(target[1] - row.y, 3))
         points.append(point)
 
-    edge = [int(i) for i in candidate.get("generating_edge", [])]
+    edge = list(candidate.generating_edge)
     edge_doc = None
     if len(edge) == 2 and all(0 <= i < len(pattern) for i in edge):
         edge_doc = {
             "pattern_indices": edge,
-            "points": [{"x": pattern[i].get("x"), "y": pattern[i].get("y")} for i in edge],
+            "points": [{"x": pattern[i].x, "y": pattern[i].y} for i in edge],
             "stars": [{"hip": h, "name": names.get(h, (None, None))[0] or None,
                        "x": _round(pixel_of_hip[h][0]) if h in pixel_of_hip else None,
                        "y": _round(pixel_of_hip[h][1]) if h in pixel_of_hip else None} for h in pair_hip],

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import threading
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 
 #: Magnitude limit of a fresh view (Hp), and the range the sky-section endpoint accepts.
@@ -38,11 +38,6 @@ class ViewState:
     updated_by: str = "server"
     updated_at: datetime | None = None
 
-    def to_json(self) -> dict:
-        doc = asdict(self)
-        doc["updated_at"] = None if self.updated_at is None else \
-            self.updated_at.astimezone(timezone.utc).isoformat().replace("+00:00", "Z")
-        return doc
 
 
 _UNSET = object()

@@ -17,20 +17,22 @@ Two matched stars fix an attitude, so tracking works with as few as two.
 from __future__ import annotations
 
 import time as _time
+from dataclasses import replace
 from datetime import datetime
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from app.attitude import angle_between
-from app.attitude.wahba import cross_boresight_and_roll_sigma, wahba_covariance
 from app.camera import Camera
-from app.identification.engine import SearchOptions, Sky, prepare_pattern, reduced_chi2
-from app.identification.result import AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, Solution, StarMatch
-from app.identification.verify import chord, false_match_probability, refine
+from app.identification.candidates import build_candidate, prepare_pattern
+from app.identification.options import SearchOptions
+from app.identification.result import AMBIGUOUS, IDENTIFIED, NO_MATCH, Solution
+from app.identification.sky import Sky
+from app.identification.verify import chord, refine
 
 
-def track(pattern, camera: Camera, t: datetime, sky: Sky, prior_rotation: np.ndarray, *,
+def identify_near_prior(pattern, camera: Camera, t: datetime, sky: Sky, prior_rotation: np.ndarray, *,
           prior_sigma_deg: float = 1.0, velocity_km_s=None,
           options: SearchOptions = SearchOptions()) -> Solution:
     """Identify ``pattern`` near ``prior_rotation`` (ICRS -> camera), 1-sigma ``prior_sigma_deg``."""
@@ -74,28 +76,9 @@ def track(pattern, camera: Camera, t: datetime, sky: Sky, prior_rotation: np.nda
     if len(matched) < 2:
         return Solution(status=NO_MATCH, candidates=(), elapsed_s=_time.perf_counter() - started,
                         notes=("fewer than two pattern points match stars near the prior",))
-    resid = r.residual_rad[matched]
-    sigma_rad = p.sigma_px[matched] * p.scale
-    cov = wahba_covariance(p.vectors[matched], sigma_rad) * max(1.0, reduced_chi2(resid, sigma_rad))
-    cross, roll = cross_boresight_and_roll_sigma(cov)
-    n_hyp = len(cand)
-    fmp = false_match_probability(p.m, len(matched), agree, p.field.density_per_sr, n_hyp,
-                                  float(np.sum(resid ** 2)))
-    track_ids = np.asarray(pattern.track_ids)[p.keep]
-    matches = tuple(
-        StarMatch(pattern_index=int(p.keep[i]), track=int(track_ids[i]) if track_ids[i] >= 0 else None,
-                  hip=int(sky.index.hip[p.field.rows[r.star_of_point[i]]]),
-                  name=sky.name(int(p.field.rows[r.star_of_point[i]])),
-                  residual_arcsec=float(np.degrees(r.residual_rad[i]) * 3600))
-        for i in matched)
-    deviation = float(np.sum(r.nearest_rad))
-    candidate = Candidate(
-        rank=1, rotation_matrix=r.rotation, deviation_arcsec=float(np.degrees(deviation) * 3600),
-        deviation_px_per_point=float(deviation / p.m / p.scale),
-        rms_arcsec=float(np.degrees(np.sqrt(np.mean(resid ** 2))) * 3600),
-        false_match_probability=fmp, matches=matches,
-        sigma_cross_boresight_arcsec=float(np.degrees(cross) * 3600),
-        sigma_roll_arcsec=float(np.degrees(roll) * 3600))
+    # Each voted pairing was a hypothesis: they all enter the false-match probability.
+    candidate = replace(build_candidate(r, p, sky, tol=agree, n_hypotheses=len(cand), options=options), rank=1)
+    fmp = candidate.false_match_probability
     # With a prior the question is only "which nearby star", so two matches
     # that agree with the prior suffice; a third must pass the usual test.
     moved = float(angle_between(r.rotation[2], prior[2]))

@@ -1,14 +1,14 @@
-"""The application context: everything the server builds once at start-up.
+"""The application context: everything a server or a command builds once at start-up.
 
 One :class:`AppContext` holds the archive (:class:`app.storage.Storage`), the
-identification context (:class:`app.identification.Sky`, ~3 s to load), the
-access policy, the search thread pool and a small cache of parsed and
-extracted sequences.  Routes receive it through ``request.app.state.context``;
-nothing here is a module-level global, so tests build as many as they like.
+identification context (:class:`app.identification.Sky`, ~1 s to load), the
+access policy, the compute pool, the shared view state and a small cache of
+parsed sequences with their stored extractions.  The API's routes receive it
+through ``request.app.state.context``, the 3D view holds it; nothing here is
+a module-level global, so tests build as many as they like.
 
-The ``viewer`` slot is the hook for the 3D viser view of the console issue:
-whoever starts it stores the object there, and :meth:`AppContext.close`
-calls its ``stop()`` if it has one.
+The ``viewer`` slot holds the 3D view once an interface started one:
+:meth:`AppContext.close` calls its ``stop()``.
 """
 
 from __future__ import annotations
@@ -19,13 +19,14 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
 
-from app.api.security import AccessPolicy
-from app.api.workers import ComputePool
 from app.config import Settings, settings as default_settings
-from app.extraction import Extraction, extract
+from app.extraction import Extraction
 from app.storage import Storage
-from app.telemetry import Sequence, parse_telemetry
-from app.viewer.state import ViewStateStore
+from app.telemetry import Sequence
+from app.workflow.access import AccessPolicy
+from app.workflow.compute import ComputePool
+from app.workflow.documents import HealthDocument, IndexHealth
+from app.workflow.view_state import ViewStateStore
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +36,7 @@ SEQUENCE_CACHE_SIZE = 256
 
 @dataclass(frozen=True, eq=False)
 class LoadedSequence:
-    """A stored upload parsed again and extracted (both are deterministic)."""
+    """A stored upload parsed again, with its stored extraction (see :func:`app.workflow.archive.loaded`)."""
 
     sequence: Sequence
     extraction: Extraction
@@ -74,7 +75,7 @@ class AppContext:
     settings: Settings = field(default_factory=default_settings)
     access: AccessPolicy = field(default_factory=AccessPolicy)
     cache: SequenceCache = field(default_factory=SequenceCache)
-    #: The 3D view of the console issue (issue 5) once started; None until then.
+    #: The 3D view once an interface started it (app.viewer); None until then.
     viewer: Any = None
     #: The selection the console and the 3D view share (GET/PUT /api/view).
     view: ViewStateStore = field(default_factory=ViewStateStore)
@@ -87,16 +88,6 @@ class AppContext:
         if self._compute is None:
             self._compute = ComputePool(0, threads=self.settings.search_workers, sky=self.sky)
         return self._compute
-
-    def load_sequence(self, seq_id: int, raw_text: str, filename: str | None) -> LoadedSequence:
-        """The stored upload as Sequence + Extraction, from the cache when possible."""
-        item = self.cache.get(seq_id)
-        if item is None:
-            # Stored text passed validation once; the size limit may have shrunk since, so none here.
-            sequence = parse_telemetry(raw_text, filename=filename, max_bytes=len(raw_text.encode("utf-8")))
-            item = LoadedSequence(sequence, extract(sequence))
-            self.cache.put(seq_id, item)
-        return item
 
     def close(self) -> None:
         if self.viewer is not None and hasattr(self.viewer, "stop"):
@@ -113,10 +104,10 @@ def build_context(*, database: str | None = None, host: str = "127.0.0.1",
                   config: Settings | None = None, sky=None) -> AppContext:
     """Open the archive, load the catalogue and index (logging their counts), set the access policy.
 
-    Raises :class:`app.api.security.TokenConfigError` (bad or missing tokens)
+    Raises :class:`app.workflow.access.TokenConfigError` (bad or missing tokens)
     or :class:`app.storage.StorageError` (database unusable) with a message.
     """
-    from app.api.security import load_tokens
+    from app.workflow.access import load_tokens
 
     config = config or default_settings()
     access = AccessPolicy.for_host(host, load_tokens(config.tokens, config.tokens_file))
@@ -142,3 +133,19 @@ def build_context(*, database: str | None = None, host: str = "127.0.0.1",
     context = AppContext(storage=storage, sky=sky, settings=config, access=access, _compute=compute)
     log.info("searches run in %s", context.compute.kind)
     return context
+
+
+def health(ctx: AppContext) -> HealthDocument:
+    """Is the archive usable and the catalogue index loaded; where searches run."""
+    db = ctx.storage.health()
+    db.pop("path", None)  # a server path is nobody's business over HTTP
+    index = ctx.sky.index if ctx.sky is not None else None
+    index_doc = IndexHealth(loaded=index is not None)
+    if index is not None:
+        index_doc = IndexHealth(loaded=True, stars=int(index.n_stars), pairs=int(index.n_pairs),
+                                mag_limit=float(index.mag_limit))
+    ok = bool(db.get("ok")) and index is not None
+    return HealthDocument(status="ok" if ok else "degraded", db=db, index=index_doc,
+                          auth_required_for_writes=ctx.access.require_token,
+                          max_upload_bytes=ctx.settings.max_upload_bytes,
+                          search_timeout_s=ctx.settings.search_timeout_s, search_workers=ctx.compute.kind)

@@ -1,0 +1,128 @@
+"""From a refined attitude to a :class:`Candidate`: the one builder every identification method uses.
+
+A pattern is first *prepared* (:func:`prepare_pattern`): its brightest
+points, their noise, match tolerances and the star field they are checked
+against.  Any method (bright pairs, triangle features, tracking from a prior)
+ends with a refinement (:func:`app.identification.verify.refine`) that
+:func:`build_candidate` turns into a scored candidate: matched stars, planets
+explaining unmatched points, deviation, false-match probability and the
+attitude's 1-sigma (Wahba covariance inflated by the reduced chi-square).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Callable
+
+import numpy as np
+
+from app.attitude import wahba_covariance
+from app.attitude.wahba import cross_boresight_and_roll_sigma
+from app.camera import Camera
+from app.extraction import DEFAULT_SIGHTING_SIGMA_PX
+from app.identification.options import SearchOptions
+from app.identification.result import Candidate, PlanetMatch, StarMatch
+from app.identification.sky import Sky
+from app.identification.verify import Refined, StarField, false_match_probability
+
+
+@dataclass(frozen=True, eq=False)
+class PreparedPattern:
+    """A pattern ready for any hypothesis method: the brightest points, their
+    noise, tolerances and the star field they are checked against."""
+
+    keep: np.ndarray  # rows of the original pattern used
+    track_ids: np.ndarray  # (m,) their track ids (-1: picked by hand)
+    vectors: np.ndarray
+    xy: np.ndarray
+    sigma_px: np.ndarray
+    match_tol: np.ndarray  # (m,) final match tolerance of each point, radians
+    weights: np.ndarray  # (m,) Wahba weights 1 / sigma^2
+    camera: Camera
+    field: StarField
+    star_mask: np.ndarray  # index rows the camera can see
+    scale: float  # radians per pixel
+
+    @property
+    def m(self) -> int:
+        return len(self.vectors)
+
+
+def prepare_pattern(pattern, camera: Camera, t: datetime, sky: Sky, velocity_km_s=None,
+                    options: SearchOptions = SearchOptions()) -> PreparedPattern:
+    # The brightest points only (faint sources are most often ghosts or missing stars).
+    keep = np.argsort(-np.nan_to_num(pattern.brightness, nan=0.0), kind="stable")[:options.max_points]
+    sigma_px = np.maximum(np.nan_to_num(np.asarray(pattern.sigma_px, float)[keep], nan=DEFAULT_SIGHTING_SIGMA_PX), 0.05)
+    scale = camera.pixel_scale_rad
+    mag_limit = min(camera.limiting_magnitude + options.mag_margin, sky.index.mag_limit)
+    return PreparedPattern(
+        keep=keep, track_ids=np.asarray(pattern.track_ids)[keep], vectors=pattern.vectors[keep], xy=pattern.xy[keep], sigma_px=sigma_px,
+        match_tol=np.maximum(options.match_tolerance_px, 5 * sigma_px) * scale,
+        weights=1.0 / (sigma_px * scale) ** 2, camera=camera,
+        field=sky.field(t, mag_limit, velocity_km_s), star_mask=sky.star_mask(mag_limit), scale=scale)
+
+
+def build_candidate(r: Refined, p: PreparedPattern, sky: Sky, *, tol: float, n_hypotheses: int,
+                    options: SearchOptions, generating_edge: tuple[int, int] | None = None,
+                    generating_pair: tuple[int, int] | None = None, n_merged: int = 1,
+                    planets: Callable[[], dict[str, np.ndarray]] | None = None) -> Candidate:
+    """The candidate of refinement ``r`` of prepared pattern ``p`` (rank 0: the caller ranks).
+
+    ``tol`` is the match tolerance the hypothesis was checked with and
+    ``n_hypotheses`` how many were tried: both enter the false-match
+    probability (:func:`app.identification.verify.false_match_probability`).
+    ``generating_edge`` (rows of ``p``) and ``generating_pair`` (index rows)
+    name the hypothesis that found it.  ``planets()`` (names -> apparent unit
+    vectors) is called only for a credible candidate that leaves points
+    unmatched.
+    """
+    vectors, keep, field, scale, m = p.vectors, p.keep, p.field, p.scale, p.m
+    R = r.rotation
+    matched = np.flatnonzero(r.star_of_point >= 0)
+
+    def track_of(i):
+        t = int(p.track_ids[i])
+        return t if t >= 0 else None
+
+    matches = tuple(
+        StarMatch(pattern_index=int(keep[i]), track=track_of(i), hip=int(sky.index.hip[field.rows[r.star_of_point[i]]]),
+                  name=sky.name(int(field.rows[r.star_of_point[i]])),
+                  residual_arcsec=float(np.degrees(r.residual_rad[i]) * 3600))
+        for i in matched)
+    resid = r.residual_rad[matched]
+    fmp = false_match_probability(m, len(matched), tol, field.density_per_sr, n_hypotheses,
+                                  float(np.sum(resid ** 2)))
+    planet_matches = []
+    unmatched = np.flatnonzero(r.star_of_point < 0)
+    if planets is not None and len(unmatched) and fmp <= options.rival_probability:
+        sky_dirs = vectors[unmatched] @ R
+        for name, pv in planets().items():
+            ang = np.arccos(np.clip(sky_dirs @ pv, -1, 1))
+            for k in np.flatnonzero(ang <= options.planet_tolerance_px * scale):
+                i = unmatched[k]
+                planet_matches.append(PlanetMatch(pattern_index=int(keep[i]), track=track_of(i), name=name,
+                                                  residual_arcsec=float(np.degrees(ang[k]) * 3600)))
+    deviation = float(np.sum(r.nearest_rad))
+    sigma_rad = p.sigma_px[matched] * scale
+    cov = wahba_covariance(vectors[matched], sigma_rad) * max(1.0, reduced_chi2(resid, sigma_rad))
+    sigma_cross, sigma_roll = cross_boresight_and_roll_sigma(cov)
+    return Candidate(
+        rank=0, rotation_matrix=R,
+        deviation_arcsec=float(np.degrees(deviation) * 3600),
+        deviation_px_per_point=float(deviation / m / scale),
+        rms_arcsec=float(np.degrees(np.sqrt(np.mean(resid ** 2))) * 3600) if len(resid) else float("nan"),
+        false_match_probability=fmp, matches=matches, planets=tuple(planet_matches),
+        generating_edge=(-1, -1) if generating_edge is None else (int(keep[generating_edge[0]]),
+                                                                   int(keep[generating_edge[1]])),
+        generating_pair_hip=(-1, -1) if generating_pair is None else (int(sky.index.hip[generating_pair[0]]),
+                                                                       int(sky.index.hip[generating_pair[1]])),
+        n_hypotheses_merged=n_merged,
+        sigma_cross_boresight_arcsec=float(np.degrees(sigma_cross) * 3600),
+        sigma_roll_arcsec=float(np.degrees(sigma_roll) * 3600))
+
+
+def reduced_chi2(residual_rad: np.ndarray, sigma_rad: np.ndarray) -> float:
+    """chi^2 per degree of freedom of a Wahba fit: 2 per star, 3 taken by the attitude."""
+    dof = 2 * len(residual_rad) - 3
+    return float(np.sum((residual_rad / sigma_rad) ** 2) / dof) if dof > 0 else 1.0

@@ -1,0 +1,36 @@
+"""The identification methods, by the name the API, the CLI and the archive use.
+
+Each :class:`Method` says what it needs: a lost-in-space method names its
+hypothesis generator (a function of the prepared pattern, the sky and the
+options that yields batches of :class:`app.identification.hypotheses.Hypotheses`
+with their check tolerances and the pattern features used so far); tracking
+needs a prior attitude instead (:mod:`app.identification.near_prior`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+from app.identification.hypotheses import bright_pair_batches
+from app.identification.triangle_features import tf_batches
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str
+    description: str
+    #: Lost-in-space hypothesis generator; None for tracking.
+    hypotheses: Callable | None = None
+    #: Tracking matches near a prior attitude instead of searching the sky.
+    needs_prior: bool = False
+
+
+METHODS: dict[str, Method] = {m.name: m for m in (
+    Method("bright_pair", "the seed's bright-pair index, edges looked up by length (lost in space; default)",
+           hypotheses=bright_pair_batches),
+    Method("tf", "Liebe's triangle features: two angular distances and the spherical angle (lost in space)",
+           hypotheses=tf_batches),
+    Method("tracking", "match near a prior attitude (Liebe's predictional estimate; FUSE's known tracking)",
+           needs_prior=True),
+)}

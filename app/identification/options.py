@@ -1,0 +1,69 @@
+"""The tunable parameters of a search (:class:`SearchOptions`), each default with its reason."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class SearchOptions:
+    """Tunable parameters of a search, with the reasoning for each default.
+
+    FUSE's star identification rules (seed 001, Table 3) map onto these:
+    ``min_pair_ang`` -> :attr:`min_pair_separation_px`, ``max_pair_ang`` -> the
+    index's longest edge, ``pair_ang_tol`` -> :attr:`edge_tolerance_px`,
+    ``addl_mtch_tol`` -> :attr:`match_tolerance_px`, ``max_roll`` ->
+    :attr:`max_roll_change_deg` (tracking from a prior), ``min_mch`` ->
+    :attr:`min_matches`, ``des_mch`` -> :attr:`early_stop_matches`, and the
+    time-out -> :attr:`timeout_s`.
+    """
+
+    #: Edge-length window: this many pixels of systematic error (centroiding,
+    #: distortion) plus 4 sigma of the two points' random error.
+    edge_tolerance_px: float = 1.0
+    #: Pattern points closer than this never form an edge (no usable direction;
+    #: maybe one star reported twice).
+    min_pair_separation_px: float = 2.0
+    #: A pattern point matches a star within max(this, 5 sigma) pixels.
+    match_tolerance_px: float = 1.5
+    #: Fewest matched stars for a candidate to be reported (FUSE asks 4; with
+    #: the false-match probability judging significance, 3 may be shown).
+    min_matches: int = 3
+    #: Tracking: a solution whose roll differs from the prior's by more than
+    #: this is not accepted as "identified".
+    max_roll_change_deg: float = 5.0
+    #: Stars down to the camera's limiting magnitude plus this margin can be
+    #: in the pattern (brightness is unreliable and detection is noisy).
+    mag_margin: float = 0.75
+    #: Use at most this many pattern points, the brightest.
+    max_points: int = 16
+    #: Distinct candidates returned for the operator to step through (the
+    #: seed's Next/Prev: past the first few, alternatives are chance fits).
+    max_candidates: int = 6
+    #: Hypotheses refined (in order of promise) to find those candidates.
+    max_refinements: int = 16
+    #: Status "identified" needs a best false-match probability at most this ...
+    identified_probability: float = 1e-6
+    #: ... and no rival: another distinct candidate at or below this
+    #: probability, with an RMS residual within this factor of the best's, and
+    #: at most this many times as likely to be chance as the best (the odds
+    #: of the two explanations: a 15-star match at 1e-60 is not put in doubt
+    #: by a 3-star coincidence at 1e-4, a 4-star match at 1e-8 is).
+    rival_probability: float = 1e-3
+    rival_rms_factor: float = 3.0
+    rival_odds: float = 1e6
+    #: No candidate at or below this false-match probability: "no_match".
+    no_match_probability: float = 0.01
+    #: Stop generating hypotheses once a refined hypothesis matches this many
+    #: points (or all of them) and this fraction of them, and at least this
+    #: many edges were tried.  The fraction matters in dense fields: a slightly
+    #: wrong attitude can catch 6 of 30 points, the right one catches nearly all.
+    early_stop_matches: int = 6
+    early_stop_fraction: float = 0.5
+    early_stop_edges: int = 1
+    #: Hypotheses refined right after each batch of edges.
+    refine_per_batch: int = 3
+    #: Wall-clock budget of one search, seconds.
+    timeout_s: float = 5.0
+    #: Planets are labelled when an unmatched point lies within this many pixels.
+    planet_tolerance_px: float = 3.0

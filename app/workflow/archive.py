@@ -1,0 +1,217 @@
+"""The archive workflow: uploads, sequences and the operator's pattern versions.
+
+Invariants kept here (the storage module keeps the rest):
+
+* An upload is parsed, extracted once, and stored with its extraction
+  (:class:`ExtractionDocument`).  The stored extraction is authoritative:
+  pattern versions refer to its track ids, so loading a sequence reads it
+  back (:func:`loaded`) instead of running extraction again, and a change to
+  extraction can never re-number the tracks of archived sequences.
+* Uploads stored before extraction documents were complete (no
+  ``version``) are extracted again on load, and used only when the new
+  extraction numbers every source exactly as the stored one did; otherwise
+  the sequence is refused with a message (:class:`Conflict`).
+* A pattern version is stored only after its definition was built into a
+  pattern successfully.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+from app.extraction import Pattern, build_pattern, extract
+from app.storage import PatternVersion, SequenceRow, content_sha256
+from app.telemetry import Sequence, parse_telemetry
+from app.timefmt import utc_text
+from app.workflow.context import AppContext, LoadedSequence
+from app.workflow.documents import (AttitudeDocument, ExtractionDocument, PatternDefinition, PatternDocument, PatternPoint,
+                                    SearchDocument, SequenceDetail, SequencePage, SequenceSummary, UploadDocument)
+from app.workflow.errors import Conflict, Invalid, NotFound
+
+
+def automatic_definition() -> PatternDefinition:
+    """Every track, nothing picked by hand: the pattern extraction proposes."""
+    return PatternDefinition()
+
+
+def clean_filename(name: str | None) -> str | None:
+    """A client's file name reduced to a label: last path part, printable, at most 200 characters.
+
+    The server never opens it; it only names the upload in messages and
+    supplies a missing ``sequence_id`` (its stem).
+    """
+    if not name:
+        return None
+    base = re.split(r"[\\/]", name)[-1]
+    base = "".join(ch for ch in base if ch.isprintable()).strip()[:200]
+    return base or None
+
+
+# ---------------------------------------------------------------------------
+# Loading stored sequences
+# ---------------------------------------------------------------------------
+
+def require_sequence(ctx: AppContext, seq_id: int) -> SequenceRow:
+    row = ctx.storage.get_sequence(seq_id)
+    if row is None:
+        raise NotFound(f"no sequence with id {seq_id}")
+    return row
+
+
+def loaded(ctx: AppContext, row: SequenceRow) -> LoadedSequence:
+    """The stored upload parsed again, with its stored extraction (cached by id: uploads never change)."""
+    item = ctx.cache.get(row.id)
+    if item is None:
+        # Stored text passed validation once; the size limit may have shrunk since, so none here.
+        sequence = parse_telemetry(row.raw_text, filename=row.filename,
+                                   max_bytes=len(row.raw_text.encode("utf-8")))
+        item = LoadedSequence(sequence, stored_extraction(row, sequence))
+        ctx.cache.put(row.id, item)
+    return item
+
+
+def stored_extraction(row: SequenceRow, sequence: Sequence):
+    """The extraction stored with ``row`` (see the module's invariants)."""
+    document = ExtractionDocument.model_validate(row.extraction)
+    if document.complete:
+        return document.to_extraction(sequence)
+    again = extract(sequence)
+    if ExtractionDocument.of(again).sources != document.sources:
+        raise Conflict(f"sequence {row.id} was extracted by an older version whose track numbers this "
+                       "version does not reproduce; its pattern versions cannot be applied safely. "
+                       "Re-upload the telemetry under a new sequence_id to process it again.")
+    return again
+
+
+# ---------------------------------------------------------------------------
+# Uploads
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class ParsedUpload:
+    """A valid upload: the telemetry and the text as sent."""
+
+    sequence: Sequence
+    raw_text: str
+    filename: str | None
+
+
+def parse_upload(ctx: AppContext, data: bytes, filename: str | None) -> ParsedUpload:
+    """Validate an upload; raises :class:`app.telemetry.TelemetryError` (located problems) when invalid."""
+    filename = clean_filename(filename)
+    sequence = parse_telemetry(data, filename=filename, max_bytes=ctx.settings.max_upload_bytes)
+    # parse_telemetry accepted the bytes as UTF-8; keep the text as sent.
+    return ParsedUpload(sequence=sequence, raw_text=bytes(data).decode("utf-8"), filename=filename)
+
+
+def stored_upload(ctx: AppContext, upload: ParsedUpload) -> UploadDocument | None:
+    """The document of the stored sequence with the same content, if there is one."""
+    row = ctx.storage.find_sequence(content_sha256(upload.raw_text))
+    return None if row is None else _upload_document(ctx, row, created=False)
+
+
+def extraction_job(sequence: Sequence, *, sky=None):
+    """Extraction as a compute-pool job (it needs no catalogue)."""
+    return extract(sequence)
+
+
+def store_upload(ctx: AppContext, upload: ParsedUpload, extraction) -> UploadDocument:
+    """Store a parsed and extracted upload (``created`` False: the same content was stored meanwhile)."""
+    sequence = upload.sequence
+    row, created = ctx.storage.add_sequence(
+        raw_text=upload.raw_text, filename=upload.filename, sequence_id=sequence.sequence_id,
+        spacecraft=sequence.spacecraft, camera=sequence.camera.to_dict(),
+        first_time=sequence.snapshots[0].time if sequence.snapshots else None,
+        n_snapshots=len(sequence.snapshots),
+        extraction=ExtractionDocument.of(extraction).model_dump(mode="json"))
+    if created:
+        ctx.cache.put(row.id, LoadedSequence(sequence, extraction))
+        ctx.storage.add_pattern_version(row.id, automatic_definition().model_dump(), kind="automatic")
+    return _upload_document(ctx, row, created)
+
+
+def _upload_document(ctx: AppContext, row: SequenceRow, created: bool) -> UploadDocument:
+    item = loaded(ctx, row)
+    return UploadDocument(id=row.id, created=created, sequence=SequenceSummary.of(row),
+                          extraction=ExtractionDocument.model_validate(row.extraction),
+                          pattern=pattern_document(item, ctx.storage.current_pattern(row.id)))
+
+
+# ---------------------------------------------------------------------------
+# Sequences
+# ---------------------------------------------------------------------------
+
+def sequence_detail(ctx: AppContext, seq_id: int) -> SequenceDetail:
+    row = require_sequence(ctx, seq_id)
+    item = loaded(ctx, row)
+    search = ctx.storage.latest_search(seq_id)
+    confirmation = ctx.storage.current_confirmation(seq_id)
+    return SequenceDetail(**SequenceSummary.of(row).model_dump(), telemetry=item.sequence.to_json_dict(),
+                          extraction=ExtractionDocument.model_validate(row.extraction),
+                          pattern=pattern_document(item, ctx.storage.current_pattern(seq_id)),
+                          search=None if search is None else SearchDocument.of(search),
+                          confirmation=None if confirmation is None else AttitudeDocument.of(confirmation, row))
+
+
+def list_sequences(ctx: AppContext, offset: int, limit: int, spacecraft: str | None,
+                   status: str | None) -> SequencePage:
+    rows, total = ctx.storage.list_sequences(offset, limit, spacecraft=spacecraft, status=status)
+    return SequencePage(items=[SequenceSummary.of(r) for r in rows], total=total, offset=offset, limit=limit)
+
+
+# ---------------------------------------------------------------------------
+# Patterns
+# ---------------------------------------------------------------------------
+
+def definition_of(version: PatternVersion | None) -> PatternDefinition:
+    return automatic_definition() if version is None else PatternDefinition.model_validate(version.pattern)
+
+
+def pattern_from_definition(item: LoadedSequence, definition: PatternDefinition) -> Pattern:
+    """The pattern an operator's definition describes; ValueError with the reason if it cannot be built."""
+    manual = [(p.snapshot, p.x, p.y) for p in definition.manual_points]
+    return build_pattern(item.sequence, item.extraction, exclude_tracks=definition.exclude_tracks,
+                         include_tracks=definition.include_tracks, manual_points=manual)
+
+
+def pattern_document(item: LoadedSequence, version: PatternVersion | None) -> PatternDocument:
+    definition = definition_of(version)
+    try:
+        points = PatternPoint.rows(pattern_from_definition(item, definition))
+    except ValueError:  # stored definitions were checked when stored; be safe anyway
+        points = PatternPoint.rows(item.extraction.pattern)
+    return PatternDocument(version=version.version if version else None,
+                           kind=version.kind if version else "automatic",
+                           operator=version.operator if version else None,
+                           created_at=utc_text(version.created_at) if version else None,
+                           definition=definition, points=points, reference_snapshot=int(item.extraction.reference))
+
+
+def current_pattern_version(ctx: AppContext, seq_id: int) -> int | None:
+    version = ctx.storage.current_pattern(seq_id)
+    return None if version is None else version.version
+
+
+def current_pattern(ctx: AppContext, seq_id: int) -> PatternDocument:
+    row = require_sequence(ctx, seq_id)
+    return pattern_document(loaded(ctx, row), ctx.storage.current_pattern(seq_id))
+
+
+def set_pattern(ctx: AppContext, seq_id: int, definition: PatternDefinition, operator: str | None) -> PatternDocument:
+    """Store the operator's pattern as a new version after checking it can be built."""
+    row = require_sequence(ctx, seq_id)
+    item = loaded(ctx, row)
+    try:
+        pattern_from_definition(item, definition)
+    except ValueError as exc:
+        raise Invalid(f"the pattern cannot be built: {exc}", message=str(exc)) from None
+    version = ctx.storage.add_pattern_version(seq_id, definition.model_dump(), kind="edit", operator=operator)
+    return pattern_document(item, version)
+
+
+def reset_pattern(ctx: AppContext, seq_id: int, operator: str | None) -> PatternDocument:
+    row = require_sequence(ctx, seq_id)
+    version = ctx.storage.add_pattern_version(seq_id, automatic_definition().model_dump(), kind="reset",
+                                              operator=operator)
+    return pattern_document(loaded(ctx, row), version)

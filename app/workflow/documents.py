@@ -1,0 +1,493 @@
+"""The documents the ground station emits and stores: one serializer for the CLI, the API and the archive.
+
+Inside the program everything is a typed object (:class:`app.extraction.Extraction`,
+:class:`app.identification.Candidate`, :class:`app.attitude.sequence.SequenceFit`,
+...).  This module is the only place that turns them into JSON and back:
+
+* ``XDocument.of(...)`` builds a document from the typed objects;
+* ``model_dump(mode="json")`` is the JSON that the CLI prints, the API answers
+  (the endpoints declare these models as their ``response_model``, so
+  ``/docs`` shows every field) and the archive stores;
+* ``XDocument.model_validate(json)`` parses a stored document once into a
+  typed object again, and the few numeric members that code needs as arrays
+  have a property for that (``CandidateDocument.rotation``).
+
+Stored documents written by older versions parse too: members added later have
+defaults, and unknown members are ignored.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from app.extraction import EXTRACTION_VERSION, Extraction, Pattern, Track, carried_tracks, seed_pattern, \
+    tracks_pattern
+from app.timefmt import utc_text
+
+
+class Document(BaseModel):
+    """Base of every document: members in declaration order, unknown stored members ignored."""
+
+    model_config = ConfigDict(extra="ignore")
+
+
+def _rounded(value: float | None, digits: int | None = 3) -> float | None:
+    """A finite float rounded to ``digits`` (None: kept exact); None for NaN, infinities and None."""
+    if value is None or not math.isfinite(value):
+        return None
+    return float(value) if digits is None else round(float(value), digits)
+
+
+# ---------------------------------------------------------------------------
+# Patterns and extraction
+# ---------------------------------------------------------------------------
+
+class PatternPoint(Document):
+    """One point of a pattern, in the reference snapshot's pixels."""
+
+    track: int | None = Field(description="track id; null for a point picked by hand")
+    x: float | None
+    y: float | None
+    brightness: float | None
+    sightings: int = Field(description="snapshots averaged into the point")
+    sigma_px: float | None = Field(description="estimated 1-sigma position error, pixels")
+
+    @classmethod
+    def rows(cls, pattern: Pattern) -> list["PatternPoint"]:
+        return [cls(track=int(t) if t >= 0 else None, x=_rounded(xy[0]), y=_rounded(xy[1]),
+                    brightness=_rounded(b), sightings=int(n), sigma_px=_rounded(s))
+                for t, xy, b, n, s in zip(pattern.track_ids, pattern.xy, pattern.brightness,
+                                          pattern.sightings, pattern.sigma_px)]
+
+
+class TrackDocument(Document):
+    id: int
+    snapshots: list[int] = Field(description="0-based positions of the snapshots where the track was seen")
+    xy: list[list[float]]
+    mean_brightness: float | None
+
+
+class ExtractionDocument(Document):
+    """Tracked stars vs ghosts, hot pixels and outliers (``python -m app extract --json``, stored with each upload).
+
+    ``sources`` holds, per snapshot, the track id (or null) of every input
+    source in input order, ``rejected`` the reason (``ghost``, ``hot_pixel``,
+    ``outlier``) or null.  ``motion[i]`` carries snapshot i's camera vectors
+    into the reference snapshot's frame (null where unknown).  The stored
+    document is authoritative: patterns refer to its track ids, so the
+    archive never re-runs extraction (see :meth:`to_extraction`).
+    """
+
+    version: int | None = Field(default=None, description="extraction version that made it (null: before version 1)")
+    reference_snapshot: int
+    sources: list[list[int | None]]
+    rejected: list[list[str | None]]
+    tracks: list[TrackDocument]
+    pattern: list[PatternPoint]
+    seed_pattern: list[PatternPoint]
+    noise_px: float | None = Field(description="estimated 1-sigma position noise of one sighting, pixels")
+    notes: list[str]
+    motion: list[list[list[float]] | None] | None = None
+
+    @classmethod
+    def of(cls, extraction: Extraction) -> "ExtractionDocument":
+        return cls(
+            version=EXTRACTION_VERSION,
+            reference_snapshot=int(extraction.reference),
+            sources=[[int(t) if t >= 0 else None for t in per] for per in extraction.track_of_source],
+            rejected=[list(per) for per in extraction.rejection],
+            tracks=[TrackDocument(id=int(t.id), snapshots=[int(s) for s in t.snapshots],
+                                  xy=[[round(float(x), 3), round(float(y), 3)] for x, y in t.xy],
+                                  mean_brightness=_rounded(t.mean_brightness, None))
+                    for t in extraction.tracks],
+            pattern=PatternPoint.rows(extraction.pattern),
+            seed_pattern=PatternPoint.rows(extraction.seed_pattern),
+            noise_px=_rounded(extraction.noise_px, None),
+            notes=list(extraction.notes),
+            motion=[m.tolist() if np.all(np.isfinite(m)) else None for m in extraction.motion])
+
+    @property
+    def complete(self) -> bool:
+        """Whether the document holds everything :meth:`to_extraction` needs (version 1 and later)."""
+        return self.version is not None and self.motion is not None and self.noise_px is not None
+
+    def to_extraction(self, sequence) -> Extraction:
+        """The :class:`Extraction` this document describes, for ``sequence`` (the telemetry it came from).
+
+        Sighting positions come from the telemetry itself (exact), the
+        motion and the noise from the document (stored unrounded), and the
+        patterns are rebuilt from them by the functions extraction itself
+        uses, so the result equals the extraction that was stored.
+        """
+        if not self.complete:
+            raise ValueError("the stored extraction predates extraction version 1 (no motion)")
+        track_of_source = tuple(np.array([-1 if t is None else t for t in per], dtype=int) for per in self.sources)
+        tracks = []
+        for t in self.tracks:
+            snapshots = np.array(t.snapshots, dtype=int)
+            indices = np.array([int(np.flatnonzero(track_of_source[s] == t.id)[0]) for s in snapshots], dtype=int)
+            xy = np.array([sequence.snapshots[s].xy[i] for s, i in zip(snapshots, indices)], dtype=float).reshape(-1, 2)
+            tracks.append(Track(id=t.id, snapshots=snapshots, source_indices=indices, xy=xy,
+                                mean_brightness=float(t.mean_brightness)))
+        motion = np.array([np.full((3, 3), np.nan) if m is None else m for m in self.motion], dtype=float)
+        camera = sequence.camera
+        return Extraction(reference=self.reference_snapshot, track_of_source=track_of_source,
+                          rejection=tuple(tuple(per) for per in self.rejected), tracks=tuple(tracks),
+                          motion=motion, pattern=tracks_pattern(camera, motion, carried_tracks(tracks, motion),
+                                                                self.noise_px),
+                          seed_pattern=seed_pattern(camera, self.reference_snapshot, tracks, self.noise_px),
+                          noise_px=self.noise_px, notes=tuple(self.notes))
+
+
+class ManualPointDefinition(Document):
+    snapshot: int
+    x: float
+    y: float
+
+
+class PatternDefinition(Document):
+    """The operator's pattern: tracks out, tracks in (null: every track), points picked by hand."""
+
+    exclude_tracks: list[int] = Field(default_factory=list)
+    include_tracks: list[int] | None = None
+    manual_points: list[ManualPointDefinition] = Field(default_factory=list)
+
+
+class PatternDocument(Document):
+    """The current pattern of a sequence: its stored definition and the points it gives."""
+
+    version: int | None
+    kind: Literal["automatic", "edit", "reset"]
+    operator: str | None
+    created_at: str | None
+    definition: PatternDefinition
+    points: list[PatternPoint]
+    reference_snapshot: int
+
+
+# ---------------------------------------------------------------------------
+# Candidates and searches
+# ---------------------------------------------------------------------------
+
+class StarMatchDocument(Document):
+    pattern_index: int = Field(description="row of the searched pattern")
+    track: int | None
+    hip: int
+    name: str | None
+    residual_arcsec: float
+
+
+class PlanetMatchDocument(Document):
+    pattern_index: int
+    track: int | None
+    name: str
+    residual_arcsec: float
+
+
+class SequenceFitDocument(Document):
+    """The constant-rate fit of the whole sequence (:mod:`app.attitude.sequence`)."""
+
+    rate_deg_s: list[float] = Field(description="body rate in camera axes, deg/s")
+    rate_sigma_deg_s: list[float]
+    snapshots_used: int
+    chi2_reduced: float
+
+    @classmethod
+    def of(cls, fit) -> "SequenceFitDocument":
+        return cls(rate_deg_s=[round(math.degrees(w), 7) for w in fit.rate_rad_s],
+                   rate_sigma_deg_s=[round(math.degrees(math.sqrt(v)), 7) for v in np.diag(fit.rate_covariance)],
+                   snapshots_used=len(fit.snapshots), chi2_reduced=round(fit.chi2_reduced, 3))
+
+    @property
+    def rate_rad_s(self) -> np.ndarray:
+        return np.radians(np.array(self.rate_deg_s, dtype=float))
+
+
+class CandidateDocument(Document):
+    """One ranked attitude candidate (README: "What a candidate says")."""
+
+    rank: int
+    deviation_arcsec: float
+    deviation_px_per_point: float
+    rms_arcsec: float | None
+    false_match_probability: float
+    ra_deg: float
+    dec_deg: float
+    roll_deg: float
+    quaternion: list[float] = Field(description="scalar-last [x, y, z, w] of rotation_matrix")
+    rotation_matrix: list[list[float]] = Field(description="ICRS -> camera at the reference snapshot")
+    matches: list[StarMatchDocument]
+    planets: list[PlanetMatchDocument]
+    generating_edge: list[int]
+    generating_pair_hip: list[int]
+    n_matched: int
+    n_hypotheses_merged: int = 1
+    sigma_cross_boresight_arcsec: float | None = None
+    sigma_roll_arcsec: float | None = None
+    sequence_fit: SequenceFitDocument | None = None
+
+    @classmethod
+    def of(cls, candidate, fit=None) -> "CandidateDocument":
+        """The document of an :class:`app.identification.Candidate` and its sequence fit (if any)."""
+        ra, dec, roll = candidate.radec_roll_deg
+        return cls(
+            rank=candidate.rank,
+            deviation_arcsec=round(candidate.deviation_arcsec, 3),
+            deviation_px_per_point=round(candidate.deviation_px_per_point, 4),
+            rms_arcsec=_rounded(candidate.rms_arcsec),
+            false_match_probability=float(f"{candidate.false_match_probability:.3g}"),
+            ra_deg=round(ra, 7), dec_deg=round(dec, 7), roll_deg=round(roll, 6),
+            quaternion=[round(float(x), 10) for x in candidate.quaternion],
+            rotation_matrix=[[round(float(x), 10) for x in row] for row in candidate.rotation_matrix],
+            matches=[StarMatchDocument(pattern_index=m.pattern_index, track=m.track, hip=m.hip, name=m.name,
+                                       residual_arcsec=round(m.residual_arcsec, 3)) for m in candidate.matches],
+            planets=[PlanetMatchDocument(pattern_index=p.pattern_index, track=p.track, name=p.name,
+                                         residual_arcsec=round(p.residual_arcsec, 3)) for p in candidate.planets],
+            generating_edge=list(candidate.generating_edge),
+            generating_pair_hip=list(candidate.generating_pair_hip),
+            n_matched=candidate.n_matched, n_hypotheses_merged=int(candidate.n_hypotheses_merged),
+            sigma_cross_boresight_arcsec=_rounded(candidate.sigma_cross_boresight_arcsec),
+            sigma_roll_arcsec=_rounded(candidate.sigma_roll_arcsec),
+            sequence_fit=None if fit is None else SequenceFitDocument.of(fit))
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """``rotation_matrix`` as a (3, 3) array."""
+        return np.array(self.rotation_matrix, dtype=float)
+
+    @property
+    def unit_quaternion(self) -> list[float]:
+        """``quaternion`` renormalised (it is stored rounded to 10 digits)."""
+        q = np.array(self.quaternion, dtype=float)
+        return list(q / np.linalg.norm(q))
+
+
+class SearchResult(Document):
+    """What one identification run found: the archive stores exactly this."""
+
+    status: Literal["identified", "ambiguous", "no_match"]
+    method: str
+    reference_snapshot: int
+    reference_time: str
+    pattern_version: int | None
+    pattern: list[PatternPoint] = Field(description="the searched pattern; candidates' pattern_index are its rows")
+    candidates: list[CandidateDocument]
+    notes: list[str]
+    elapsed_ms: float
+
+    def candidate(self, rank: int) -> CandidateDocument | None:
+        return next((c for c in self.candidates if c.rank == rank), None)
+
+
+class SearchDocument(SearchResult):
+    """A stored search as the API returns it."""
+
+    search_id: int
+    sequence: int
+    created_at: str
+    reused: bool = Field(default=False, description="true: answered from the archive (same pattern and options)")
+
+    @classmethod
+    def of(cls, search, reused: bool = False) -> "SearchDocument":
+        """The document of an archived search (:class:`app.storage.SearchRow`)."""
+        return cls(**search.result, search_id=search.id, sequence=search.seq_id,
+                   created_at=utc_text(search.created_at), reused=reused)
+
+
+class SolveDocument(Document):
+    """One line of ``python -m app solve --json``."""
+
+    file: str
+    sequence_id: str | None
+    status: Literal["identified", "ambiguous", "no_match", "invalid"]
+    error: str | None = None
+    reference_snapshot: int | None = None
+    sources: list[list[int | None]] = Field(default_factory=list)
+    source_stars: list[list[int | None]] | None = None
+    candidates: list[CandidateDocument] = Field(default_factory=list)
+    elapsed_ms: float | None = None
+    notes: list[str] = Field(default_factory=list)
+    tf_status: str | None = None
+    tf_candidates: list[CandidateDocument] | None = None
+    methods_agree: bool | None = None
+
+
+class ExtractDocument(Document):
+    """One line of ``python -m app extract --json``: the extraction members, null for an invalid file."""
+
+    file: str
+    sequence_id: str | None
+    status: Literal["ok", "invalid"]
+    error: str | None = None
+    reference_snapshot: int | None = None
+    sources: list[list[int | None]] | None = None
+    rejected: list[list[str | None]] | None = None
+    tracks: list[TrackDocument] | None = None
+    pattern: list[PatternPoint] | None = None
+    seed_pattern: list[PatternPoint] | None = None
+    noise_px: float | None = None
+    notes: list[str] | None = None
+
+
+# ---------------------------------------------------------------------------
+# Sequences, confirmations, the view
+# ---------------------------------------------------------------------------
+
+class SequenceSummary(Document):
+    id: int
+    sequence_id: str | None
+    spacecraft: str | None
+    filename: str | None
+    camera: dict[str, Any] | None
+    first_time: str | None
+    n_snapshots: int | None
+    uploaded_at: str | None
+    status: Literal["new", "identified", "ambiguous", "no_match", "confirmed"]
+    content_sha256: str
+
+    @classmethod
+    def of(cls, row) -> "SequenceSummary":
+        return cls(id=row.id, sequence_id=row.sequence_id, spacecraft=row.spacecraft, filename=row.filename,
+                   camera=row.camera, first_time=utc_text(row.first_time), n_snapshots=row.n_snapshots,
+                   uploaded_at=utc_text(row.uploaded_at), status=row.status, content_sha256=row.content_sha256)
+
+
+class SequencePage(Document):
+    items: list[SequenceSummary]
+    total: int
+    offset: int
+    limit: int
+
+
+class UploadDocument(Document):
+    id: int
+    created: bool = Field(description="false: the same content was stored before")
+    sequence: SequenceSummary
+    extraction: ExtractionDocument
+    pattern: PatternDocument
+
+
+class PatternUsed(Document):
+    """The pattern a confirmation was made on (its version may no longer be the current one)."""
+
+    version: int | None
+    points: list[PatternPoint]
+    definition: PatternDefinition
+
+
+class AttitudeDocument(Document):
+    """A confirmed attitude with its audit record."""
+
+    id: int
+    sequence: int
+    sequence_id: str | None
+    spacecraft: str | None
+    search_id: int | None
+    rank: int
+    operator: str
+    confirmed_at: str
+    comment: str | None
+    epoch: str | None = Field(description="time of the reference snapshot (UTC)")
+    ra_deg: float
+    dec_deg: float
+    roll_deg: float
+    quaternion: list[float]
+    rotation_matrix: list[list[float]]
+    rate_deg_s: list[float] | None = Field(description="fitted body rate (camera axes), when the sequence had one")
+    deviation_arcsec: float | None
+    false_match_probability: float | None
+    pattern: PatternUsed
+    candidate: CandidateDocument
+    superseded_by: int | None
+    current: bool
+    apm_url: str
+    aem_url: str | None
+
+
+    @classmethod
+    def of(cls, c, row) -> "AttitudeDocument":
+        """The document of a confirmation (:class:`app.storage.ConfirmationRow`) of sequence ``row``."""
+        return cls(id=c.id, sequence=c.seq_id, sequence_id=row.sequence_id if row else None,
+                   spacecraft=row.spacecraft if row else None, search_id=c.search_id, rank=c.rank,
+                   operator=c.operator, confirmed_at=utc_text(c.confirmed_at), comment=c.comment,
+                   epoch=utc_text(c.epoch), ra_deg=c.ra_deg, dec_deg=c.dec_deg, roll_deg=c.roll_deg,
+                   quaternion=c.quaternion, rotation_matrix=c.rotation_matrix, rate_deg_s=c.rate_deg_s,
+                   deviation_arcsec=c.deviation_arcsec, false_match_probability=c.false_match_probability,
+                   pattern=PatternUsed.model_validate(c.pattern), candidate=CandidateDocument.model_validate(c.candidate),
+                   superseded_by=c.superseded_by, current=c.is_current, apm_url=f"/api/attitudes/{c.id}/apm",
+                   aem_url=f"/api/sequences/{c.seq_id}/aem" if c.aem_text else None)
+
+
+class AttitudePage(Document):
+    items: list[AttitudeDocument]
+    total: int
+    offset: int
+    limit: int
+
+
+class SequenceDetail(SequenceSummary):
+    telemetry: dict[str, Any] = Field(description="the upload in the tubsat-snapshots/1 JSON form")
+    extraction: ExtractionDocument
+    pattern: PatternDocument
+    search: SearchDocument | None
+    confirmation: AttitudeDocument | None
+
+
+class CandidateView(Document):
+    """One candidate of the latest search with its sky section (:mod:`app.workflow.skyview`)."""
+
+    sequence: int
+    search_id: int
+    status: str
+    rank: int
+    n_candidates: int
+    reference_snapshot: int
+    reference_time: str
+    candidate: CandidateDocument
+    sky: dict[str, Any]
+
+
+class ViewDocument(Document):
+    """The shared view state and what the archive says about its sequence now."""
+
+    sequence: int | None
+    rank: int | None
+    mag: float
+    revision: int
+    updated_by: str
+    updated_at: str | None
+    search_id: int | None = None
+    n_candidates: int = 0
+    status: str | None = None
+    pattern_version: int | None = None
+    confirmation_id: int | None = None
+
+
+class ViewerDocument(Document):
+    available: bool
+    url: str | None
+    host: str | None = None
+    port: int | None = None
+    detail: str | None = None
+
+
+class IndexHealth(Document):
+    loaded: bool
+    stars: int | None = None
+    pairs: int | None = None
+    mag_limit: float | None = None
+
+
+class HealthDocument(Document):
+    status: Literal["ok", "degraded"]
+    db: dict[str, Any]
+    index: IndexHealth
+    auth_required_for_writes: bool
+    max_upload_bytes: int
+    search_timeout_s: float
+    search_workers: str
+

@@ -1,0 +1,72 @@
+"""The pipeline on telemetry files, without an archive: what ``python -m app solve`` and ``extract`` print.
+
+Each file gives one document (:class:`SolveDocument`, :class:`ExtractDocument`),
+the same candidate and extraction documents the API returns; a file that
+does not parse gives a document with status ``invalid`` and its located
+error, and the batch goes on.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+
+from app.attitude import rotation_angle_between
+from app.extraction import extract
+from app.identification import Prior, SearchOptions, Sky, solve_sequence, source_stars
+from app.telemetry import Sequence
+from app.telemetry.errors import TelemetryError
+from app.telemetry.formats import load_telemetry_file
+from app.workflow.documents import CandidateDocument, ExtractDocument, ExtractionDocument, SolveDocument
+
+#: Two first candidates closer than this (rotation angle) are the same attitude.
+AGREE_DEG = 0.1
+
+
+def telemetry_files(paths: list[str]) -> Iterator[tuple[str, Sequence | None, TelemetryError | None]]:
+    """``(path, sequence, None)`` for each file that parses, ``(path, None, error)`` for each that does not."""
+    for path in paths:
+        try:
+            yield path, load_telemetry_file(path), None
+        except TelemetryError as exc:
+            yield path, None, exc
+
+
+def extract_document(path: str, sequence: Sequence) -> ExtractDocument:
+    extraction = ExtractionDocument.of(extract(sequence))
+    return ExtractDocument(file=path, sequence_id=sequence.sequence_id, status="ok",
+                           **extraction.model_dump(include=set(ExtractDocument.model_fields) - {"file"}))
+
+
+def solve_document(path: str, sequence: Sequence, sky: Sky, *, options: SearchOptions,
+                   method: str = "bright_pair", prior: Prior | None = None, compare_tf: bool = False) -> SolveDocument:
+    """Identify one file's sequence; with ``compare_tf`` also by triangle features, and say whether they agree.
+
+    ``source_stars`` gives, per snapshot and source in input order, the HIP
+    number the first candidate's attitude assigns it (null: no star there),
+    or is null when that candidate is not credible.
+    """
+    solved = solve_sequence(sequence, sky, options=options, method=method, prior=prior)
+    s = solved.solution
+    doc = SolveDocument(
+        file=path, sequence_id=sequence.sequence_id, status=s.status,
+        reference_snapshot=int(solved.extraction.reference),
+        sources=[[int(t) if t >= 0 else None for t in per] for per in solved.extraction.track_of_source],
+        source_stars=source_stars(solved, sky),
+        candidates=[CandidateDocument.of(c, solved.sequence_fits.get(c.rank)) for c in s.candidates],
+        elapsed_ms=round(s.elapsed_s * 1000, 2), notes=list(solved.extraction.notes) + list(s.notes))
+    if compare_tf and prior is None:
+        tf = solve_sequence(sequence, sky, options=options, extraction=solved.extraction, pattern=solved.pattern,
+                            method="tf").solution
+        doc.tf_status = tf.status
+        doc.tf_candidates = [CandidateDocument.of(c) for c in tf.candidates]
+        doc.methods_agree = methods_agree(s, tf)
+    return doc
+
+
+def methods_agree(a, b, tolerance_deg: float = AGREE_DEG) -> bool:
+    """True when both solutions' first candidates are one attitude, or neither has a candidate."""
+    if not a.candidates or not b.candidates:
+        return not a.candidates and not b.candidates
+    angle = rotation_angle_between(a.candidates[0].rotation_matrix, b.candidates[0].rotation_matrix)
+    return math.degrees(angle) <= tolerance_deg
