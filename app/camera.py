@@ -11,14 +11,25 @@ Conventions (used everywhere in this project):
       a = X/Z, b = Y/Z, r^2 = a^2 + b^2
       d = 1 + k1 r^2 + k2 r^4
       u = cx + f * a * d,  v = cy + f * b * d
+
+A declared camera may also say how well it is known (issue 11): the focal
+length to a fraction ``focal_length_tolerance`` (default
+:data:`DEFAULT_FOCAL_LENGTH_TOLERANCE` when not declared) and bounds on the
+undeclared distortion, ``|k1| <= k1_bound``, ``|k2| <= k2_bound`` (None:
+unknown).  These describe the *declaration*, not the optics: projection
+ignores them.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
+
+#: Focal length uncertainty (fraction) assumed when a camera declares none:
+#: lab calibrations give ~1 %, thermal drift and lens replacements a few %.
+DEFAULT_FOCAL_LENGTH_TOLERANCE = 0.05
 
 
 @dataclass(frozen=True)
@@ -35,6 +46,12 @@ class Camera:
     name: str | None = None
     # Faintest magnitude (Hipparcos Hp) the sensor detects; None: derive one.
     mag_limit: float | None = None
+    # How well the declaration is known (None: not declared).
+    #: Largest plausible fractional error of ``focal_length_px`` (0.01: known to 1 %).
+    focal_length_tolerance: float | None = None
+    #: Bounds on the absolute values of the true k1, k2.
+    k1_bound: float | None = None
+    k2_bound: float | None = None
 
     # --- derived figures -------------------------------------------------
     @property
@@ -64,6 +81,25 @@ class Camera:
                    float(np.arccos(np.clip(v[2] @ v[3], -1, 1))))
 
     @property
+    def focal_tolerance(self) -> float:
+        """The declared focal length tolerance, or :data:`DEFAULT_FOCAL_LENGTH_TOLERANCE`."""
+        if self.focal_length_tolerance is None:
+            return DEFAULT_FOCAL_LENGTH_TOLERANCE
+        return float(self.focal_length_tolerance)
+
+    @property
+    def corner_radius(self) -> float:
+        """Normalised (pinhole) radius of the sensor corner farthest from the principal point.
+
+        The radius ``r`` of the distortion model at that corner: radial
+        distortion displaces the corner by the fraction ``k1 r^2 + k2 r^4``
+        of its distance from the principal point.
+        """
+        dx = max(self.cx + 0.5, self.width - 0.5 - self.cx)
+        dy = max(self.cy + 0.5, self.height - 0.5 - self.cy)
+        return math.hypot(dx, dy) / self.focal_length_px
+
+    @property
     def limiting_magnitude(self) -> float:
         """The configured limit, or one derived from the field of view.
 
@@ -81,8 +117,22 @@ class Camera:
         return float(min(6.5, max(3.5, round(limit, 1))))
 
     def to_dict(self) -> dict:
+        """The telemetry camera object: optional fields only when set (k1, k2 when non-zero)."""
         d = asdict(self)
         return {k: v for k, v in d.items() if v is not None and not (k in ("k1", "k2") and v == 0.0)}
+
+    def with_optics(self, focal_length_px: float | None = None, cx: float | None = None,
+                    cy: float | None = None, k1: float | None = None, k2: float | None = None) -> Camera:
+        """A copy with the given optical parameters changed (None: keep), everything else kept."""
+        changes = {key: float(value) for key, value in
+                   (("focal_length_px", focal_length_px), ("cx", cx), ("cy", cy), ("k1", k1), ("k2", k2))
+                   if value is not None}
+        return replace(self, **changes)
+
+    def optics(self) -> dict:
+        """The parameters that decide where a star lands: focal_length_px, cx, cy, k1, k2."""
+        return {"focal_length_px": self.focal_length_px, "cx": self.cx, "cy": self.cy,
+                "k1": self.k1, "k2": self.k2}
 
     # --- projection ------------------------------------------------------
     def _distort(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -15,7 +15,9 @@ that snapshot's, so a target stays in view through the sequence).
 Stars are the Hipparcos-2 stars (:func:`app.catalogue.load_catalogue`) at
 their apparent places at ``t_i`` (proper motion + aberration), planets are
 at their ephemeris places (:mod:`app.planets`).  Both are projected with
-``camera.vectors_to_pixels``.  Then, per snapshot:
+``camera.vectors_to_pixels`` -- or, when the true optics differ from the
+declared camera (``true_camera``, below), with the true camera's.  Then, per
+snapshot:
 
 * detection: a source of magnitude ``m`` is seen with probability
   ``1 / (1 + exp((m - m_lim) / 0.15))`` (50 % at the camera's limiting
@@ -34,8 +36,27 @@ at their ephemeris places (:mod:`app.planets`).  Both are projected with
 Earth in view: no stars, no planets; bright blobs (clouds, glints) that
 drift each with its own velocity, so no rigid motion links them.
 
+Imperfect optics (issue 11)
+---------------------------
+Real focal lengths are known to ~1-5 % and lenses have radial distortion
+nobody declared.  ``true_camera`` (built by :func:`true_optics`) is the camera
+that really projects the sky; the telemetry still declares ``camera``.  Its
+focal length is ``f_declared * (1 + focal_error)``, its distortion ``k1``,
+``k2`` (absolute values, replacing the declared ones) and its principal point
+may be offset.  The truth file then carries ``"true_camera"``: its
+``focal_length_px``, ``cx``, ``cy``, ``k1``, ``k2``.
+
+Distortion "as a fraction of the field radius": the model moves a point at
+normalised radius ``r`` (``r = distance from the principal point / f``) outwards
+by the fraction ``k1 r^2 + k2 r^4`` of that distance.  At the sensor corner,
+``r = half-diagonal / f`` (:attr:`Camera.corner_radius`), so a corner moved by
+the fraction ``p`` needs ``k1 = p / r^2``: 1 % is k1 = 0.20 on the 20 deg
+camera (r = 0.223, ~4.8 px at the corner), 0.066 on the 30 deg one (r = 0.388,
+~4.2 px) -- :func:`k1_for_corner_distortion`.
+
 Everything random comes from the ``rng`` passed in, so a seed fixes the
-output byte for byte.
+output byte for byte (true optics draw nothing random: the same seed gives
+the same sky, only projected differently).
 """
 
 from __future__ import annotations
@@ -78,6 +99,11 @@ BRIGHT_PLANETS = ("venus", "mars", "jupiter", "saturn")
 SUN_EXCLUSION_DEG = 40.0
 MERCURY_SUN_EXCLUSION_DEG = 20.0
 BIG_DIPPER_RADEC_DEG = (178.0, 56.0)
+
+#: Limits of the simulated optical errors (validated by :func:`true_optics`).
+MAX_FOCAL_ERROR = 0.2            # fraction of the declared focal length
+MAX_DISTORTION_COEFFICIENT = 1.0  # |k1|, |k2| (the telemetry's k bounds go to 1 too)
+MAX_CORNER_DISTORTION = 0.1      # |k1 r^2 + k2 r^4| at the sensor corner: 10 % of the radius
 
 _SIM_START = datetime(1990, 1, 1, tzinfo=timezone.utc)
 _SIM_END = datetime(2030, 1, 1, tzinfo=timezone.utc)
@@ -183,6 +209,69 @@ def random_time(rng: np.random.Generator) -> datetime:
 
 def snapshot_times(start: datetime, n: int, spacing_ms: int) -> list[datetime]:
     return [start + timedelta(milliseconds=i * spacing_ms) for i in range(n)]
+
+
+def k1_for_corner_distortion(camera: Camera, fraction: float) -> float:
+    """The k1 that moves the sensor corner by ``fraction`` of its distance from the principal point.
+
+    ``k1 r^2 = fraction`` with ``r`` = :attr:`Camera.corner_radius`
+    (half-diagonal / f): 0.01 ("1 % of the field radius") gives k1 = 0.20 on
+    the 20 deg camera.
+    """
+    return float(fraction) / camera.corner_radius ** 2
+
+
+def true_optics(camera: Camera, *, focal_error: float = 0.0, k1: float | None = None,
+                k2: float | None = None, cx_offset: float = 0.0, cy_offset: float = 0.0) -> Camera:
+    """The camera that really projects the sky when ``camera`` is what the telemetry declares.
+
+    Focal length ``f * (1 + focal_error)``; ``k1``, ``k2`` replace the
+    declared coefficients (None: keep them); principal point moved by
+    ``cx_offset``, ``cy_offset`` pixels.  Raises ValueError, saying which and
+    why, for a focal error outside +-0.2, a coefficient outside +-1, a
+    distortion larger than 10 % of the radius at the sensor corner or not
+    monotonic out to it, or a principal point outside the central half of the
+    sensor.
+    """
+    values = {"focal_error": focal_error, "k1": k1, "k2": k2, "cx_offset": cx_offset, "cy_offset": cy_offset}
+    for key, value in values.items():
+        if value is not None and not math.isfinite(value):
+            raise ValueError(f"{key} must be a finite number, got {value!r}")
+    if not -MAX_FOCAL_ERROR <= focal_error <= MAX_FOCAL_ERROR:
+        raise ValueError(f"focal_error must be between -{MAX_FOCAL_ERROR:g} and {MAX_FOCAL_ERROR:g} "
+                         f"(a fraction: 0.03 is 3 %), got {focal_error:g}")
+    for key in ("k1", "k2"):
+        if values[key] is not None and abs(values[key]) > MAX_DISTORTION_COEFFICIENT:
+            raise ValueError(f"{key} must be within +-{MAX_DISTORTION_COEFFICIENT:g}, got {values[key]:g}")
+    for key, size in (("cx_offset", camera.width), ("cy_offset", camera.height)):
+        if abs(values[key]) > size / 4:
+            raise ValueError(f"{key} must be within +-{size / 4:g} px (the principal point stays in the "
+                             f"central half of the sensor), got {values[key]:g}")
+    true = camera.with_optics(focal_length_px=camera.focal_length_px * (1.0 + focal_error),
+                              cx=camera.cx + cx_offset, cy=camera.cy + cy_offset, k1=k1, k2=k2)
+    _check_distortion(true)
+    return true
+
+
+def _check_distortion(camera: Camera) -> None:
+    """The radial map r -> r (1 + k1 r^2 + k2 r^4) must stay small and increasing out to the corner."""
+    r_corner = camera.corner_radius
+    corner = camera.k1 * r_corner ** 2 + camera.k2 * r_corner ** 4
+    if abs(corner) > MAX_CORNER_DISTORTION:
+        raise ValueError(f"k1 = {camera.k1:g}, k2 = {camera.k2:g} move the sensor corner by {100 * corner:.1f} % "
+                         f"of its radius; at most {100 * MAX_CORNER_DISTORTION:g} % is simulated "
+                         f"(1 % is k1 = {k1_for_corner_distortion(camera, 0.01):.3g} for this camera)")
+    r2 = np.linspace(0.0, r_corner, 101) ** 2
+    slope = 1.0 + 3.0 * camera.k1 * r2 + 5.0 * camera.k2 * r2 * r2  # d/dr of r (1 + k1 r^2 + k2 r^4)
+    if np.any(slope <= 0.0):
+        raise ValueError(f"k1 = {camera.k1:g}, k2 = {camera.k2:g} fold the image over before the sensor corner")
+
+
+def true_camera_truth(camera: Camera, true_camera: Camera | None) -> dict | None:
+    """The truth file's ``true_camera`` entry, or None when the true optics are the declared ones."""
+    if true_camera is None or true_camera.optics() == camera.optics():
+        return None
+    return {key: float(value) for key, value in true_camera.optics().items()}
 
 
 # --- the simulation -----------------------------------------------------------
@@ -376,14 +465,17 @@ def _measure_snapshot(rng, camera, sensor, sky: _SkySources, ghosts: int,
 def simulate_sequence(rng: np.random.Generator, camera: Camera, scenario: str = "nominal", *,
                       n_snapshots: int = 16, pointing: tuple[float, float, float] | None = None,
                       start_time: datetime | None = None, sequence_id: str | None = None,
-                      planet: str | None = None, sensor: SensorModel = SensorModel()
-                      ) -> tuple[Sequence, dict]:
+                      planet: str | None = None, sensor: SensorModel = SensorModel(),
+                      true_camera: Camera | None = None) -> tuple[Sequence, dict]:
     """One simulated sequence and its truth (a JSON-serialisable dict).
 
     ``pointing`` (RA, Dec, roll in degrees) is the attitude of the middle
     snapshot; ``planet`` pins the planet of the "planet" scenario.  The
-    "single" scenario always has one snapshot.  Raises ValueError for an
-    unknown scenario or planet or a snapshot count outside 1..64.
+    "single" scenario always has one snapshot.  ``true_camera`` (see
+    :func:`true_optics`; same sensor size) projects the sky while the
+    sequence declares ``camera``; the truth then has ``"true_camera"``.
+    Raises ValueError for an unknown scenario or planet, a snapshot count
+    outside 1..64, or a true camera of another size.
     """
     if scenario not in SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; choose from {', '.join(SCENARIOS)}")
@@ -396,6 +488,11 @@ def simulate_sequence(rng: np.random.Generator, camera: Camera, scenario: str = 
     if start_time is not None and (start_time.tzinfo is None or not 1900 <= start_time.year <= 2098):
         # 1900-2099 is where the telemetry format and the built-in ephemeris are valid.
         raise ValueError("start_time must be a timezone-aware UTC time in 1900..2098")
+    if true_camera is not None and (true_camera.width, true_camera.height) != (camera.width, camera.height):
+        raise ValueError("true_camera must have the declared camera's sensor size")
+    # Where light really lands; the declared camera still decides everything
+    # the operator chose (sensor size, magnitude limit, motion per snapshot).
+    optics = camera if true_camera is None else true_camera
     plan = _PLANS[scenario]
     limit = camera.limiting_magnitude
     if sequence_id is None:
@@ -425,7 +522,7 @@ def simulate_sequence(rng: np.random.Generator, camera: Camera, scenario: str = 
         rotations = [attitude_at(R_ref, body_rate, (t - times[ref]).total_seconds()) for t in times]
         if plan.earth:
             break
-        sightings = _star_sightings(camera, stars, rotations, times)
+        sightings = _star_sightings(optics, stars, rotations, times)
         keep = None
         if plan.sparse_stars:
             keep = _choose_sparse_stars(rng, camera, stars, sightings, n_snapshots, plan.sparse_stars)
@@ -451,7 +548,7 @@ def simulate_sequence(rng: np.random.Generator, camera: Camera, scenario: str = 
             if plan.sparse_stars is None:
                 names = list(TYPICAL_MAGNITUDES)
                 vecs = planet_vectors(t)
-                pxy, ok = _in_view(camera, np.array([vecs[n] for n in names]) @ R.T)
+                pxy, ok = _in_view(optics, np.array([vecs[n] for n in names]) @ R.T)
                 for k in np.flatnonzero(ok):
                     mag = TYPICAL_MAGNITUDES[names[k]]
                     sky.add(pxy[k], brightness_from_magnitude(mag, saturation),
@@ -486,7 +583,33 @@ def simulate_sequence(rng: np.random.Generator, camera: Camera, scenario: str = 
     }
     if target_planet:
         truth["target_planet"] = target_planet
+    true_optics_truth = true_camera_truth(camera, true_camera)
+    if true_optics_truth is not None:
+        truth["true_camera"] = true_optics_truth
     return sequence, truth
+
+
+def truth_matched_stars(sequence: Sequence, truth: dict) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """Per snapshot with star sources: (position in the sequence, pixels (n, 2), ICRS unit vectors (n, 3)).
+
+    The sources the truth labels as stars (blends included: they are what a
+    real matcher would pair), with their catalogue stars' apparent places at
+    the snapshot's time -- the matched stars a perfect identification would
+    hand to :func:`app.camera_fit.calibrate`.
+    """
+    catalogue = load_catalogue()
+    rows = catalogue.index_of_hip()
+    out = []
+    for position, (snapshot, labels) in enumerate(zip(sequence.snapshots, truth["sources"])):
+        picked = [(k, rows[label["hip"]]) for k, label in enumerate(labels) if label["kind"] == "star"]
+        if not picked:
+            continue
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*dubious year")  # see _star_sightings
+            vectors = catalogue.apparent_vectors(snapshot.time)
+        sources, stars = zip(*picked)
+        out.append((position, snapshot.xy[list(sources)], vectors[list(stars)]))
+    return out
 
 
 # --- files -----------------------------------------------------------------
@@ -524,13 +647,23 @@ def camera_cycle(camera_name: str | None, i: int) -> Camera:
 
 def write_simulation(outdir: Path, n: int, seed: int, camera_name: str | None, scenario: str, *,
                      name: str | None = None, csv: bool = False, planet: str | None = None,
-                     start_time: datetime | None = None) -> list[Path]:
+                     start_time: datetime | None = None, focal_error: float = 0.0,
+                     k1: float | None = None, k2: float | None = None,
+                     corner_distortion: float | None = None,
+                     cx_offset: float = 0.0, cy_offset: float = 0.0) -> list[Path]:
     """Write ``n`` sequences as ``<id>.json`` (or ``<id>.csv``) plus ``<id>.truth.json``.
 
     Sequence ``i`` draws from ``default_rng([seed, i])``, so it does not
     depend on ``n`` and the files are the same byte for byte for a seed.
     Ids are ``sim-<seed>-<i>`` or, with ``name``, ``name`` (n == 1) or
     ``name-<i>``.  Returns the paths written.
+
+    ``focal_error``, ``k1``, ``k2``, ``cx_offset``, ``cy_offset``: the true
+    optics differ from the declared camera (:func:`true_optics`);
+    ``corner_distortion`` gives k1 per camera as the fraction of the field
+    radius the sensor corner moves in the true optics
+    (:func:`k1_for_corner_distortion` of the true focal length and principal
+    point; not with ``k1``).
     """
     if n < 1:
         raise ValueError("n must be at least 1")
@@ -538,6 +671,20 @@ def write_simulation(outdir: Path, n: int, seed: int, camera_name: str | None, s
         raise ValueError(f"name {name!r} must be a plain file name (no directory, not hidden)")
     if scenario not in SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; choose from {', '.join(SCENARIOS)}")
+    if k1 is not None and corner_distortion is not None:
+        raise ValueError("give k1 or corner_distortion, not both")
+
+    def true_camera_of(camera: Camera) -> Camera:
+        k1_true = k1
+        if corner_distortion is not None:  # the corner of the true optics (focal error, offsets applied)
+            undistorted = true_optics(camera, focal_error=focal_error, cx_offset=cx_offset, cy_offset=cy_offset)
+            k1_true = k1_for_corner_distortion(undistorted, corner_distortion)
+        return true_optics(camera, focal_error=focal_error, k1=k1_true, k2=k2,
+                           cx_offset=cx_offset, cy_offset=cy_offset)
+
+    # Validate before writing anything: every camera the run will use.
+    for i in range(min(n, len(CAMERAS))):
+        true_camera_of(camera_cycle(camera_name, i))
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -549,7 +696,7 @@ def write_simulation(outdir: Path, n: int, seed: int, camera_name: str | None, s
             sequence_id = f"sim-{seed}-{i:04d}"
         sequence, truth = simulate_sequence(np.random.default_rng([seed, i]), camera, scenario,
                                             sequence_id=sequence_id, planet=planet,
-                                            start_time=start_time)
+                                            start_time=start_time, true_camera=true_camera_of(camera))
         if csv:
             from app.telemetry.formats import dump_csv
 

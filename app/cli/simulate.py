@@ -3,6 +3,10 @@
 Writes ``<id>.json`` (tubsat-snapshots/1) or, with ``--csv``, ``<id>.csv``,
 and ``<id>.truth.json`` for each sequence; prints the paths written.
 The same arguments give the same files byte for byte.
+
+``--focal-error``, ``--k1``, ``--k2``, ``--corner-distortion``, ``--cx-offset``,
+``--cy-offset``: the true optics differ from the camera the files declare
+(the truth file says how, under ``true_camera``).
 """
 
 from __future__ import annotations
@@ -42,6 +46,17 @@ _positive_int = _int_at_least(1)
 _seed = _int_at_least(0)
 
 
+def _finite_float(text: str) -> float:
+    """An argparse type: a finite decimal number (limits are checked by app.simulate.true_optics)."""
+    try:
+        value = float(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from exc
+    if value != value or value in (float("inf"), float("-inf")):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
+    return value
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = "scenarios:\n" + "\n".join(f"  {k:<11} {v}" for k, v in SCENARIOS.items())
@@ -59,6 +74,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--name", default=None,
                         help="sequence id and file name (NAME.json, or NAME-0000.json ... when --n > 1)")
     parser.add_argument("--csv", action="store_true", help="write the CSV form instead of JSON")
+    optics = parser.add_argument_group(
+        "true optics", "the sky is projected with these while the files declare the nominal camera")
+    optics.add_argument("--focal-error", type=_finite_float, default=0.0, metavar="F",
+                        help="true focal length = declared * (1 + F); F in -0.2..0.2 (0.03: 3 %% long)")
+    distortion = optics.add_mutually_exclusive_group()
+    distortion.add_argument("--k1", type=_finite_float, default=None, metavar="K",
+                            help="true radial distortion k1 (|K| <= 1); k1 r^2 is the fraction the corner "
+                                 "moves, r = half-diagonal / f (20 deg camera: 1 %% is k1 = 0.20)")
+    distortion.add_argument("--corner-distortion", type=_finite_float, default=None, metavar="P",
+                            help="k1 such that the sensor corner moves by the fraction P of its radius "
+                                 "(0.01: 1 %%), computed for each camera")
+    optics.add_argument("--k2", type=_finite_float, default=None, metavar="K", help="true k2 (|K| <= 1)")
+    optics.add_argument("--cx-offset", type=_finite_float, default=0.0, metavar="PX",
+                        help="true principal point x = declared cx + PX")
+    optics.add_argument("--cy-offset", type=_finite_float, default=0.0, metavar="PX",
+                        help="true principal point y = declared cy + PX")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -67,7 +98,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         paths = write_simulation(args.outdir, args.n, args.seed, args.camera, args.scenario,
                                  name=args.name, csv=args.csv, planet=args.planet,
-                                 start_time=args.start_time)
+                                 start_time=args.start_time, focal_error=args.focal_error,
+                                 k1=args.k1, k2=args.k2, corner_distortion=args.corner_distortion,
+                                 cx_offset=args.cx_offset, cy_offset=args.cy_offset)
     except ImportError:
         print("error: the CSV writer (app.telemetry.formats.dump_csv) is not available", file=sys.stderr)
         return 2

@@ -50,6 +50,8 @@ from app.timefmt import utc_text
 CSV_COLUMNS = ("snapshot", "time", "x", "y", "brightness")
 MAX_SENSOR_SIZE_PX = 100_000
 MAX_DISTORTION = 10.0          # |k1|, |k2|; real lenses are well below 1
+MAX_FOCAL_LENGTH_TOLERANCE = 0.2   # a focal length known worse than 20 % is not a camera model
+MAX_DISTORTION_BOUND = 1.0     # k1_bound, k2_bound: 1 is already extreme for a star camera
 MAX_SPEED_KM_S = 100.0         # a spacecraft near the Earth moves at < 12 km/s
 MAX_TEXT_LENGTH = 128          # sequence_id, spacecraft
 MAX_INDEX = 2**31 - 1          # snapshot index; fits every database integer
@@ -58,7 +60,10 @@ EARLIEST_TIME = datetime(1900, 1, 1, tzinfo=timezone.utc)
 LATEST_TIME = datetime(2100, 1, 1, tzinfo=timezone.utc)
 
 _CAMERA_REQUIRED = ("width", "height", "focal_length_px", "cx", "cy")
-_CAMERA_OPTIONAL = ("k1", "k2", "name", "mag_limit")
+_CAMERA_OPTIONAL = ("k1", "k2", "name", "mag_limit", "focal_length_tolerance", "k1_bound", "k2_bound")
+#: Optional camera fields bounded to [0, limit]: how well the declared optics are known.
+_CAMERA_UNCERTAINTY_LIMITS = {"focal_length_tolerance": MAX_FOCAL_LENGTH_TOLERANCE,
+                              "k1_bound": MAX_DISTORTION_BOUND, "k2_bound": MAX_DISTORTION_BOUND}
 _TOP_LEVEL_KEYS = ("format", "sequence_id", "spacecraft", "camera", "snapshots", "velocity_km_s")
 _SNAPSHOT_KEYS = ("index", "time", "sources")
 _SOURCE_KEYS = ("x", "y", "brightness")
@@ -341,7 +346,7 @@ def _camera_from_fields(fields: Mapping[str, Any], where: Callable[[str], str],
     for key in ("focal_length_px", "cx", "cy"):
         if key in fields:
             values[key] = _as_number(fields[key], where(key), problems)
-    for key in ("k1", "k2", "mag_limit"):  # optional: null is the same as absent
+    for key in ("k1", "k2", "mag_limit", *_CAMERA_UNCERTAINTY_LIMITS):  # optional: null is absent
         if fields.get(key) is not None:
             values[key] = _as_number(fields[key], where(key), problems)
     focal = values.get("focal_length_px")
@@ -351,6 +356,10 @@ def _camera_from_fields(fields: Mapping[str, Any], where: Callable[[str], str],
     for key in ("k1", "k2"):
         if values.get(key) is not None and abs(values[key]) > MAX_DISTORTION:
             problems.add(where(key), f"must be within +-{MAX_DISTORTION:g}, got {values[key]:g}")
+            values[key] = None
+    for key, limit in _CAMERA_UNCERTAINTY_LIMITS.items():
+        if values.get(key) is not None and not 0.0 <= values[key] <= limit:
+            problems.add(where(key), f"must be between 0 and {limit:g}, got {values[key]:g}")
             values[key] = None
     if fields.get("name") is not None:
         name = fields["name"]
@@ -365,7 +374,8 @@ def _camera_from_fields(fields: Mapping[str, Any], where: Callable[[str], str],
     return Camera(width=values["width"], height=values["height"],
                   focal_length_px=values["focal_length_px"], cx=values["cx"], cy=values["cy"],
                   k1=values.get("k1", 0.0), k2=values.get("k2", 0.0), name=values.get("name"),
-                  mag_limit=values.get("mag_limit"))
+                  mag_limit=values.get("mag_limit"),
+                  **{key: values[key] for key in _CAMERA_UNCERTAINTY_LIMITS if key in values})
 
 
 def _named_camera(name: str, loc: str, problems: ProblemCollector) -> Camera | None:
