@@ -18,6 +18,10 @@ Records
   ``automatic`` (extraction), ``edit`` (operator) or ``reset`` (the automatic
   pattern again, as a new version: history is never rewritten).
 * ``searches`` - append-only results of identification runs.
+* ``calibrations`` - append-only, numbered 1, 2, ... per spacecraft: a camera
+  fitted over many identified sequences (who, when, from which sequences);
+  an upload without a camera block is given the current one
+  (``sequences.camera_calibration`` says which).
 * ``confirmations`` - append-only audit records of confirmed attitudes,
   including the APM text rendered once at confirmation so that its export is
   byte-for-byte stable.  A newer confirmation of the same sequence sets
@@ -204,6 +208,33 @@ MIGRATIONS: list[list[str]] = [
               OR NEW.extraction_json IS NOT OLD.extraction_json
             BEGIN SELECT RAISE(ABORT, 'an upload is never changed'); END""",
     ],
+    # 3: camera calibrations of a spacecraft, versioned and append-only; an upload records the
+    # calibration whose camera it was given (its file had no camera block).
+    [
+        """CREATE TABLE calibrations (
+            id INTEGER PRIMARY KEY,
+            spacecraft TEXT NOT NULL,
+            version INTEGER NOT NULL,
+            camera_json TEXT NOT NULL,
+            result_json TEXT NOT NULL,
+            sequences_json TEXT NOT NULL,
+            operator TEXT,
+            created_at TEXT NOT NULL,
+            UNIQUE (spacecraft, version)
+        )""",
+        """CREATE TRIGGER calibrations_no_update BEFORE UPDATE ON calibrations
+            BEGIN SELECT RAISE(ABORT, 'calibrations are append-only'); END""",
+        """CREATE TRIGGER calibrations_no_delete BEFORE DELETE ON calibrations
+            BEGIN SELECT RAISE(ABORT, 'calibrations are append-only'); END""",
+        "ALTER TABLE sequences ADD COLUMN camera_calibration INTEGER",
+        "DROP TRIGGER sequences_keep_content",
+        """CREATE TRIGGER sequences_keep_content BEFORE UPDATE ON sequences
+            WHEN NEW.id IS NOT OLD.id OR NEW.content_sha256 IS NOT OLD.content_sha256
+              OR NEW.raw_text IS NOT OLD.raw_text OR NEW.uploaded_at IS NOT OLD.uploaded_at
+              OR NEW.extraction_json IS NOT OLD.extraction_json OR NEW.camera_json IS NOT OLD.camera_json
+              OR NEW.camera_calibration IS NOT OLD.camera_calibration
+            BEGIN SELECT RAISE(ABORT, 'an upload is never changed'); END""",
+    ],
 ]
 
 
@@ -229,6 +260,8 @@ class SequenceRow:
     status: str
     raw_text: str | None = None
     extraction_json: str | None = field(default=None, repr=False)
+    #: Version of the spacecraft's calibration whose camera the upload was given (None: its own or the default).
+    camera_calibration: int | None = None
 
     @functools.cached_property
     def extraction(self) -> dict | None:
@@ -292,6 +325,20 @@ class ConfirmationRow:
     @property
     def is_current(self) -> bool:
         return self.superseded_by is None
+
+
+@dataclass(frozen=True)
+class CalibrationRow:
+    """One calibration of a spacecraft's camera: version 1, 2, ... per spacecraft, never changed."""
+
+    id: int
+    spacecraft: str
+    version: int
+    camera: dict  # the telemetry camera object of the fitted camera
+    result: dict  # sigmas, covariance, stars and sequences used, RMS before and after
+    sequences: list[int]  # archive ids of the sequences it was fitted on
+    operator: str | None
+    created_at: datetime
 
 
 # ---------------------------------------------------------------------------
@@ -358,7 +405,7 @@ def _sqlite_path(path_or_url: str | os.PathLike) -> str:
 
 
 _SEQUENCE_LIGHT_COLUMNS = ("id, content_sha256, filename, sequence_id, spacecraft, camera_json, "
-                           "first_time, n_snapshots, uploaded_at, status")
+                           "first_time, n_snapshots, uploaded_at, status, camera_calibration")
 
 
 def _sequence_row(row: sqlite3.Row, full: bool) -> SequenceRow:
@@ -370,6 +417,7 @@ def _sequence_row(row: sqlite3.Row, full: bool) -> SequenceRow:
         status=row["status"],
         raw_text=row["raw_text"] if full else None,
         extraction_json=row["extraction_json"] if full else None,
+        camera_calibration=row["camera_calibration"],
     )
 
 
@@ -384,6 +432,13 @@ def _search_row(row: sqlite3.Row) -> SearchRow:
                      method=row["method"], options=_loads(row["options_json"]),
                      result_json=row["result_json"], status=row["status"],
                      created_at=_time(row["created_at"]), elapsed_s=row["elapsed_s"])
+
+
+def _calibration_row(row: sqlite3.Row) -> CalibrationRow:
+    return CalibrationRow(id=row["id"], spacecraft=row["spacecraft"], version=row["version"],
+                          camera=_loads(row["camera_json"]), result=_loads(row["result_json"]),
+                          sequences=_loads(row["sequences_json"]), operator=row["operator"],
+                          created_at=_time(row["created_at"]))
 
 
 def _confirmation_row(row: sqlite3.Row) -> ConfirmationRow:
@@ -531,6 +586,7 @@ class Storage:
                      camera: dict | None = None, first_time: datetime | None = None,
                      n_snapshots: int | None = None, extraction: dict | None = None,
                      status: str = "new", uploaded_at: datetime | None = None,
+                     camera_calibration: int | None = None,
                      ) -> tuple[SequenceRow, bool]:
         """Store an upload; ``(row, True)`` if new, ``(existing row, False)`` if
         the same content (SHA-256 of ``raw_text``) was stored before."""
@@ -540,12 +596,12 @@ class Storage:
         with self._transaction() as conn:
             cursor = conn.execute(
                 "INSERT INTO sequences (content_sha256, filename, sequence_id, spacecraft, camera_json, "
-                "first_time, n_snapshots, raw_text, uploaded_at, extraction_json, status) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT (content_sha256) DO NOTHING",
+                "first_time, n_snapshots, raw_text, uploaded_at, extraction_json, status, camera_calibration) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT (content_sha256) DO NOTHING",
                 (digest, filename, sequence_id, spacecraft,
                  None if camera is None else _dumps(camera), _time_text(first_time), n_snapshots,
                  raw_text, _time_text(uploaded_at or _now()),
-                 None if extraction is None else _dumps(extraction), status))
+                 None if extraction is None else _dumps(extraction), status, camera_calibration))
             created = cursor.rowcount == 1
             row = conn.execute("SELECT * FROM sequences WHERE content_sha256 = ?", (digest,)).fetchone()
         return _sequence_row(row, full=True), created
@@ -723,6 +779,40 @@ class Storage:
                                 (seq_id,)).fetchall()
         return [_confirmation_row(r) for r in rows]
 
+    # -- calibrations -------------------------------------------------------
+
+    def add_calibration(self, spacecraft: str, *, camera: dict, result: dict, sequences: list[int],
+                        operator: str | None = None) -> CalibrationRow:
+        """Append the next calibration version of ``spacecraft``'s camera (1 for the first)."""
+        if not spacecraft:
+            raise ValueError("a calibration needs a spacecraft")
+        with self._transaction() as conn:
+            version = conn.execute("SELECT COALESCE(MAX(version), 0) + 1 FROM calibrations WHERE spacecraft = ?",
+                                   (spacecraft,)).fetchone()[0]
+            cursor = conn.execute(
+                "INSERT INTO calibrations (spacecraft, version, camera_json, result_json, sequences_json, operator, "
+                "created_at) VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (spacecraft, version, _dumps(camera), _dumps(result), _dumps([int(s) for s in sequences]),
+                 operator, _time_text(_now())))
+            row = conn.execute("SELECT * FROM calibrations WHERE id = ?", (cursor.lastrowid,)).fetchone()
+        return _calibration_row(row)
+
+    def current_calibration(self, spacecraft: str | None) -> CalibrationRow | None:
+        """The newest calibration of ``spacecraft``'s camera, if any."""
+        if spacecraft is None:
+            return None
+        with self._transaction(write=False) as conn:
+            row = conn.execute("SELECT * FROM calibrations WHERE spacecraft = ? ORDER BY version DESC LIMIT 1",
+                               (spacecraft,)).fetchone()
+        return None if row is None else _calibration_row(row)
+
+    def calibration_history(self, spacecraft: str) -> list[CalibrationRow]:
+        """Every calibration of ``spacecraft``'s camera, oldest first."""
+        with self._transaction(write=False) as conn:
+            rows = conn.execute("SELECT * FROM calibrations WHERE spacecraft = ? ORDER BY version",
+                                (spacecraft,)).fetchall()
+        return [_calibration_row(r) for r in rows]
+
     # -- health -------------------------------------------------------------
 
     def health(self) -> dict:
@@ -732,7 +822,8 @@ class Storage:
                 version = conn.execute("SELECT MAX(version) FROM schema_version").fetchone()[0]
                 mode = conn.execute("PRAGMA journal_mode").fetchone()[0]
                 counts = {table: conn.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0]
-                          for table in ("sequences", "pattern_versions", "searches", "confirmations")}
+                          for table in ("sequences", "pattern_versions", "searches", "confirmations",
+                                        "calibrations")}
         except (sqlite3.Error, StorageError) as exc:
             return {"ok": False, "backend": "sqlite", "path": self._path, "error": str(exc)}
         return {"ok": True, "backend": "sqlite", "path": self._path, "schema_version": version,

@@ -212,7 +212,8 @@ def test_open_sets_wal_full_sync_foreign_keys_and_schema_version(store, db_path)
     health = store.health()
     assert health["ok"] and health["journal_mode"] == "wal"
     assert health["schema_version"] == len(MIGRATIONS)
-    assert health["counts"] == {"sequences": 0, "pattern_versions": 0, "searches": 0, "confirmations": 0}
+    assert health["counts"] == {"sequences": 0, "pattern_versions": 0, "searches": 0, "confirmations": 0,
+                                "calibrations": 0}
     conn = store._conn
     assert conn.execute("PRAGMA synchronous").fetchone()[0] == 2  # FULL
     assert conn.execute("PRAGMA foreign_keys").fetchone()[0] == 1
@@ -353,4 +354,23 @@ def test_acknowledged_rows_survive_sigkill(db_path):
         assert reopened.health()["ok"]
     raw = sqlite3.connect(db_path)
     assert raw.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+    raw.close()
+
+
+def test_calibrations_are_versioned_per_spacecraft_append_only_and_survive_a_reopen(db_path):
+    with Storage.open(db_path) as store:
+        first = store.add_calibration("SAT-A", camera={"focal_length_px": 2100.0}, result={"stars_used": 10},
+                                      sequences=[1, 2], operator="ana")
+        store.add_calibration("SAT-B", camera={"focal_length_px": 1000.0}, result={}, sequences=[3])
+        second = store.add_calibration("SAT-A", camera={"focal_length_px": 2101.5}, result={}, sequences=[4])
+        assert (first.version, second.version) == (1, 2)
+    with Storage.open(db_path) as store:
+        assert store.current_calibration("SAT-A").camera == {"focal_length_px": 2101.5}
+        assert [c.version for c in store.calibration_history("SAT-A")] == [1, 2]
+        assert store.calibration_history("SAT-A")[0].operator == "ana"
+        assert store.current_calibration("SAT-C") is None and store.current_calibration(None) is None
+    raw = sqlite3.connect(db_path)
+    for statement in ("UPDATE calibrations SET camera_json = '{}'", "DELETE FROM calibrations"):
+        with pytest.raises(sqlite3.DatabaseError, match="append-only"):
+            raw.execute(statement)
     raw.close()
