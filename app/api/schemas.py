@@ -96,3 +96,11 @@ class ViewEdit(_Strict):
     def changes(self) -> dict:
         """The fields the client actually sent."""
         return {name: getattr(self, name) for name in self.model_fields_set}
+
+
+class CalibrateRequest(_Strict):
+    """Who calibrates, and which optical parameters to fit (default focal length, principal point, k1)."""
+
+    operator: str | None = Field(default=None, max_length=MAX_OPERATOR)
+    parameters: list[Literal["f", "focal_length_px", "cx", "cy", "k1", "k2"]] | None = Field(
+        default=None, min_length=1, max_length=6)

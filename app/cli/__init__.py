@@ -19,6 +19,7 @@ COMMANDS = {
     "bench": "run the benchmarks and print their figures",
     "serve": "start the REST API, the browser console and the 3D view",
     "upload": "upload telemetry files to a running server",
+    "calibrate": "fit the camera (focal length, principal point, distortion) over many sequences",
 }
 
 

@@ -7,7 +7,9 @@ the seed's deviation table), ``load`` (issue 4: the real server under 20
 concurrent clients; here ``--n`` is the duration in seconds, default 30, and
 ``--think`` each client's pause between loops, default 1 s, 0 for saturation).
 ``seeds`` (issue 6, also ``--seeds``: Liebe's Tables 2 and 3 and Fig. 2,
-see :mod:`app.bench.seeds`).
+see :mod:`app.bench.seeds`).  ``camera`` (issue 11: identification with
+wrong focal lengths and undeclared distortion, and calibration accuracy
+from 20, 50 and 200 sequences, see :mod:`app.bench.camera`).
 Every figure is measured now, on this machine, in one process (the load
 suite adds the server's), from simulated sequences drawn with ``--seed``.
 """
@@ -21,7 +23,7 @@ import logging
 import sys
 import time
 
-SUITES = ("extraction", "identification", "sequence", "load", "seeds")
+SUITES = ("extraction", "identification", "sequence", "load", "seeds", "camera")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

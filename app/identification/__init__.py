@@ -24,19 +24,27 @@ import numpy as np
 from app.attitude import propagate
 from app.attitude.sequence import SequenceFit, fit_constant_rate, rate_from_motion, wahba_per_snapshot
 from app.attitude.wahba import cross_boresight_and_roll_sigma
-from app.extraction import DEFAULT_SIGHTING_SIGMA_PX, Extraction, Pattern, extract
+from app.camera_fit import calibrate as calibrate_camera, default_priors, parameters_for
+from app.extraction import Extraction, Pattern, extract
 from app.identification.engine import classify, identify, is_rival
 from app.identification.methods import METHODS, Method
 from app.identification.near_prior import identify_near_prior
 from app.identification.options import SearchOptions
 from app.identification.result import (AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, PlanetMatch, Solution,
                                        StarMatch)
+from app.identification.sightings import identified_sightings, observations, sighting_noise_px
 from app.identification.sky import Sky
 from app.telemetry import Sequence
 
 __all__ = ["AMBIGUOUS", "IDENTIFIED", "METHODS", "NO_MATCH", "Candidate", "Method", "PlanetMatch", "Prior",
            "SearchOptions", "Sky", "Solution", "SolvedSequence", "StarMatch", "classify", "fit_sequence",
            "identify", "identify_near_prior", "solve_sequence", "source_stars"]
+
+
+#: A sequence fit turning faster than this is not trusted: stars streak across many pixels within one
+#: exposure long before (TUBSAT-class sensors track at well under 1 deg/s), so such a rate means wrong
+#: time tags or a wrong identification, not a fast spacecraft.
+MAX_PLAUSIBLE_RATE_DEG_S = 10.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,13 +106,25 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
                             options=options, planets=planets, method=method)
     fits: dict[int, SequenceFit] = {}
     candidates = []
+    notes = list(solution.notes)
+    status = solution.status
     best = solution.candidates[0] if solution.candidates else None
     for c in solution.candidates:
         fit = None
         # The sequence fit for the best candidate and its rivals (what an operator weighs up).
         credible = c.false_match_probability <= options.rival_probability and (c is best or is_rival(c, best, options))
         if credible and len(sequence.snapshots) > 1:
+            if c.camera is not None:
+                c = fit_sequence_camera(sequence, extraction, c, sky)
             fit = fit_sequence(sequence, extraction, pattern, c, sky)
+        rate_deg_s = math.degrees(float(np.linalg.norm(fit.rate_rad_s))) if fit is not None else 0.0
+        if rate_deg_s > MAX_PLAUSIBLE_RATE_DEG_S:
+            notes.append(f"the sequence fit of candidate {c.rank} gives a body rate of {rate_deg_s:,.0f} deg/s, "
+                         f"beyond the {MAX_PLAUSIBLE_RATE_DEG_S:g} deg/s at which a star camera still images "
+                         "stars: the fit is not used and the sequence needs an operator (check the snapshot times)")
+            if c is best and status == IDENTIFIED:
+                status = AMBIGUOUS
+            fit = None
         if fit is not None:
             fits[c.rank] = fit
             cross, roll = cross_boresight_and_roll_sigma(fit.covariance)
@@ -112,7 +132,7 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
                         sigma_cross_boresight_arcsec=math.degrees(cross) * 3600,
                         sigma_roll_arcsec=math.degrees(roll) * 3600)
         candidates.append(c)
-    solution = replace(solution, candidates=tuple(candidates))
+    solution = replace(solution, candidates=tuple(candidates), status=status, notes=tuple(notes))
     return SolvedSequence(sequence=sequence, extraction=extraction, pattern=pattern, solution=solution,
                           sequence_fits=fits)
 
@@ -134,7 +154,7 @@ def source_stars(solved: SolvedSequence, sky: Sky, rank: int = 1,
     if candidate is None or candidate.false_match_probability > SearchOptions().identified_probability:
         return None
     sequence, extraction = solved.sequence, solved.extraction
-    camera = sequence.camera
+    camera = candidate.camera or sequence.camera
     t_ref = solved.reference_time
     fit = solved.sequence_fits.get(rank)
     noise = extraction.noise_px if math.isfinite(extraction.noise_px) else DEFAULT_SIGHTING_SIGMA_PX
@@ -160,43 +180,60 @@ def source_stars(solved: SolvedSequence, sky: Sky, rank: int = 1,
     return out
 
 
+def fit_sequence_camera(sequence: Sequence, extraction: Extraction, candidate: Candidate, sky: Sky) -> Candidate:
+    """The candidate with its optics refitted over every snapshot's raw sightings (one camera, an attitude
+    per snapshot: :func:`app.camera_fit.calibrate` on this one sequence).
+
+    Optics fitted on the averaged pattern alone are biased when they are
+    far from the declared ones: extraction carried the sightings into the
+    reference frame through the declared camera, and undeclared distortion
+    moves stars differently across the field as it turns.  The raw
+    sightings are free of that.  The focal length and k1 are fitted (with
+    the declaration's weak priors); the principal point needs many
+    sequences (a calibration).  The candidate is returned unchanged when
+    the sightings cannot fix the optics.
+    """
+    star_of_track = {m.track: m.hip for m in candidate.matches if m.track is not None}
+    found = observations(identified_sightings(sequence, extraction, star_of_track, sky), extraction,
+                         candidate.rotation_matrix, None)
+    names = parameters_for(sum(len(o.xy) for o in found) // max(1, len(found)))
+    if len(found) < 2 or not names:
+        return candidate
+    try:
+        result = calibrate_camera(found, candidate.camera or sequence.camera, parameters=names,
+                                  priors=default_priors(sequence.camera, names))
+    except ValueError:
+        return candidate
+    return replace(candidate, camera=result.camera, camera_fit=result)
+
+
 def fit_sequence(sequence: Sequence, extraction: Extraction, pattern: Pattern, candidate: Candidate,
                  sky: Sky) -> SequenceFit | None:
     """Per-snapshot attitudes from the candidate's identified tracks, then the constant-rate fit.
 
     Each snapshot uses the sightings of the tracks the candidate matched to
-    stars, through the camera model, against the stars' apparent places.
+    stars, through the candidate's camera (the declared one, or the optics
+    fitted with its attitude: one camera for every snapshot), against the
+    stars' apparent places.
     """
-    camera = sequence.camera
+    camera = candidate.camera or sequence.camera
     t_ref = sequence.snapshots[extraction.reference].time
     star_of_track = {m.track: m.hip for m in candidate.matches if m.track is not None}
     if len(star_of_track) < 2:
         return None
-    tracks = {t.id: t for t in extraction.tracks if t.id in star_of_track}
-    hips = sorted(set(star_of_track.values()))
-    star_vec = dict(zip(hips, sky.apparent_vectors_of(hips, t_ref, sequence.velocity_km_s)))
-    noise = extraction.noise_px if math.isfinite(extraction.noise_px) else DEFAULT_SIGHTING_SIGMA_PX
-    sigma = max(noise, 0.05) * camera.pixel_scale_rad
-    # Sightings of the identified tracks, snapshot by snapshot.
-    by_snapshot: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
-    for track_id, track in tracks.items():
-        star = star_vec[star_of_track[track_id]]
-        for pos, xy in zip(track.snapshots.tolist(), track.xy):
-            by_snapshot.setdefault(pos, []).append((xy, star))
-    usable = sorted(pos for pos, sightings in by_snapshot.items() if len(sightings) >= 3)
+    sightings = identified_sightings(sequence, extraction, star_of_track, sky)
+    sigma = max(sighting_noise_px(extraction), 0.05) * camera.pixel_scale_rad
     snaps = []
-    if usable:
-        width = max(len(by_snapshot[pos]) for pos in usable)
-        xy = np.zeros((len(usable), width, 2))
-        stars = np.tile([0.0, 0.0, 1.0], (len(usable), width, 1))
-        sigmas = np.full((len(usable), width), np.inf)
-        for k, pos in enumerate(usable):
-            n = len(by_snapshot[pos])
-            xy[k, :n] = [xy_ for xy_, _ in by_snapshot[pos]]
-            stars[k, :n] = [v for _, v in by_snapshot[pos]]
-            sigmas[k, :n] = sigma
-        body = camera.pixels_to_vectors(xy.reshape(-1, 2)).reshape(len(usable), width, 3)
-        dt_of = [(sequence.snapshots[pos].time - t_ref).total_seconds() for pos in usable]
-        snaps = [sa for sa in wahba_per_snapshot(body, stars, sigmas, positions=usable, dt_s=dt_of) if sa is not None]
+    if sightings:
+        width = max(len(s.xy) for s in sightings)
+        xy = np.zeros((len(sightings), width, 2))
+        stars = np.tile([0.0, 0.0, 1.0], (len(sightings), width, 1))
+        sigmas = np.full((len(sightings), width), np.inf)
+        for k, s in enumerate(sightings):
+            n = len(s.xy)
+            xy[k, :n], stars[k, :n], sigmas[k, :n] = s.xy, s.star_vectors, sigma
+        body = camera.pixels_to_vectors(xy.reshape(-1, 2)).reshape(len(sightings), width, 3)
+        snaps = [sa for sa in wahba_per_snapshot(body, stars, sigmas, positions=[s.position for s in sightings],
+                                                 dt_s=[s.dt_s for s in sightings]) if sa is not None]
     dt = np.array([(s.time - t_ref).total_seconds() for s in sequence.snapshots])
     return fit_constant_rate(snaps, candidate.rotation_matrix, rate_from_motion(extraction.motion, dt))

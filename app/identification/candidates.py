@@ -66,7 +66,7 @@ def prepare_pattern(pattern, camera: Camera, t: datetime, sky: Sky, velocity_km_
 def build_candidate(r: Refined, p: PreparedPattern, sky: Sky, *, tol: float, n_hypotheses: int,
                     options: SearchOptions, generating_edge: tuple[int, int] | None = None,
                     generating_pair: tuple[int, int] | None = None, n_merged: int = 1,
-                    planets: Callable[[], dict[str, np.ndarray]] | None = None) -> Candidate:
+                    planets: Callable[[], dict[str, np.ndarray]] | None = None, n_fitted: int = 0) -> Candidate:
     """The candidate of refinement ``r`` of prepared pattern ``p`` (rank 0: the caller ranks).
 
     ``tol`` is the match tolerance the hypothesis was checked with and
@@ -75,7 +75,8 @@ def build_candidate(r: Refined, p: PreparedPattern, sky: Sky, *, tol: float, n_h
     ``generating_edge`` (rows of ``p``) and ``generating_pair`` (index rows)
     name the hypothesis that found it.  ``planets()`` (names -> apparent unit
     vectors) is called only for a credible candidate that leaves points
-    unmatched.
+    unmatched.  ``n_fitted`` optical parameters were fitted besides the
+    attitude (each takes a degree of freedom from the fit's tightness test).
     """
     vectors, keep, field, scale, m = p.vectors, p.keep, p.field, p.scale, p.m
     R = r.rotation
@@ -92,7 +93,7 @@ def build_candidate(r: Refined, p: PreparedPattern, sky: Sky, *, tol: float, n_h
         for i in matched)
     resid = r.residual_rad[matched]
     fmp = false_match_probability(m, len(matched), tol, field.density_per_sr, n_hypotheses,
-                                  float(np.sum(resid ** 2)))
+                                  float(np.sum(resid ** 2)), n_fitted=n_fitted)
     planet_matches = []
     unmatched = np.flatnonzero(r.star_of_point < 0)
     if planets is not None and len(unmatched) and fmp <= options.rival_probability:
@@ -105,7 +106,7 @@ def build_candidate(r: Refined, p: PreparedPattern, sky: Sky, *, tol: float, n_h
                                                   residual_arcsec=float(np.degrees(ang[k]) * 3600)))
     deviation = float(np.sum(r.nearest_rad))
     sigma_rad = p.sigma_px[matched] * scale
-    cov = wahba_covariance(vectors[matched], sigma_rad) * max(1.0, reduced_chi2(resid, sigma_rad))
+    cov = wahba_covariance(vectors[matched], sigma_rad) * max(1.0, reduced_chi2(resid, sigma_rad, n_fitted))
     sigma_cross, sigma_roll = cross_boresight_and_roll_sigma(cov)
     return Candidate(
         rank=0, rotation_matrix=R,
@@ -122,7 +123,7 @@ def build_candidate(r: Refined, p: PreparedPattern, sky: Sky, *, tol: float, n_h
         sigma_roll_arcsec=float(np.degrees(sigma_roll) * 3600))
 
 
-def reduced_chi2(residual_rad: np.ndarray, sigma_rad: np.ndarray) -> float:
-    """chi^2 per degree of freedom of a Wahba fit: 2 per star, 3 taken by the attitude."""
-    dof = 2 * len(residual_rad) - 3
+def reduced_chi2(residual_rad: np.ndarray, sigma_rad: np.ndarray, n_fitted: int = 0) -> float:
+    """chi^2 per degree of freedom of a Wahba fit: 2 per star, 3 taken by the attitude, ``n_fitted`` by the optics."""
+    dof = 2 * len(residual_rad) - 3 - n_fitted
     return float(np.sum((residual_rad / sigma_rad) ** 2) / dof) if dof > 0 else 1.0

@@ -21,6 +21,7 @@ from app.attitude import rotation_angles_between
 from app.camera import Camera
 from app.identification.candidates import build_candidate, prepare_pattern
 from app.identification.methods import METHODS
+from app.identification.optics import focal_lengths_to_try, prepared_with_camera, refine_optics
 from app.identification.options import SearchOptions
 from app.identification.result import AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, Solution
 from app.identification.sky import Sky
@@ -40,6 +41,11 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     called only when a credible candidate leaves a point unmatched (an
     ephemeris evaluation costs tens of milliseconds);
     ``method`` names a lost-in-space method of :data:`app.identification.methods.METHODS`.
+
+    The declared camera is tried first; when that does not settle the
+    answer, focal lengths within the camera's declared tolerance follow
+    (:mod:`app.identification.optics`), and every credible candidate has its
+    optics fitted with its attitude.
     """
     started = _time.perf_counter()
     generator = METHODS[method].hypotheses if method in METHODS else None
@@ -50,23 +56,82 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     if m_all < 3:
         return Solution(status=NO_MATCH, candidates=(), elapsed_s=_time.perf_counter() - started,
                         notes=(f"the pattern has {m_all} point(s); at least 3 are needed",))
-    p = prepare_pattern(pattern, camera, t, sky, velocity_km_s, options)
-    vectors, m, scale, field = p.vectors, p.m, p.scale, p.field
-    match_tol, weights = p.match_tol, p.weights
+    declared = prepare_pattern(pattern, camera, t, sky, velocity_km_s, options)
+    focal_lengths = focal_lengths_to_try(camera, declared.xy) if options.search_focal_length \
+        else [camera.focal_length_px]
+    search = _Search(sky, options, generator, started, camera)
+    # The declared camera's first features, then the first feature at each other focal length (nearest
+    # first), then a few more at each, then the rest of the declared camera's: an exact camera settles in
+    # the first phase as it always did, and a wrong one costs a few features per focal length instead of
+    # a full search at each.
+    searched = [prepared_with_camera(declared, camera.with_optics(focal_length_px=f)) for f in focal_lengths[1:]]
+    phases = [(declared, options.declared_features_first if searched else None)]
+    phases += [(p, 1) for p in searched] + [(p, options.focal_search_features) for p in searched]
+    phases += [(declared, None)] * bool(searched)
+    settled_at = None
+    for p, max_features in phases:
+        if search.run(p, max_features):
+            settled_at = p
+            break
+        if search.timed_out():
+            break
+    if not search.parts:
+        return Solution(status=NO_MATCH, candidates=(), elapsed_s=_time.perf_counter() - started,
+                        notes=(f"no {method} hypothesis: no catalogue feature fits the pattern",))
+    search.alternatives(settled_at or declared)
 
-    merge_angle = 20 * scale
-    found: list[dict] = []  # distinct refined hypotheses
-    n_refined = 0
+    n_scales = search.n_scales
+    candidates = [_candidate(c, camera, sky, search.n_tried, options, planets) for c in search.found
+                  if c["refined"].n_matched >= max(3, options.min_matches)]
+    candidates.sort(key=lambda c: (c.false_match_probability, -c.n_matched, c.deviation_arcsec))
+    candidates = candidates[:options.max_candidates]
+    candidates.sort(key=lambda c: (-c.n_matched, c.false_match_probability, c.deviation_arcsec))
+    candidates = [replace(c, rank=i + 1) for i, c in enumerate(candidates)]
+    status = classify(candidates, options)
+    notes = [f"{search.n_tried} {method} hypotheses from {search.used} pattern features"
+             + (f" at {n_scales} focal lengths within {camera.focal_tolerance:.1%} of the declared one"
+                if n_scales > 1 else "")]
+    return Solution(status=status, candidates=tuple(candidates), elapsed_s=_time.perf_counter() - started,
+                    notes=tuple(notes))
 
-    def nearest_found(R: np.ndarray, key: str) -> tuple[dict | None, float]:
-        """The found candidate whose rotation ``key`` is closest to R, and that angle."""
+
+class _Search:
+    """The hypotheses and refinements of one identification, over one or more focal lengths.
+
+    ``found`` holds the distinct refined hypotheses of every focal length
+    tried (dicts: the starting rotation ``R0``, the refined ``rotation``, the
+    :class:`Refined`, the generating ``edge`` and catalogue ``pair``, the
+    check ``tol``, how many hypotheses ``merged`` into it, the prepared
+    pattern ``searched`` whose hypothesis it was, and the prepared pattern
+    ``p`` it was refined with: the same, or the same seen through optics
+    fitted on its stars).
+    """
+
+    def __init__(self, sky: Sky, options: SearchOptions, generator, started: float, declared: Camera) -> None:
+        self.sky, self.options, self.generator, self.started = sky, options, generator, started
+        self.declared = declared
+        self.found: list[dict] = []
+        self.parts: dict[int, list[tuple]] = {}  # by id of the prepared pattern: its checked hypotheses
+        self.batches: dict[int, object] = {}  # by id of the prepared pattern: its hypothesis batches
+        self.n_tried = 0
+        self.n_refined = 0
+        self.n_scales = 0
+        self.used = 0
+
+    def timed_out(self) -> bool:
+        return _time.perf_counter() - self.started > self.options.timeout_s
+
+    def _nearest(self, R: np.ndarray, key: str, p=None) -> tuple[dict | None, float]:
+        """The found candidate (refined with ``p``, when given) whose rotation ``key`` is closest to R,
+        and that angle."""
+        found = [c for c in self.found if p is None or c["searched"] is p]
         if not found:
             return None, np.inf
         angles = rotation_angles_between(np.stack([c[key] for c in found]), R)
         k = int(np.argmin(angles))
         return found[k], float(angles[k])
 
-    def consider(R0, edge, pair, tol) -> None:
+    def consider(self, p, R0, edge, pair, tol) -> None:
         """Refine one hypothesis unless it repeats a distinct one already found.
 
         A hypothesis repeats a candidate when it starts within ``merge_angle``
@@ -74,68 +139,99 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
         ends within ``merge_angle`` of the candidate's; then the better of
         the two refinements (more matches, then the smaller deviation)
         stays: in a dense field a first edge can settle on a slightly wrong
-        attitude that catches a few stars, and a later edge finds the one
-        that catches them all.
+        attitude that catches a few stars, and a later edge (or focal
+        length) finds the one that catches them all.
         """
-        nonlocal n_refined
-        same, angle = nearest_found(R0, "R0")
+        merge_angle = 20 * p.scale
+        # Starting points repeat within one focal length only: the same catalogue pair gives nearly the
+        # same starting rotation at every focal length, and only the right one refines well.
+        same, angle = self._nearest(R0, "R0", p)
         if angle >= merge_angle:
-            n_refined += 1
-            r = refine(R0, vectors, weights, field, match_tol, tol)
-            same, angle = nearest_found(r.rotation, "rotation")
+            self.n_refined += 1
+            r = refine(R0, p.vectors, p.weights, p.field, p.match_tol, tol)
+            fitted = p
+            if p.camera is not self.declared and r.n_matched >= 3 and self.options.fit_optics:
+                # A searched focal length is only near the truth: the optics fitted on the stars this
+                # hypothesis caught bring in the rest, so that the right focal length settles at once.
+                optics = refine_optics(r, p, self.declared, p.field)
+                if optics is not None and optics.within_tolerance and optics.refined.n_matched > r.n_matched:
+                    r, fitted = optics.refined, optics.prepared
+            same, angle = self._nearest(r.rotation, "rotation")
             if angle >= merge_angle:
-                found.append({"R0": R0, "rotation": r.rotation, "refined": r, "edge": edge, "pair": pair,
-                              "merged": 1, "tol": tol})
+                self.found.append({"R0": R0, "rotation": r.rotation, "refined": r, "edge": edge, "pair": pair,
+                                   "merged": 1, "tol": tol, "p": fitted, "searched": p})
                 return
             old = same["refined"]
             if (r.n_matched, -float(np.sum(r.nearest_rad))) > (old.n_matched, -float(np.sum(old.nearest_rad))):
-                same.update(R0=R0, rotation=r.rotation, refined=r, edge=edge, pair=pair, tol=tol)
+                same.update(R0=R0, rotation=r.rotation, refined=r, edge=edge, pair=pair, tol=tol, p=fitted,
+                            searched=p)
         same["merged"] += 1
 
-    # Hypotheses come in batches; after each, the most promising new ones are
-    # refined, and the search stops once one explains most of the pattern
-    # (for bright pairs usually after the first sure edges).
-    parts: list[tuple] = []
-    n_tried, used = 0, 0
-    for hyp, tol, used in generator(p, sky, options):
-        if len(hyp):
-            n_match, dev = check_hypotheses(hyp.rotations, vectors, field, tol)
-            parts.append((hyp.rotations, hyp.pattern_edge, hyp.catalogue_pair, n_match, dev, tol))
-            n_tried += len(hyp)
-            for h in np.lexsort((dev, -n_match))[:options.refine_per_batch]:
-                if n_match[h] >= 3:
-                    consider(hyp.rotations[h], hyp.pattern_edge[h], hyp.catalogue_pair[h], float(tol[h]))
-        best = max((c["refined"].n_matched for c in found), default=0)
-        if (best >= min(m, options.early_stop_matches) and best >= options.early_stop_fraction * m
-                and used >= options.early_stop_edges):
-            break
-        if _time.perf_counter() - started > options.timeout_s:
-            break
-    if not parts:
-        return Solution(status=NO_MATCH, candidates=(), elapsed_s=_time.perf_counter() - started,
-                        notes=(f"no {method} hypothesis: no catalogue feature fits the pattern",))
-    # More distinct alternatives for the operator's Next/Prev, in order of promise.
-    rot, pe, cp, n_match, dev, hyp_tol = (np.concatenate(x) for x in zip(*parts))
-    for h in np.lexsort((dev, -n_match)):
-        credible = sum(c["refined"].n_matched >= max(3, options.min_matches) for c in found)
-        if (n_match[h] < max(3, options.min_matches) or credible >= options.max_candidates
-                or n_refined >= options.max_refinements):
-            break
-        if _time.perf_counter() - started > options.timeout_s:
-            break
-        consider(rot[h], pe[h], cp[h], float(hyp_tol[h]))
+    def run(self, p, max_features: int | None = None) -> bool:
+        """Hypotheses of pattern ``p`` in batches, the most promising refined after each; True once settled.
 
-    candidates = [build_candidate(c["refined"], p, sky, tol=c["tol"], n_hypotheses=n_tried, options=options,
-                                  generating_edge=c["edge"], generating_pair=c["pair"], n_merged=c["merged"],
-                                  planets=planets)
-                  for c in found if c["refined"].n_matched >= max(3, options.min_matches)]
-    candidates.sort(key=lambda c: (c.false_match_probability, -c.n_matched, c.deviation_arcsec))
-    candidates = candidates[:options.max_candidates]
-    candidates.sort(key=lambda c: (-c.n_matched, c.false_match_probability, c.deviation_arcsec))
-    candidates = [replace(c, rank=i + 1) for i, c in enumerate(candidates)]
-    status = classify(candidates, options)
-    return Solution(status=status, candidates=tuple(candidates), elapsed_s=_time.perf_counter() - started,
-                    notes=(f"{n_tried} {method} hypotheses from {used} pattern features",))
+        Settled: a refined hypothesis explains most of the pattern (for
+        bright pairs usually after the first sure edges).  ``max_features``
+        caps the pattern features (edges) tried.
+        """
+        options = self.options
+        if id(p) not in self.batches:  # resumable: a later run of the same pattern goes on where this stops
+            self.batches[id(p)] = self.generator(p, self.sky, options)
+            self.n_scales += 1
+        parts = self.parts.setdefault(id(p), [])
+        for hyp, tol, used in self.batches[id(p)]:
+            self.used = max(self.used, used)
+            if len(hyp):
+                n_match, dev = check_hypotheses(hyp.rotations, p.vectors, p.field, tol)
+                parts.append((hyp.rotations, hyp.pattern_edge, hyp.catalogue_pair, n_match, dev, tol))
+                self.n_tried += len(hyp)
+                for h in np.lexsort((dev, -n_match))[:options.refine_per_batch]:
+                    if n_match[h] >= 3:
+                        self.consider(p, hyp.rotations[h], hyp.pattern_edge[h], hyp.catalogue_pair[h],
+                                      float(tol[h]))
+            best = max((c["refined"].n_matched for c in self.found if c["searched"] is p), default=0)
+            if (best >= min(p.m, options.early_stop_matches) and best >= options.early_stop_fraction * p.m
+                    and used >= options.early_stop_edges):
+                return True
+            if self.timed_out() or (max_features is not None and used >= max_features):
+                break
+        return False
+
+    def alternatives(self, p) -> None:
+        """More distinct alternatives for the operator's Next/Prev, in order of promise, from ``p``'s hypotheses."""
+        options = self.options
+        parts = self.parts.get(id(p))
+        if not parts:
+            return
+        rot, pe, cp, n_match, dev, hyp_tol = (np.concatenate(x) for x in zip(*parts))
+        for h in np.lexsort((dev, -n_match)):
+            credible = sum(c["refined"].n_matched >= max(3, options.min_matches) for c in self.found)
+            if (n_match[h] < max(3, options.min_matches) or credible >= options.max_candidates
+                    or self.n_refined >= options.max_refinements or self.timed_out()):
+                break
+            self.consider(p, rot[h], pe[h], cp[h], float(hyp_tol[h]))
+
+
+def _candidate(c: dict, declared: Camera, sky: Sky, n_tried: int, options: SearchOptions, planets) -> Candidate:
+    """The candidate of a found hypothesis, its optics fitted when it is credible (see :mod:`.optics`)."""
+    r, p = c["refined"], c["p"]
+    searched_scale = p.camera is not declared  # found at another focal length than the declared one
+    common = dict(tol=c["tol"], n_hypotheses=n_tried, options=options, generating_edge=c["edge"],
+                  generating_pair=c["pair"], n_merged=c["merged"], planets=planets)
+    candidate = build_candidate(r, p, sky, n_fitted=int(searched_scale), **common)
+    if not options.fit_optics or candidate.false_match_probability > options.rival_probability:
+        return replace(candidate, camera=p.camera) if searched_scale else candidate
+    optics = refine_optics(r, p, declared, p.field)
+    if optics is None:
+        return replace(candidate, camera=p.camera) if searched_scale else candidate
+    if optics.significant or searched_scale:
+        candidate = build_candidate(optics.refined, optics.prepared, sky,
+                                    n_fitted=len(optics.fit.parameters), **common)
+        candidate = replace(candidate, camera=optics.prepared.camera)
+    if not optics.within_tolerance:
+        # The stars fit only with optics the declaration excludes: no credible identification.
+        candidate = replace(candidate, false_match_probability=1.0)
+    return replace(candidate, camera_fit=optics.fit)
 
 
 def classify(candidates: list[Candidate], options: SearchOptions) -> str:

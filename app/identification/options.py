@@ -67,3 +67,16 @@ class SearchOptions:
     timeout_s: float = 5.0
     #: Planets are labelled when an unmatched point lies within this many pixels.
     planet_tolerance_px: float = 3.0
+    #: When the declared camera does not settle the answer, search focal lengths within the camera's
+    #: declared tolerance (real focal lengths are known to 1-5 %: app.identification.optics).
+    search_focal_length: bool = True
+    #: ... trying this many pattern features (edges) at each searched focal length: at the right one
+    #: the first sure edges settle the answer, and a full search at every step would cost a dozen searches.
+    focal_search_features: int = 3
+    #: The declared camera tries this many features before the other focal lengths are searched (and
+    #: the rest after them): 7 is the first three batches (1 + 2 + 4 edges), past which an exact camera
+    #: rarely needs to go.
+    declared_features_first: int = 7
+    #: Fit the optics (focal length, k1 from 6 stars) with the attitude of every credible candidate;
+    #: the fitted camera replaces the declared one only where the data ask for it.
+    fit_optics: bool = True

@@ -7,6 +7,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from app.attitude import quaternion_from_rotation, radec_roll_from_rotation
+from app.camera import Camera
+from app.camera_fit import CameraAttitudeFit, Calibration
 
 #: Status values of a solved sequence.
 IDENTIFIED = "identified"  # one candidate, false-match probability below the threshold
@@ -50,6 +52,12 @@ class Candidate:
     n_hypotheses_merged: int = 1
     sigma_cross_boresight_arcsec: float | None = None
     sigma_roll_arcsec: float | None = None
+    #: The camera the matches were made with when it is not the declared one (a focal length searched
+    #: or optics fitted: :mod:`app.identification.optics`); None: the declared camera.
+    camera: Camera | None = None
+    #: The optics fitted with the attitude (reported whenever the candidate was credible enough): on the
+    #: pattern, or over the whole sequence's sightings (app.identification.fit_sequence_camera).
+    camera_fit: CameraAttitudeFit | Calibration | None = None
 
     @property
     def n_matched(self) -> int:
@@ -62,31 +70,6 @@ class Candidate:
     @property
     def radec_roll_deg(self) -> tuple[float, float, float]:
         return radec_roll_from_rotation(self.rotation_matrix)
-
-    def to_json(self) -> dict:
-        ra, dec, roll = self.radec_roll_deg
-        doc = {
-            "rank": self.rank,
-            "deviation_arcsec": round(self.deviation_arcsec, 3),
-            "deviation_px_per_point": round(self.deviation_px_per_point, 4),
-            "rms_arcsec": round(self.rms_arcsec, 3),
-            "false_match_probability": float(f"{self.false_match_probability:.3g}"),
-            "ra_deg": round(ra, 7),
-            "dec_deg": round(dec, 7),
-            "roll_deg": round(roll, 6),
-            "quaternion": [round(float(x), 10) for x in self.quaternion],
-            "rotation_matrix": [[round(float(x), 10) for x in row] for row in self.rotation_matrix],
-            "matches": [{"track": m.track, "hip": m.hip, "name": m.name,
-                         "residual_arcsec": round(m.residual_arcsec, 3)} for m in self.matches],
-            "planets": [{"track": p.track, "name": p.name,
-                         "residual_arcsec": round(p.residual_arcsec, 3)} for p in self.planets],
-            "generating_edge": list(self.generating_edge),
-            "generating_pair_hip": list(self.generating_pair_hip),
-        }
-        if self.sigma_cross_boresight_arcsec is not None:
-            doc["sigma_cross_boresight_arcsec"] = round(self.sigma_cross_boresight_arcsec, 3)
-            doc["sigma_roll_arcsec"] = round(self.sigma_roll_arcsec, 3)
-        return doc
 
 
 @dataclass(frozen=True, eq=False)

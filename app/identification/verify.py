@@ -245,7 +245,8 @@ def refine(rotation: np.ndarray, pattern_vectors: np.ndarray, weights: np.ndarra
 
 
 def false_match_probability(n_points: int, n_matched: int, capture_tolerance_rad: float,
-                            density_per_sr: float, n_hypotheses: int, sum_sq_residual_rad2: float) -> float:
+                            density_per_sr: float, n_hypotheses: int, sum_sq_residual_rad2: float,
+                            n_fitted: int = 0) -> float:
     """Expected number of chance matches as good as this one (capped at 1); see the module doc.
 
     Two factors: enough points captured, ``N * P[Binomial(m - 2, p) >= k - 2]``,
@@ -255,12 +256,15 @@ def false_match_probability(n_points: int, n_matched: int, capture_tolerance_rad
     squared residuals of ``k`` such points is at most ~ (r^2/4) chi^2(2k - 3),
     so ``P[fit this tight] = chi2.cdf(4 S / r^2, 2k - 3)``.  (The Gaussian
     has twice the uniform disc's density at zero, so this errs on the safe,
-    larger side.)
+    larger side.)  Optical parameters fitted with the attitude (``n_fitted``:
+    the focal length, k1) absorb one degree of freedom each, so a chance fit
+    with free optics is judged against ``chi2(2k - 3 - n_fitted)``.
     """
     if n_matched < 3 or n_points < 3:
         return 1.0
     r = float(capture_tolerance_rad)
     p = 1.0 - np.exp(-density_per_sr * np.pi * r * r)
     capture = float(bdtrc(n_matched - 3, n_points - 2, p))  # P[X >= k - 2] = P[X > k - 3]
-    tight = float(chdtr(2 * n_matched - 3, 4.0 * sum_sq_residual_rad2 / (r * r)))
+    dof = 2 * n_matched - 3 - n_fitted
+    tight = float(chdtr(dof, 4.0 * sum_sq_residual_rad2 / (r * r))) if dof > 0 else 1.0
     return float(min(1.0, max(1, n_hypotheses) * capture * tight))

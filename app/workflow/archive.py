@@ -17,9 +17,11 @@ Invariants kept here (the storage module keeps the rest):
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from dataclasses import dataclass
 
+from app.camera import CAMERAS, Camera
 from app.extraction import Pattern, build_pattern, extract
 from app.storage import PatternVersion, SequenceRow, content_sha256
 from app.telemetry import Sequence, parse_telemetry
@@ -64,7 +66,10 @@ def loaded(ctx: AppContext, row: SequenceRow) -> LoadedSequence:
     item = ctx.cache.get(row.id)
     if item is None:
         # Stored text passed validation once; the size limit may have shrunk since, so none here.
+        # A file without a camera block gets the camera it was given at upload (the default then, or
+        # the spacecraft's calibration then), whatever the defaults and calibrations are now.
         sequence = parse_telemetry(row.raw_text, filename=row.filename,
+                                   default_camera=Camera(**row.camera) if row.camera else None,
                                    max_bytes=len(row.raw_text.encode("utf-8")))
         item = LoadedSequence(sequence, stored_extraction(row, sequence))
         ctx.cache.put(row.id, item)
@@ -95,14 +100,28 @@ class ParsedUpload:
     sequence: Sequence
     raw_text: str
     filename: str | None
+    #: The spacecraft's calibration version whose camera the file was given (it had no camera block).
+    camera_calibration: int | None = None
 
 
 def parse_upload(ctx: AppContext, data: bytes, filename: str | None) -> ParsedUpload:
-    """Validate an upload; raises :class:`app.telemetry.TelemetryError` (located problems) when invalid."""
+    """Validate an upload; raises :class:`app.telemetry.TelemetryError` (located problems) when invalid.
+
+    A file without a camera block is given its spacecraft's current camera
+    calibration when there is one (else the configured default camera).
+    """
     filename = clean_filename(filename)
-    sequence = parse_telemetry(data, filename=filename, max_bytes=ctx.settings.max_upload_bytes)
+    default = CAMERAS.get(ctx.settings.default_camera)
+    marker = None if default is None else dataclasses.replace(default)  # equal, but recognisable by identity
+    sequence = parse_telemetry(data, filename=filename, default_camera=marker, max_bytes=ctx.settings.max_upload_bytes)
+    calibration = None
+    if marker is not None and sequence.camera is marker:
+        calibration = ctx.storage.current_calibration(sequence.spacecraft)
+        if calibration is not None:
+            sequence = dataclasses.replace(sequence, camera=Camera(**calibration.camera))
     # parse_telemetry accepted the bytes as UTF-8; keep the text as sent.
-    return ParsedUpload(sequence=sequence, raw_text=bytes(data).decode("utf-8"), filename=filename)
+    return ParsedUpload(sequence=sequence, raw_text=bytes(data).decode("utf-8"), filename=filename,
+                        camera_calibration=None if calibration is None else calibration.version)
 
 
 def stored_upload(ctx: AppContext, upload: ParsedUpload) -> UploadDocument | None:
@@ -123,7 +142,7 @@ def store_upload(ctx: AppContext, upload: ParsedUpload, extraction) -> UploadDoc
         raw_text=upload.raw_text, filename=upload.filename, sequence_id=sequence.sequence_id,
         spacecraft=sequence.spacecraft, camera=sequence.camera.to_dict(),
         first_time=sequence.snapshots[0].time if sequence.snapshots else None,
-        n_snapshots=len(sequence.snapshots),
+        n_snapshots=len(sequence.snapshots), camera_calibration=upload.camera_calibration,
         extraction=ExtractionDocument.of(extraction).model_dump(mode="json"))
     if created:
         ctx.cache.put(row.id, LoadedSequence(sequence, extraction))

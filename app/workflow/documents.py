@@ -207,6 +207,39 @@ class SequenceFitDocument(Document):
         return np.radians(np.array(self.rate_deg_s, dtype=float))
 
 
+class CameraFitDocument(Document):
+    """The optics fitted with a candidate's attitude (:mod:`app.identification.optics`).
+
+    Only the fitted parameters have values (the focal length from 3 matched
+    stars, k1 from 6); ``sigma`` holds their 1-sigma.  ``adopted``: the
+    candidate's matches and attitude use this camera (the data asked for it,
+    or the pattern was found at a searched focal length); otherwise the
+    declared camera stands and this is for information.
+    """
+
+    focal_length_px: float | None = None
+    k1: float | None = None
+    k2: float | None = None
+    cx: float | None = None
+    cy: float | None = None
+    sigma: dict[str, float]
+    rms_px: float
+    adopted: bool
+
+    over: Literal["pattern", "sequence"] = Field(
+        description="fitted on the searched pattern, or over every snapshot's sightings of the sequence")
+
+    @classmethod
+    def of(cls, fit, adopted: bool) -> "CameraFitDocument":
+        """Of an :class:`app.camera_fit.CameraAttitudeFit` (the pattern) or a ``Calibration`` (the sequence)."""
+        optics = fit.camera.optics()
+        over_sequence = hasattr(fit, "rms_px_after")
+        return cls(**{name: round(float(optics[name]), 8) for name in fit.parameters},
+                   sigma={name: float(f"{value:.4g}") for name, value in fit.sigma.items()},
+                   rms_px=round(float(fit.rms_px_after if over_sequence else fit.rms_px), 4), adopted=adopted,
+                   over="sequence" if over_sequence else "pattern")
+
+
 class CandidateDocument(Document):
     """One ranked attitude candidate (README: "What a candidate says")."""
 
@@ -229,6 +262,7 @@ class CandidateDocument(Document):
     sigma_cross_boresight_arcsec: float | None = None
     sigma_roll_arcsec: float | None = None
     sequence_fit: SequenceFitDocument | None = None
+    camera_fit: CameraFitDocument | None = None
 
     @classmethod
     def of(cls, candidate, fit=None) -> "CandidateDocument":
@@ -252,7 +286,10 @@ class CandidateDocument(Document):
             n_matched=candidate.n_matched, n_hypotheses_merged=int(candidate.n_hypotheses_merged),
             sigma_cross_boresight_arcsec=_rounded(candidate.sigma_cross_boresight_arcsec),
             sigma_roll_arcsec=_rounded(candidate.sigma_roll_arcsec),
-            sequence_fit=None if fit is None else SequenceFitDocument.of(fit))
+            sequence_fit=None if fit is None else SequenceFitDocument.of(fit),
+            camera_fit=None if candidate.camera_fit is None else CameraFitDocument.of(
+                candidate.camera_fit, adopted=candidate.camera is not None
+                and candidate.camera.optics() == candidate.camera_fit.camera.optics()))
 
     @property
     def rotation(self) -> np.ndarray:
@@ -491,3 +528,54 @@ class HealthDocument(Document):
     search_timeout_s: float
     search_workers: str
 
+
+# ---------------------------------------------------------------------------
+# Camera calibrations
+# ---------------------------------------------------------------------------
+
+class CovarianceDocument(Document):
+    names: list[str]
+    matrix: list[list[float]]
+
+
+class CalibrationDocument(Document):
+    """A camera fitted over many sequences (``python -m app calibrate --json``, and what the archive stores)."""
+
+    camera: dict[str, Any] = Field(description="the fitted camera, with the keys of the telemetry camera object")
+    sigma: dict[str, float] = Field(description="1-sigma of each fitted parameter")
+    covariance: CovarianceDocument = Field(description="of the fitted parameters, attitudes marginalised")
+    sequences_used: int
+    observations_used: int = Field(description="snapshots")
+    stars_used: int
+    stars_rejected: int
+    rms_px_before: float = Field(description="rms residual with the declared camera (attitudes refitted)")
+    rms_px_after: float
+    chi2_reduced: float
+
+    @classmethod
+    def of(cls, calibration) -> "CalibrationDocument":
+        """The document of an :class:`app.camera_fit.Calibration`."""
+        return cls(camera=calibration.camera.to_dict(),
+                   sigma={name: float(f"{value:.4g}") for name, value in calibration.sigma.items()},
+                   covariance=CovarianceDocument(names=list(calibration.parameters),
+                                                 matrix=calibration.covariance.tolist()),
+                   sequences_used=calibration.sequences_used, observations_used=calibration.observations_used,
+                   stars_used=calibration.stars_used, stars_rejected=calibration.stars_rejected,
+                   rms_px_before=round(calibration.rms_px_before, 4), rms_px_after=round(calibration.rms_px_after, 4),
+                   chi2_reduced=round(calibration.chi2_reduced, 4))
+
+
+class StoredCalibration(CalibrationDocument):
+    """A calibration as the archive keeps it: the spacecraft's version N, who made it, when, from what."""
+
+    spacecraft: str
+    version: int
+    operator: str | None
+    created_at: str
+    sequences: list[int] = Field(description="archive ids of the sequences whose stars it was fitted on")
+
+    @classmethod
+    def of(cls, row) -> "StoredCalibration":
+        """The document of an :class:`app.storage.CalibrationRow`."""
+        return cls(**row.result, spacecraft=row.spacecraft, version=row.version, operator=row.operator,
+                   created_at=utc_text(row.created_at), sequences=row.sequences)

@@ -55,6 +55,7 @@ class SearchJob:
 
     seq_id: int
     method: str
+    camera_calibration: int | None  # the spacecraft's calibration version the sequence's camera came from
     sequence: Sequence
     extraction: Extraction
     pattern: Pattern
@@ -84,12 +85,14 @@ def search_options(ctx: AppContext, max_candidates: int | None) -> SearchOptions
                          **({} if max_candidates is None else {"max_candidates": max_candidates}))
 
 
-def search_options_record(ctx: AppContext, options: SearchOptions) -> dict:
-    """What a stored search depended on besides its pattern and method: its options and the index searched."""
+def search_options_record(ctx: AppContext, options: SearchOptions, camera_calibration: int | None) -> dict:
+    """What a stored search depended on besides its pattern and method: its options, the index searched
+    and the camera calibration version its sequence was given (None: the file's own or the default camera)."""
     index = ctx.sky.index
     return {"max_candidates": options.max_candidates, "timeout_s": options.timeout_s,
             "index": {"stars": int(index.n_stars), "pairs": int(index.n_pairs),
-                      "mag_limit": float(index.mag_limit)}}
+                      "mag_limit": float(index.mag_limit)},
+            "camera_calibration": camera_calibration}
 
 
 def _check_method(method: str) -> None:
@@ -104,7 +107,8 @@ def prepare_search(ctx: AppContext, seq_id: int, method: str, max_candidates: in
     row = require_sequence(ctx, seq_id)
     item = loaded(ctx, row)
     version = ctx.storage.current_pattern(seq_id)
-    return SearchJob(seq_id=seq_id, method=method, sequence=item.sequence, extraction=item.extraction,
+    return SearchJob(seq_id=seq_id, method=method, camera_calibration=row.camera_calibration,
+                     sequence=item.sequence, extraction=item.extraction,
                      pattern=pattern_from_definition(item, definition_of(version)),
                      pattern_version=version.version if version else None,
                      options=search_options(ctx, max_candidates),
@@ -134,7 +138,7 @@ def compute_search(job: SearchJob, *, sky) -> SearchResult:
 def store_search(ctx: AppContext, job: SearchJob, result: SearchResult) -> SearchDocument:
     """Archive a computed search and set the sequence's status from it."""
     search = ctx.storage.add_search(job.seq_id, pattern_version=job.pattern_version, method=job.method,
-                                    options=search_options_record(ctx, job.options),
+                                    options=search_options_record(ctx, job.options, job.camera_calibration),
                                     result=result.model_dump(mode="json"), status=result.status,
                                     elapsed_s=result.elapsed_ms / 1000)
     row = require_sequence(ctx, job.seq_id)
@@ -165,7 +169,7 @@ def reusable_search(ctx: AppContext, seq_id: int, method: str, max_candidates: i
     options = search_options(ctx, max_candidates)
     timed_out = search.elapsed_s is None or search.elapsed_s >= options.timeout_s
     if (timed_out or search.method != method or search.pattern_version != current_pattern_version(ctx, seq_id)
-            or search.options != search_options_record(ctx, options)):
+            or search.options != search_options_record(ctx, options, row.camera_calibration)):
         return None
     if row.status != "confirmed" and row.status != search.status:
         ctx.storage.set_status(seq_id, search.status)

@@ -1,0 +1,79 @@
+"""The sightings of a candidate's identified stars, snapshot by snapshot: what the sequence fit and the
+camera calibration are made from.
+
+A candidate matches pattern points, i.e. tracks, to catalogue stars; every
+track was seen in several snapshots.  Here each snapshot's sightings of
+those tracks are gathered with their stars' apparent places, as raw pixels:
+no camera model is involved yet, so the same sightings serve a fit through
+the declared camera, through optics fitted with the attitude, or a fit of
+the optics themselves.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.attitude import propagate
+from app.camera_fit import Observation
+from app.extraction import DEFAULT_SIGHTING_SIGMA_PX
+
+#: A snapshot needs this many identified sightings to fix its own attitude robustly.
+MIN_SIGHTINGS = 3
+
+
+@dataclass(frozen=True, eq=False)
+class SnapshotSightings:
+    position: int  # of the snapshot in the sequence
+    dt_s: float  # since the reference snapshot
+    xy: np.ndarray  # (n, 2) pixels where the identified tracks were seen
+    star_vectors: np.ndarray  # (n, 3) apparent places of their stars at the reference time, ICRS
+
+
+def identified_sightings(sequence, extraction, star_of_track: dict[int, int], sky) -> list[SnapshotSightings]:
+    """The snapshots with at least :data:`MIN_SIGHTINGS` sightings of tracks in ``star_of_track`` (track -> HIP)."""
+    if not star_of_track:
+        return []
+    t_ref = sequence.snapshots[extraction.reference].time
+    hips = sorted(set(star_of_track.values()))
+    star_vector = dict(zip(hips, sky.apparent_vectors_of(hips, t_ref, sequence.velocity_km_s)))
+    by_snapshot: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for track in extraction.tracks:
+        if track.id in star_of_track:
+            star = star_vector[star_of_track[track.id]]
+            for position, xy in zip(track.snapshots.tolist(), track.xy):
+                by_snapshot.setdefault(position, []).append((xy, star))
+    return [SnapshotSightings(position=position,
+                              dt_s=(sequence.snapshots[position].time - t_ref).total_seconds(),
+                              xy=np.array([s[0] for s in found], dtype=float),
+                              star_vectors=np.array([s[1] for s in found], dtype=float))
+            for position, found in sorted(by_snapshot.items()) if len(found) >= MIN_SIGHTINGS]
+
+
+def sighting_noise_px(extraction) -> float:
+    """Extraction's estimate of one sighting's 1-sigma noise (the default where it could not measure it)."""
+    return extraction.noise_px if math.isfinite(extraction.noise_px) else DEFAULT_SIGHTING_SIGMA_PX
+
+
+def observations(sightings: list[SnapshotSightings], extraction, rotation_ref: np.ndarray,
+                 rate_rad_s: np.ndarray | None, label: str | None = None) -> list[Observation]:
+    """The sightings as :class:`app.camera_fit.Observation` (one per snapshot) with starting attitudes.
+
+    A snapshot's starting attitude is the reference attitude propagated at
+    ``rate_rad_s`` when given, else carried by extraction's motion
+    (``R_i = M_i^T R_ref``); snapshots with neither are left out.
+    """
+    noise = sighting_noise_px(extraction)
+    out = []
+    for s in sightings:
+        if rate_rad_s is not None:
+            rotation = propagate(rotation_ref, rate_rad_s, s.dt_s)
+        elif np.all(np.isfinite(extraction.motion[s.position])):
+            rotation = extraction.motion[s.position].T @ rotation_ref
+        else:
+            continue
+        out.append(Observation(xy=s.xy, star_vectors=s.star_vectors, rotation=rotation, sigma_px=noise,
+                               sequence=label))
+    return out

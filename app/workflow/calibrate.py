@@ -1,0 +1,167 @@
+"""Calibration from the archive (or from files): one camera fitted over many identified sequences.
+
+A ground station holds thousands of frames from the same camera, each with
+stars identified; together they fix the optics far better than any single
+frame (:func:`app.camera_fit.calibrate`).  The workflow:
+
+1. choose the sequences: every sequence of the spacecraft with a current
+   confirmation (its confirmed candidate), else whose latest search is
+   ``identified`` (its first candidate); from files, every file that
+   identifies;
+2. turn each into observations (:func:`candidate_observations`): per
+   snapshot, the pixels where the candidate's identified tracks were seen,
+   the apparent places of their stars, and a starting attitude (the
+   sequence fit's, propagated at its rate; else extraction's motion);
+3. fit the camera, rejecting outliers, and store the result as the
+   spacecraft's next calibration version (append-only, with who, when and
+   which sequences); later uploads of the spacecraft without a camera block
+   are given that camera, and each search records which version it used.
+
+Parameters fitted by default: focal length, principal point and k1.  ``k2``
+on request only: over a 20 deg field it is nearly collinear with k1 and the
+focal length, and fitting it quadruples k1's uncertainty
+(:mod:`app.camera_fit`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+
+from app.camera import Camera
+from app.camera_fit import Calibration, Observation, calibrate as fit_camera, parameter_names
+from app.identification.sightings import identified_sightings, observations
+from app.workflow.archive import loaded, require_sequence
+from app.workflow.context import AppContext
+from app.workflow.documents import CalibrationDocument, CandidateDocument, StoredCalibration
+from app.workflow.errors import Invalid, NotFound
+
+#: What a calibration fits unless asked otherwise (see the module doc).
+DEFAULT_PARAMETERS = ("focal_length_px", "cx", "cy", "k1")
+#: Fewest sequences a calibration is made from.
+MIN_SEQUENCES = 3
+#: A calibration from the archive uses the spacecraft's newest sequences, at most this many: 200
+#: already fix the focal length to ~0.002 % and k1 to ~0.5 % (app.camera_fit), and the bound keeps
+#: the request to a few seconds.
+MAX_SEQUENCES = 300
+
+
+def candidate_observations(sequence, extraction, candidate: CandidateDocument, sky, label: str) -> list[Observation]:
+    """The observations (one per snapshot with 3 or more identified sightings) of a candidate document.
+
+    Pixels are the raw sightings (:mod:`app.identification.sightings`: no
+    camera model involved), so the calibration sees the optics as they are;
+    each snapshot starts from the candidate's attitude propagated at its
+    fitted rate (else carried by extraction's motion).
+    """
+    star_of_track = {m.track: m.hip for m in candidate.matches if m.track is not None}
+    rate = candidate.sequence_fit.rate_rad_s if candidate.sequence_fit is not None else None
+    return observations(identified_sightings(sequence, extraction, star_of_track, sky), extraction,
+                        candidate.rotation, rate, label)
+
+
+def fit(observations: list[Observation], camera: Camera, parameters: Iterable[str] | None = None) -> Calibration:
+    """The camera fitted over ``observations`` (Invalid when they cannot fix it)."""
+    names = parameter_names(parameters or DEFAULT_PARAMETERS)
+    n_sequences = len({o.sequence for o in observations})
+    if n_sequences < MIN_SEQUENCES:
+        raise Invalid(f"a calibration needs identified stars from at least {MIN_SEQUENCES} sequences; "
+                      f"{n_sequences} usable", location="sequences")
+    try:
+        return fit_camera(observations, camera, parameters=names)
+    except ValueError as exc:
+        raise Invalid(f"the camera cannot be calibrated from these sequences: {exc}", location="sequences") from None
+
+
+def calibrate_files(files: Iterable[tuple[str, object]], sky, options,
+                    parameters: Iterable[str] | None = None) -> tuple[CalibrationDocument, list[tuple[str, str]]]:
+    """Solve every ``(path, sequence)`` and fit one camera over those that identify.
+
+    Returns the calibration and ``(path, what happened)`` per file: the
+    status, and why a file was left out.  All files must come from sensors
+    of one size (the first file's camera is the declared one).
+    """
+    from app.identification import IDENTIFIED, solve_sequence
+
+    observations, report, camera = [], [], None
+    for path, sequence in files:
+        if camera is not None and (sequence.camera.width, sequence.camera.height) != (camera.width, camera.height):
+            report.append((path, "left out: another sensor size than the first file's"))
+            continue
+        camera = camera or sequence.camera
+        solved = solve_sequence(sequence, sky, options=options)
+        if solved.solution.status != IDENTIFIED:
+            report.append((path, f"left out: {solved.solution.status}"))
+            continue
+        best = solved.solution.candidates[0]
+        found = candidate_observations(sequence, solved.extraction,
+                                       CandidateDocument.of(best, solved.sequence_fits.get(best.rank)), sky, path)
+        report.append((path, f"identified, {len(found)} snapshot(s) with 3 or more identified stars"))
+        observations += found
+    if camera is None:
+        raise Invalid("no telemetry file to calibrate from", location="files")
+    return CalibrationDocument.of(fit(observations, camera, parameters)), report
+
+
+# ---------------------------------------------------------------------------
+# From the archive
+# ---------------------------------------------------------------------------
+
+def archive_observations(ctx: AppContext, spacecraft: str) -> tuple[list[Observation], list[int], Camera | None]:
+    """Observations of the newest usable sequences of ``spacecraft`` (at most :data:`MAX_SEQUENCES`), the
+    archive ids used, and their camera."""
+    from app.workflow.documents import SearchResult
+
+    observations, used, camera = [], [], None
+    offset = 0
+    while len(used) < MAX_SEQUENCES:
+        rows, total = ctx.storage.list_sequences(offset, 200, spacecraft=spacecraft)
+        for light in rows:
+            candidate = None
+            confirmation = ctx.storage.current_confirmation(light.id)
+            if confirmation is not None:
+                candidate = CandidateDocument.model_validate(confirmation.candidate)
+            else:
+                search = ctx.storage.latest_search(light.id)
+                if search is not None and search.status == "identified":
+                    candidate = SearchResult.model_validate(search.result).candidate(1)
+            if candidate is None:
+                continue
+            item = loaded(ctx, require_sequence(ctx, light.id))
+            declared = item.sequence.camera
+            if camera is None:
+                camera = declared
+            elif (declared.width, declared.height) != (camera.width, camera.height):
+                continue  # another sensor under the same spacecraft name: not this camera
+            found = candidate_observations(item.sequence, item.extraction, candidate, ctx.sky, str(light.id))
+            if found and len(used) < MAX_SEQUENCES:
+                observations += found
+                used.append(light.id)
+        offset += len(rows)
+        if not rows or offset >= total:
+            break
+    return observations, used, camera
+
+
+def calibrate_spacecraft(ctx: AppContext, spacecraft: str, operator: str | None = None,
+                         parameters: Iterable[str] | None = None) -> StoredCalibration:
+    """Fit the camera of ``spacecraft`` from its archive and store it as the next calibration version."""
+    observations, used, camera = archive_observations(ctx, spacecraft)
+    if camera is None:
+        raise NotFound(f"no identified or confirmed sequence of spacecraft {spacecraft!r} to calibrate from")
+    result = fit(observations, camera, parameters)
+    document = CalibrationDocument.of(result)
+    used_ids = sorted({int(o.sequence) for o, inlier in zip(observations, result.inliers) if np.any(inlier)}
+                      & set(used))
+    row = ctx.storage.add_calibration(spacecraft, camera=document.camera, result=document.model_dump(mode="json"),
+                                      sequences=used_ids, operator=operator)
+    return StoredCalibration.of(row)
+
+
+def current_camera(ctx: AppContext, spacecraft: str) -> StoredCalibration:
+    row = ctx.storage.current_calibration(spacecraft)
+    if row is None:
+        raise NotFound(f"spacecraft {spacecraft!r} has no camera calibration yet; "
+                       f"POST /api/spacecraft/{spacecraft}/calibrate makes one")
+    return StoredCalibration.of(row)

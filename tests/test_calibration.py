@@ -1,0 +1,102 @@
+"""Camera calibration from the archive and from files (issue 11): known simulated optics recovered,
+stored calibrations append-only and versioned, later uploads given the calibrated camera."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from app.api import create_app
+from app.camera import CAMERAS
+from app.simulate import simulate_sequence, true_optics
+from app.storage import Storage
+from app.workflow import AppContext
+
+CAMERA = CAMERAS["tubsat-752x582-20deg"]
+
+
+@pytest.fixture(scope="module")
+def wrong_optics_files(tmp_path_factory):
+    """Eight 16-snapshot sequences of a camera whose focal length is 3 % longer than declared and whose
+    lens has k1 giving 1 % of the field radius at the corner, with their truth."""
+    out = tmp_path_factory.mktemp("optics")
+    true_camera = true_optics(CAMERA, focal_error=0.03, k1=0.01 / CAMERA.corner_radius ** 2)
+    paths = []
+    for i in range(8):
+        sequence, _ = simulate_sequence(np.random.default_rng([11, i]), CAMERA, "nominal", true_camera=true_camera,
+                                        sequence_id=f"optics-{i}")
+        doc = sequence.to_json_dict()
+        doc["spacecraft"] = "OPTICS-SAT"
+        path = out / f"optics-{i}.json"
+        path.write_text(json.dumps(doc))
+        paths.append(path)
+    return paths, true_camera
+
+
+def test_calibrate_command_recovers_the_true_focal_length_and_distortion(wrong_optics_files):
+    paths, true_camera = wrong_optics_files
+    run = subprocess.run([sys.executable, "-m", "app", "calibrate", "--json", *map(str, paths)],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    doc = json.loads(run.stdout)
+    assert doc["sequences_used"] == len(paths)
+    sigma = doc["sigma"]
+    for name in ("focal_length_px", "k1", "cx", "cy"):
+        error = abs(doc["camera"][name] - getattr(true_camera, name))
+        assert error <= 4 * sigma[name], (name, error, sigma[name])
+    assert abs(doc["camera"]["focal_length_px"] / true_camera.focal_length_px - 1) < 5e-4
+    assert doc["rms_px_after"] < 1.0 < 3 * doc["rms_px_after"] < doc["rms_px_before"]
+
+
+def test_calibration_through_the_api_is_stored_versioned_and_given_to_later_uploads(tmp_path, sky,
+                                                                                    wrong_optics_files):
+    paths, true_camera = wrong_optics_files
+    db = tmp_path / "cal.sqlite3"
+    ctx = AppContext(storage=Storage.open(db), sky=sky)
+    api = TestClient(create_app(ctx))
+    for path in paths[:6]:
+        seq = api.post("/api/sequences", files={"file": (path.name, path.read_bytes())}).json()["id"]
+        assert api.post(f"/api/sequences/{seq}/search").json()["status"] == "identified"
+    assert api.get("/api/spacecraft/OPTICS-SAT/camera").status_code == 404
+    r = api.post("/api/spacecraft/OPTICS-SAT/calibrate", json={"operator": "cal"})
+    assert r.status_code == 201, r.text
+    first = r.json()
+    assert first["version"] == 1 and first["operator"] == "cal" and len(first["sequences"]) == 6
+    assert abs(first["camera"]["focal_length_px"] - true_camera.focal_length_px) < 4 * first["sigma"]["focal_length_px"]
+    second = api.post("/api/spacecraft/OPTICS-SAT/calibrate", json={"parameters": ["f", "k1"]}).json()
+    assert second["version"] == 2 and set(second["sigma"]) == {"focal_length_px", "k1"}
+    ctx.close()
+
+    # After a restart: the current calibration is the newest, and a file without a camera block gets it.
+    ctx = AppContext(storage=Storage.open(db), sky=sky)
+    api = TestClient(create_app(ctx))
+    assert api.get("/api/spacecraft/OPTICS-SAT/camera").json()["version"] == 2
+    doc = json.loads(paths[6].read_text())
+    del doc["camera"]
+    up = api.post("/api/sequences", files={"file": ("no-camera.json", json.dumps(doc).encode())}).json()
+    assert up["sequence"]["camera"]["focal_length_px"] == second["camera"]["focal_length_px"]
+    search = api.post(f"/api/sequences/{up['id']}/search").json()
+    assert search["status"] == "identified"
+    assert ctx.storage.latest_search(up["id"]).options["camera_calibration"] == 2
+    # The stored camera stands when the sequence is loaded again (a cold cache, as after a restart).
+    ctx.cache = type(ctx.cache)()
+    assert api.get(f"/api/sequences/{up['id']}").json()["telemetry"]["camera"]["focal_length_px"] == \
+        second["camera"]["focal_length_px"]
+    ctx.close()
+
+
+def test_a_calibration_needs_enough_identified_sequences(tmp_path, sky, sample_dir):
+    ctx = AppContext(storage=Storage.open(tmp_path / "few.sqlite3"), sky=sky)
+    api = TestClient(create_app(ctx))
+    assert api.post("/api/spacecraft/NOBODY/calibrate").status_code == 404
+    seq = api.post("/api/sequences", files={"file": ("01.json", (sample_dir / "01-clean.json").read_bytes())}).json()
+    api.post(f"/api/sequences/{seq['id']}/search")
+    r = api.post(f"/api/spacecraft/{seq['sequence']['spacecraft']}/calibrate")
+    assert r.status_code == 422 and "at least 3 sequences" in r.json()["detail"]
+    assert api.post("/api/spacecraft/X/calibrate", json={"parameters": ["zoom"]}).status_code == 422
+    ctx.close()
