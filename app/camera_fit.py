@@ -582,6 +582,8 @@ class Calibration:
     rotations: list
     inliers: list
     rounds: int            # fits made (outlier rejection rounds)
+    #: The attitudes refitted for ``camera0`` alone (what ``rms_px_before`` is measured with).
+    rotations_before: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         """The calibration's JSON (issue 11): camera, sigma, counts, rms before and after."""
@@ -718,4 +720,11 @@ def calibrate(observations: Sequence, camera0: Camera, *,
         stars_used=n_used, stars_rejected=int(len(inliers) - n_used),
         rms_px_before=rms_before, rms_px_after=rms_after, chi2_reduced=float(chi2_reduced),
         rotations=[solution.rotations[j] if active[j] else None for j in range(stars.n_observations)],
-        inliers=np.split(inliers, stars.starts[1:]), rounds=rounds)
+        inliers=np.split(inliers, stars.starts[1:]), rounds=rounds,
+        rotations_before=[before.rotations[j] if active[j] else None for j in range(stars.n_observations)])
+
+
+def residual_vectors(observation: Observation, rotation: np.ndarray, camera: Camera) -> np.ndarray:
+    """(n, 2) measured minus predicted pixels of an observation's stars at ``rotation`` through ``camera``."""
+    predicted, _ = camera.vectors_to_pixels(np.asarray(observation.star_vectors) @ np.asarray(rotation).T)
+    return np.asarray(observation.xy, dtype=float) - predicted

@@ -51,6 +51,14 @@ def test_calibrate_command_recovers_the_true_focal_length_and_distortion(wrong_o
         assert error <= 4 * sigma[name], (name, error, sigma[name])
     assert abs(doc["camera"]["focal_length_px"] / true_camera.focal_length_px - 1) < 5e-4
     assert doc["rms_px_after"] < 1.0 < 3 * doc["rms_px_after"] < doc["rms_px_before"]
+    # The residual map: radial errors of several px towards the corners before, noise-level after.
+    cells = doc["residual_map"]["cells"]
+    before = np.mean([np.hypot(c["dx_before"], c["dy_before"]) for c in cells])
+    after = np.mean([np.hypot(c["dx_after"], c["dy_after"]) for c in cells])
+    assert before > 2.0 and after < 0.3, (before, after)
+    corner = max(cells, key=lambda c: np.hypot(c["x"] - CAMERA.cx, c["y"] - CAMERA.cy))
+    outward = np.dot([corner["dx_before"], corner["dy_before"]], [corner["x"] - CAMERA.cx, corner["y"] - CAMERA.cy])
+    assert outward > 0  # a longer true focal length and a positive k1 both push corner stars outward
 
 
 def test_calibration_through_the_api_is_stored_versioned_and_given_to_later_uploads(tmp_path, sky,

@@ -29,6 +29,7 @@ from app.extraction import Extraction, Pattern, extract
 from app.identification.engine import classify, identify, is_rival
 from app.identification.methods import METHODS, Method
 from app.identification.near_prior import identify_near_prior
+from app.identification.optics import ADOPT_PROBABILITY, HINT_PROBABILITY, departs
 from app.identification.options import SearchOptions
 from app.identification.result import (AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, PlanetMatch, Solution,
                                        StarMatch)
@@ -114,7 +115,8 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
         # The sequence fit for the best candidate and its rivals (what an operator weighs up).
         credible = c.false_match_probability <= options.rival_probability and (c is best or is_rival(c, best, options))
         if credible and len(sequence.snapshots) > 1:
-            if c.camera is not None:
+            if c.camera is not None or (c.camera_fit is not None
+                                        and departs(c.camera_fit, sequence.camera, HINT_PROBABILITY)):
                 c = fit_sequence_camera(sequence, extraction, c, sky)
             fit = fit_sequence(sequence, extraction, pattern, c, sky)
         rate_deg_s = math.degrees(float(np.linalg.norm(fit.rate_rad_s))) if fit is not None else 0.0
@@ -190,8 +192,11 @@ def fit_sequence_camera(sequence: Sequence, extraction: Extraction, candidate: C
     moves stars differently across the field as it turns.  The raw
     sightings are free of that.  The focal length and k1 are fitted (with
     the declaration's weak priors); the principal point needs many
-    sequences (a calibration).  The candidate is returned unchanged when
-    the sightings cannot fix the optics.
+    sequences (a calibration).  The fitted camera is adopted when the
+    candidate had adopted fitted optics already or the sequence's sightings
+    reject the declared ones (:func:`app.identification.optics.departs`);
+    the candidate is returned unchanged when the sightings cannot fix the
+    optics.
     """
     star_of_track = {m.track: m.hip for m in candidate.matches if m.track is not None}
     found = observations(identified_sightings(sequence, extraction, star_of_track, sky), extraction,
@@ -204,7 +209,9 @@ def fit_sequence_camera(sequence: Sequence, extraction: Extraction, candidate: C
                                   priors=default_priors(sequence.camera, names))
     except ValueError:
         return candidate
-    return replace(candidate, camera=result.camera, camera_fit=result)
+    # Adopted when the pattern already asked for other optics, or the whole sequence does.
+    adopt = candidate.camera is not None or departs(result, sequence.camera, ADOPT_PROBABILITY)
+    return replace(candidate, camera=result.camera if adopt else None, camera_fit=result)
 
 
 def fit_sequence(sequence: Sequence, extraction: Extraction, pattern: Pattern, candidate: Candidate,

@@ -61,6 +61,9 @@ MIN_STEP, MAX_STEP = 0.004, 0.02
 #: more stars: an exactly known camera keeps its answers.
 ADOPT_PROBABILITY = 1e-6
 ADOPT_MORE_MATCHES = 2
+#: A sequence's optics are fitted over all its snapshots when the pattern's fit already hints at
+#: optics other than the declared ones at this level (or adopted them): cheap insurance, a few ms.
+HINT_PROBABILITY = 0.01
 #: Rounds of fit -> re-match in :func:`refine_optics`.
 OPTICS_ROUNDS = 3
 
@@ -137,22 +140,27 @@ def refine_optics(r: Refined, p: PreparedPattern, declared: Camera, field: StarF
     offset_f = abs(fit.camera.focal_length_px - declared.focal_length_px)
     within = offset_f <= declared.focal_tolerance * declared.focal_length_px + 3 * sigma_f
     consistent = p.camera is fit.camera  # r and p are through the fitted camera
-    significant = consistent and (departure(fit, declared) > chdtri(len(fit.parameters), ADOPT_PROBABILITY)
+    significant = consistent and (departs(fit, declared, ADOPT_PROBABILITY)
                                   or r.n_matched >= start_matches + ADOPT_MORE_MATCHES)
     return OpticsFit(refined=r, prepared=p, fit=fit, within_tolerance=bool(within), significant=bool(significant))
 
 
-def departure(fit: CameraAttitudeFit, declared: Camera) -> float:
-    """Squared Mahalanobis distance of the fitted optics from the declared ones (fitted parameters only).
+def departs(fit, declared: Camera, probability: float) -> bool:
+    """Whether the declared optics are rejected at ``probability`` by the fitted ones (a chi-square test).
 
-    The parameters are correlated (the focal length and k1 trade off over a
-    narrow field), so they are judged together against their covariance.
+    ``fit`` is a :class:`app.camera_fit.CameraAttitudeFit` (its covariance
+    starts with the 3 rotation angles) or a :class:`app.camera_fit.Calibration`
+    (optics only).  The parameters are correlated (the focal length and k1
+    trade off over a narrow field), so they are judged together: the squared
+    Mahalanobis distance of the fitted optics from the declared ones against
+    the chi-square quantile with one degree of freedom per parameter.
     """
     names = fit.parameters
     fitted, stated = fit.camera.optics(), declared.optics()
     d = np.array([fitted[n] - stated[n] for n in names])
-    covariance = fit.covariance[3:, 3:]
+    covariance = fit.covariance[-len(names):, -len(names):]
     try:
-        return float(d @ np.linalg.solve(covariance, d))
+        distance = float(d @ np.linalg.solve(covariance, d))
     except np.linalg.LinAlgError:
-        return 0.0
+        return False
+    return distance > chdtri(len(names), probability)

@@ -30,11 +30,12 @@ from collections.abc import Iterable
 import numpy as np
 
 from app.camera import Camera
-from app.camera_fit import Calibration, Observation, calibrate as fit_camera, parameter_names
+from app.camera_fit import Calibration, Observation, calibrate as fit_camera, parameter_names, residual_vectors
 from app.identification.sightings import identified_sightings, observations
 from app.workflow.archive import loaded, require_sequence
 from app.workflow.context import AppContext
-from app.workflow.documents import CalibrationDocument, CandidateDocument, StoredCalibration
+from app.workflow.documents import (CalibrationDocument, CandidateDocument, ResidualCell, ResidualMap,
+                                    StoredCalibration)
 from app.workflow.errors import Invalid, NotFound
 
 #: What a calibration fits unless asked otherwise (see the module doc).
@@ -59,6 +60,39 @@ def candidate_observations(sequence, extraction, candidate: CandidateDocument, s
     rate = candidate.sequence_fit.rate_rad_s if candidate.sequence_fit is not None else None
     return observations(identified_sightings(sequence, extraction, star_of_track, sky), extraction,
                         candidate.rotation, rate, label)
+
+
+#: The residual map's grid over the sensor (columns, rows).
+RESIDUAL_GRID = (8, 6)
+
+
+def residual_map(observations: list[Observation], result: Calibration, camera: Camera) -> ResidualMap:
+    """Mean residual vector (measured minus predicted, px) of the inlier stars in each cell of a grid over the
+    sensor, with the declared camera (attitudes refitted for it) and with the fitted one: what the console
+    draws to show what the calibration corrected."""
+    nx, ny = RESIDUAL_GRID
+    sums = np.zeros((ny, nx, 4))
+    counts = np.zeros((ny, nx), dtype=int)
+    for obs, before, after, inlier in zip(observations, result.rotations_before, result.rotations, result.inliers):
+        if before is None or after is None or not np.any(inlier):
+            continue
+        xy = np.asarray(obs.xy)[inlier]
+        kept = Observation(xy=xy, star_vectors=np.asarray(obs.star_vectors)[inlier], rotation=after,
+                           sigma_px=obs.sigma_px)
+        both = np.hstack([residual_vectors(kept, before, camera), residual_vectors(kept, after, result.camera)])
+        col = np.clip(((xy[:, 0] + 0.5) * nx / camera.width).astype(int), 0, nx - 1)
+        row = np.clip(((xy[:, 1] + 0.5) * ny / camera.height).astype(int), 0, ny - 1)
+        np.add.at(sums, (row, col), both)
+        np.add.at(counts, (row, col), 1)
+    cells = []
+    for r in range(ny):
+        for c in range(nx):
+            if counts[r, c]:
+                mean = sums[r, c] / counts[r, c]
+                cells.append(ResidualCell(x=(c + 0.5) * camera.width / nx - 0.5, y=(r + 0.5) * camera.height / ny - 0.5,
+                                          n=int(counts[r, c]), dx_before=round(mean[0], 3), dy_before=round(mean[1], 3),
+                                          dx_after=round(mean[2], 3), dy_after=round(mean[3], 3)))
+    return ResidualMap(columns=nx, rows=ny, width=camera.width, height=camera.height, cells=cells)
 
 
 def fit(observations: list[Observation], camera: Camera, parameters: Iterable[str] | None = None) -> Calibration:
@@ -101,7 +135,8 @@ def calibrate_files(files: Iterable[tuple[str, object]], sky, options,
         observations += found
     if camera is None:
         raise Invalid("no telemetry file to calibrate from", location="files")
-    return CalibrationDocument.of(fit(observations, camera, parameters)), report
+    result = fit(observations, camera, parameters)
+    return CalibrationDocument.of(result, residual_map(observations, result, camera)), report
 
 
 # ---------------------------------------------------------------------------
@@ -151,7 +186,7 @@ def calibrate_spacecraft(ctx: AppContext, spacecraft: str, operator: str | None 
     if camera is None:
         raise NotFound(f"no identified or confirmed sequence of spacecraft {spacecraft!r} to calibrate from")
     result = fit(observations, camera, parameters)
-    document = CalibrationDocument.of(result)
+    document = CalibrationDocument.of(result, residual_map(observations, result, camera))
     used_ids = sorted({int(o.sequence) for o, inlier in zip(observations, result.inliers) if np.any(inlier)}
                       & set(used))
     row = ctx.storage.add_calibration(spacecraft, camera=document.camera, result=document.model_dump(mode="json"),

@@ -538,6 +538,26 @@ class CovarianceDocument(Document):
     matrix: list[list[float]]
 
 
+class ResidualCell(Document):
+    x: float = Field(description="centre of the cell, pixels")
+    y: float
+    n: int = Field(description="inlier stars in the cell")
+    dx_before: float = Field(description="mean measured-minus-predicted x with the declared camera, px")
+    dy_before: float
+    dx_after: float = Field(description="the same with the fitted camera")
+    dy_after: float
+
+
+class ResidualMap(Document):
+    """Mean residual vectors over a grid on the sensor, before and after a calibration."""
+
+    columns: int
+    rows: int
+    width: int
+    height: int
+    cells: list[ResidualCell]
+
+
 class CalibrationDocument(Document):
     """A camera fitted over many sequences (``python -m app calibrate --json``, and what the archive stores)."""
 
@@ -551,10 +571,11 @@ class CalibrationDocument(Document):
     rms_px_before: float = Field(description="rms residual with the declared camera (attitudes refitted)")
     rms_px_after: float
     chi2_reduced: float
+    residual_map: ResidualMap | None = None
 
     @classmethod
-    def of(cls, calibration) -> "CalibrationDocument":
-        """The document of an :class:`app.camera_fit.Calibration`."""
+    def of(cls, calibration, residual_map: ResidualMap | None = None) -> "CalibrationDocument":
+        """The document of an :class:`app.camera_fit.Calibration` (and its residual map)."""
         return cls(camera=calibration.camera.to_dict(),
                    sigma={name: float(f"{value:.4g}") for name, value in calibration.sigma.items()},
                    covariance=CovarianceDocument(names=list(calibration.parameters),
@@ -562,7 +583,7 @@ class CalibrationDocument(Document):
                    sequences_used=calibration.sequences_used, observations_used=calibration.observations_used,
                    stars_used=calibration.stars_used, stars_rejected=calibration.stars_rejected,
                    rms_px_before=round(calibration.rms_px_before, 4), rms_px_after=round(calibration.rms_px_after, 4),
-                   chi2_reduced=round(calibration.chi2_reduced, 4))
+                   chi2_reduced=round(calibration.chi2_reduced, 4), residual_map=residual_map)
 
 
 class StoredCalibration(CalibrationDocument):
