@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import json
 import math
 from datetime import datetime, timezone
@@ -281,3 +282,19 @@ def test_solve_cli_methods(sample_dir, capsys):
     ra, dec, _ = truth["radec_roll_deg"][doc["reference_snapshot"]]
     for c in (doc["candidates"][0], doc["tf_candidates"][0], tf_doc["candidates"][0]):
         assert math.degrees(math.acos(min(1.0, at(ra, dec) @ at(c["ra_deg"], c["dec_deg"])))) < 0.1
+
+
+def test_the_disk_cache_keeps_a_bounded_number_of_databases(tmp_path):
+    from app.identification.triangle_features import MAX_CACHED_DATABASES, prune_tf_cache
+
+    paths = []
+    for k in range(MAX_CACHED_DATABASES + 5):
+        path = tmp_path / f"triangle-features-{k:04d}.npz"
+        path.write_bytes(b"x")
+        os.utime(path, (1_000_000 + k, 1_000_000 + k))
+        paths.append(path)
+    oldest = paths[0]
+    prune_tf_cache(tmp_path, keep=oldest)
+    left = sorted(tmp_path.glob("triangle-features-*.npz"))
+    assert oldest in left and len(left) == MAX_CACHED_DATABASES + 1
+    assert set(paths[-MAX_CACHED_DATABASES:]) <= set(left)

@@ -39,7 +39,8 @@ class PreparedPattern:
     sigma_px: np.ndarray
     match_tol: np.ndarray  # (m,) final match tolerance of each point, radians
     weights: np.ndarray  # (m,) Wahba weights 1 / sigma^2
-    camera: Camera
+    camera: Camera  # the camera the directions were computed with
+    declared_camera: Camera  # the telemetry's camera (differs from ``camera`` at a searched focal length)
     field: StarField
     star_mask: np.ndarray  # index rows the camera can see
     scale: float  # radians per pixel
@@ -59,7 +60,7 @@ def prepare_pattern(pattern, camera: Camera, t: datetime, sky: Sky, velocity_km_
     return PreparedPattern(
         keep=keep, track_ids=np.asarray(pattern.track_ids)[keep], vectors=pattern.vectors[keep], xy=pattern.xy[keep], sigma_px=sigma_px,
         match_tol=np.maximum(options.match_tolerance_px, 5 * sigma_px) * scale,
-        weights=1.0 / (sigma_px * scale) ** 2, camera=camera,
+        weights=1.0 / (sigma_px * scale) ** 2, camera=camera, declared_camera=camera,
         field=sky.field(t, mag_limit, velocity_km_s), star_mask=sky.star_mask(mag_limit), scale=scale)
 
 

@@ -369,7 +369,24 @@ def load_tf_database(params: TFParameters, index: BrightPairIndex, cache_dir: Pa
     np.savez(tmp, keys=db.keys, entry_nbc=db.entry_nbc, nbc_star=db.nbc_star, nbc_first=db.nbc_first,
              nbc_second=db.nbc_second, n_stars=db.n_stars, build_s=db.build_s)
     tmp.replace(path)  # atomic: a concurrent reader never sees half a file
+    prune_tf_cache(path.parent, keep=path)
     return db
+
+
+#: Databases kept on disk (3-7 MB each): one per camera model in use, so a few suffice; the bound
+#: keeps uploads with ever new cameras from filling the disk.
+MAX_CACHED_DATABASES = 12
+
+
+def prune_tf_cache(cache_dir: Path, keep: Path) -> None:
+    """Delete the least recently written databases beyond :data:`MAX_CACHED_DATABASES` (never ``keep``)."""
+    files = sorted(cache_dir.glob("triangle-features-*.npz"), key=lambda f: f.stat().st_mtime, reverse=True)
+    for old in files[MAX_CACHED_DATABASES:]:
+        if old != keep:
+            try:
+                old.unlink()
+            except OSError:  # another process pruned it first
+                pass
 
 
 @functools.lru_cache(maxsize=8)
@@ -489,7 +506,9 @@ def tf_batches(p: "PreparedPattern", sky: "Sky", options: "SearchOptions"):
     Yields ``(Hypotheses, check tolerance (H,), pattern points used)`` in
     batches of growing size, best-voted assignments first.
     """
-    params = TFParameters.for_camera(p.camera, catalogue_mag_limit=sky.index.mag_limit)
+    # The declared camera's database also serves the focal lengths searched near it
+    # (app.identification.optics): its distance classes do not depend on the focal length.
+    params = TFParameters.for_camera(p.declared_camera, catalogue_mag_limit=sky.index.mag_limit)
     db = database_for(params, sky.index)
     pf = pattern_features(p.vectors, p.camera, params)
     if len(pf.points) == 0:
