@@ -11,6 +11,7 @@ exception is logged with its traceback and answered 500 without internals.
 from __future__ import annotations
 
 import logging
+import math
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -58,6 +59,22 @@ def _location(loc) -> str:
     return text or "request"
 
 
+#: Range checks whose message would misdescribe a NaN or an infinity ("should be less than 360").
+_RANGE_ERRORS = {"less_than", "less_than_equal", "greater_than", "greater_than_equal", "finite_number"}
+
+
+def _not_finite(value) -> bool:
+    """NaN or an infinity, as a number or as the text a query parameter carries."""
+    if isinstance(value, float):
+        return not math.isfinite(value)
+    if isinstance(value, str):
+        try:
+            return not math.isfinite(float(value))
+        except ValueError:
+            return False
+    return False
+
+
 def validation_problems(errors) -> list[dict]:
     problems = []
     for error in errors:
@@ -65,6 +82,8 @@ def validation_problems(errors) -> list[dict]:
         if error.get("type") == "json_invalid":
             message = "the body is not valid JSON" + (f" ({error['ctx']['error']})"
                                                        if error.get("ctx", {}).get("error") else "")
+        elif error.get("type") in _RANGE_ERRORS and _not_finite(error.get("input")):
+            message = f"must be a finite number, got {error.get('input')}"
         problems.append({"location": _location(error.get("loc", ())), "message": message})
     return problems
 

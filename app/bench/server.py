@@ -26,9 +26,13 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(db: Path, port: int, log_path: Path, extra_args: tuple[str, ...] = ()) -> subprocess.Popen:
-    """``python -m app serve`` on loopback (no token needed) with its output appended to ``log_path``."""
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+def start_server(db: Path, port: int, log_path: Path, extra_args: tuple[str, ...] = (),
+                 env: dict[str, str] | None = None) -> subprocess.Popen:
+    """``python -m app serve`` on loopback (no token needed) with its output appended to ``log_path``.
+
+    ``env`` adds to (or overrides) the environment the server inherits.
+    """
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
     for name in ("STARID_TOKENS", "STARID_TOKENS_FILE", "DATABASE_URL", "STARID_DB"):
         env.pop(name, None)  # a loopback server of its own, on its own database
     with Path(log_path).open("ab") as log:

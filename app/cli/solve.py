@@ -28,17 +28,30 @@ from app.cli.common import for_each_file
 
 #: The lost-in-space identifiers a file can be solved with, and both compared.
 METHODS = ("bright_pair", "tf", "both")
+#: Most candidates a file may ask for (as the API's search request: more are only chance fits).
+MAX_CANDIDATES = 50
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("files", nargs="+", metavar="FILE", help="telemetry files (tubsat-snapshots/1 JSON or CSV)")
     p.add_argument("--json", action="store_true", help="one JSON object per file and line")
-    p.add_argument("--candidates", type=int, default=None, metavar="N",
-                   help="distinct candidates to report (default 10)")
+    p.add_argument("--candidates", type=candidate_count, default=None, metavar="N",
+                   help=f"distinct candidates to report, 1 to {MAX_CANDIDATES} (default 6)")
     p.add_argument("--method", choices=METHODS, default="bright_pair",
                    help="identifier: bright_pair (default), tf (Liebe's triangle features) or both, compared")
     p.add_argument("--prior", type=parse_prior, default=None, metavar="RA,DEC,ROLL[,SIGMA_DEG]",
                    help="tracking mode from this attitude (degrees; its 1-sigma defaults to 1 deg)")
+
+
+def candidate_count(text: str) -> int:
+    """``--candidates``: an integer from 1 to :data:`MAX_CANDIDATES` (the API's ``max_candidates`` range)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if not 1 <= value <= MAX_CANDIDATES:
+        raise argparse.ArgumentTypeError(f"must be from 1 to {MAX_CANDIDATES}, got {value}")
+    return value
 
 
 def parse_prior(text: str):

@@ -3,9 +3,14 @@
 Directories are searched (not recursively) for ``*.json`` and ``*.csv``
 files, leaving out ``*.truth.json`` (the simulator's truth files); files
 named explicitly are always sent.  A progress bar goes to stderr and one
-line per file to stdout: ``created``, ``duplicate`` or ``invalid`` with the
-server's message.  Exit status 0 when every file was accepted, 2 when some
-were refused, 1 when the server could not be reached.
+line per file to stdout: ``created``, ``duplicate``, ``invalid`` with the
+server's message, ``too large`` or ``error``.  The server is asked for its
+health first, which checks the URL (``--server`` is the server's base URL,
+without ``/api``) and gives the size limit, so that files above it are
+reported without being sent.  One file's failure never stops the folder;
+only a server that cannot be reached at all does.  Exit status 0 when every
+file was accepted, 2 when some were refused, 1 when the server could not
+be reached (or is not a starid server).
 
 Only the standard library is used (urllib), so no client package is needed.
 """
@@ -13,14 +18,21 @@ Only the standard library is used (urllib), so no client package is needed.
 from __future__ import annotations
 
 import argparse
+import errno
 import json
+import socket
 import sys
+import time
 import urllib.error
 import urllib.parse
 import urllib.request
 from pathlib import Path
 
 SUFFIXES = (".json", ".csv")
+#: A file answered 503 (the server was busy past its time-out; nothing was stored) is sent again this
+#: many times, after 1 s, then 2 s, ... (the server asks for a second with Retry-After).
+BUSY_RETRIES = 2
+BUSY_PAUSE_S = 1.0
 BAR_WIDTH = 30
 
 
@@ -59,6 +71,13 @@ def summary_line(name: str, status: int | None, doc: dict | None, error: str | N
     if status is None:
         return f"{name}: error: {error}"
     detail = (doc or {}).get("detail") or error or f"HTTP {status}"
+    if status == 413:
+        return f"{name}: too large (HTTP 413): {detail}"
+    if status in (404, 405):
+        return (f"{name}: refused (HTTP {status}): the server has no upload endpoint at this URL: "
+                "--server must be the server's base URL, e.g. http://127.0.0.1:8000 (without /api)")
+    if status == 503:
+        return f"{name}: not processed (HTTP 503): {detail}"
     problems = (doc or {}).get("problems") or []
     text = f"{name}: invalid (HTTP {status}): {detail}"
     if len(problems) > 1:
@@ -66,9 +85,49 @@ def summary_line(name: str, status: int | None, doc: dict | None, error: str | N
     return text
 
 
-def upload_one(server: str, path: Path, token: str | None, timeout: float) -> tuple[int | None, dict | None, str | None]:
-    """POST the file as a raw body; (HTTP status, JSON answer, error text)."""
+class ServerUnreachable(ConnectionError):
+    """The server cannot be reached at all (refused, unknown host, not a starid server): stop the batch."""
+
+
+def _unreachable(exc: BaseException) -> bool:
+    """Whether a failed request means no server at all (rather than trouble with one request)."""
+    reason = getattr(exc, "reason", exc)
+    return isinstance(reason, (ConnectionRefusedError, socket.gaierror)) or (
+        isinstance(reason, OSError) and reason.errno in (errno.ECONNREFUSED, errno.EHOSTUNREACH, errno.ENETUNREACH))
+
+
+def server_health(server: str, token: str | None, timeout: float) -> dict:
+    """The server's ``/api/health`` document; :class:`ServerUnreachable` saying what is wrong with the URL."""
+    url = server.rstrip("/") + "/api/health"
+    headers = {"Accept": "application/json", **({"Authorization": f"Bearer {token}"} if token else {})}
     try:
+        with urllib.request.urlopen(urllib.request.Request(url, headers=headers), timeout=timeout) as response:
+            doc = _json(response.read())
+            status = response.status
+    except urllib.error.HTTPError as exc:
+        doc, status = None, exc.code
+    except (urllib.error.URLError, OSError) as exc:
+        raise ServerUnreachable(f"cannot reach {server}: {getattr(exc, 'reason', exc)}") from None
+    if status != 200 or not doc or "status" not in doc:
+        answer = f"HTTP {status}" if status != 200 else "something other than the health document"
+        raise ServerUnreachable(f"{server} does not look like a starid server (GET {url} gave {answer}): "
+                                "--server must be the server's base URL, e.g. http://127.0.0.1:8000 (without /api)")
+    return doc
+
+
+def upload_one(server: str, path: Path, token: str | None, timeout: float,
+               max_bytes: int | None = None) -> tuple[int | None, dict | None, str | None]:
+    """POST the file as a raw body; (HTTP status, JSON answer, error text).
+
+    A file above ``max_bytes`` (the server's limit) is not sent: it is
+    answered here as the server would, 413.  Raises
+    :class:`ServerUnreachable` only when no server answers at all; trouble
+    with this one request (a reset, a time-out) is this file's error.
+    """
+    try:
+        size = path.stat().st_size
+        if max_bytes is not None and size > max_bytes:
+            return 413, {"detail": f"the file is {size} bytes; the server accepts at most {max_bytes}"}, None
         data = path.read_bytes()
     except OSError as exc:
         return None, None, f"cannot read the file: {exc.strerror or exc}"
@@ -84,8 +143,9 @@ def upload_one(server: str, path: Path, token: str | None, timeout: float) -> tu
     except urllib.error.HTTPError as exc:
         return exc.code, _json(exc.read()), exc.reason
     except (urllib.error.URLError, OSError) as exc:
-        reason = getattr(exc, "reason", exc)
-        raise ConnectionError(f"cannot reach {server}: {reason}") from None
+        if _unreachable(exc):
+            raise ServerUnreachable(f"cannot reach {server}: {getattr(exc, 'reason', exc)}") from None
+        return None, None, f"the upload failed: {getattr(exc, 'reason', exc)}"
 
 
 def _json(raw: bytes) -> dict | None:
@@ -106,13 +166,23 @@ def run(args: argparse.Namespace) -> int:
         return 2
     interactive = sys.stderr.isatty()
     end = "\r" if interactive else "\n"
+    try:
+        max_bytes = server_health(args.server, args.token, args.timeout).get("max_upload_bytes")
+    except ServerUnreachable as exc:
+        print(f"upload: {exc}", file=sys.stderr)
+        return 1
     counts = {"created": 0, "duplicate": 0, "refused": 0}
     for k, path in enumerate(files):
         sys.stderr.write(progress_bar(k, len(files), path.name) + end)
         sys.stderr.flush()
         try:
-            status, doc, error = upload_one(args.server, path, args.token, args.timeout)
-        except ConnectionError as exc:
+            for attempt in range(1 + BUSY_RETRIES):
+                status, doc, error = upload_one(args.server, path, args.token, args.timeout,
+                                                max_bytes if isinstance(max_bytes, int) else None)
+                if status != 503 or attempt == BUSY_RETRIES:
+                    break
+                time.sleep(BUSY_PAUSE_S * (attempt + 1))  # the server said: busy, try again shortly
+        except ServerUnreachable as exc:
             sys.stderr.write("\n" if interactive else "")
             print(f"upload: {exc}", file=sys.stderr)
             return 1

@@ -102,7 +102,8 @@ def _chain_motions(vectors: np.ndarray, brightness: np.ndarray, valid: np.ndarra
     kwargs = dict(pair_tol=p.pair_tol_px * chord_px, min_baseline=p.min_baseline_px * chord_px,
                   score_gate=p.score_gate_px * chord_px, fit_gate=p.fit_gate_px * chord_px,
                   min_inliers=p.min_inliers, min_radius=p.min_match_radius_px * chord_px,
-                  max_false_alarms=p.max_false_alarms, field_area=field_area_px * chord_px**2)
+                  max_false_alarms=p.max_false_alarms, field_area=field_area_px * chord_px**2,
+                  max_work=p.max_link_work, min_hypotheses=p.min_link_hypotheses)
     links = np.column_stack([np.arange(n_snap - 1), np.arange(1, n_snap)])
     first = estimate_pair_rotations(vectors, hyp, links, **kwargs)
     found = {(int(a), int(b)): (first.rotation[k], first.matches[k]) for k, (a, b) in enumerate(links)}
@@ -174,15 +175,20 @@ def _refine_to_common(vectors: np.ndarray, snap: np.ndarray, label: np.ndarray,
     return np.where((counts >= 2)[:, None, None], refined, to_common)
 
 
-def _same_pixel_pairs(xy: np.ndarray, snap: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+def _same_pixel_pairs(xy: np.ndarray, snap: np.ndarray, tol: float,
+                      max_partners: int = DEFAULT_PARAMETERS.max_pixel_partners) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs (m, n), both orders, of sources of different snapshots within ``tol`` pixels.
 
-    Sorting by x and expanding the x-windows keeps this near-linear.
+    Sorting by x and expanding the x-windows keeps this near-linear.  Each
+    source examines at most ``max_partners`` neighbours in x on either side
+    (real telemetry has a handful within a few pixels); without that bound a
+    file with every source on one pixel would make 16 million pairs.
     """
     order = np.argsort(xy[:, 0], kind="stable")
     xs = xy[order, 0]
-    lo = np.searchsorted(xs, xs - tol, side="left")
-    hi = np.searchsorted(xs, xs + tol, side="right")
+    here = np.arange(len(xs))
+    lo = np.maximum(np.searchsorted(xs, xs - tol, side="left"), here - max_partners)
+    hi = np.minimum(np.searchsorted(xs, xs + tol, side="right"), here + max_partners + 1)
     i, j = expand_ranges(lo, hi)
     a, b = order[i], order[j]
     d = xy[a] - xy[b]
@@ -198,10 +204,10 @@ def _predicted_pixels(camera, to_common: np.ndarray, common: np.ndarray) -> np.n
 
 
 def _hot_pixels(xy: np.ndarray, snap: np.ndarray, comp: np.ndarray, predicted: np.ndarray,
-                hot_tol: float, gate: float) -> np.ndarray:
+                hot_tol: float, gate: float, max_partners: int) -> np.ndarray:
     """(M,) hot-pixel flags of the flattened sources (module docstring, step 4)."""
     m = len(snap)
-    rows, cols = _same_pixel_pairs(xy, snap, hot_tol)
+    rows, cols = _same_pixel_pairs(xy, snap, hot_tol, max_partners)
     linked = comp[rows] == comp[cols]
     rows, cols = rows[linked], cols[linked]
     with np.errstate(invalid="ignore"):
@@ -217,12 +223,16 @@ def _hot_pixels(xy: np.ndarray, snap: np.ndarray, comp: np.ndarray, predicted: n
     single, partner = rows[fixed_pair], cols[fixed_pair]
     if len(single):
         involved = np.unique(np.concatenate([single, partner]))
-        pred = predicted[involved][:, snap]  # (k, M, 2)
-        with np.errstate(invalid="ignore"):
-            moved = np.hypot(pred[..., 0] - xy[None, :, 0], pred[..., 1] - xy[None, :, 1]) < gate
-        moved &= (snap[involved, None] != snap[None, :]) & (comp[involved, None] == comp[None, :])
         n_sky = np.zeros(m, dtype=int)
-        n_sky[involved] = moved.sum(axis=1)
+        # (k, M) comparisons in blocks: a crafted file can involve every one of 4096 sources
+        step = max(1, (1 << 20) // max(m, 1))
+        for start in range(0, len(involved), step):
+            block = involved[start:start + step]
+            pred = predicted[block][:, snap]  # (k, M, 2)
+            with np.errstate(invalid="ignore"):
+                moved = np.hypot(pred[..., 0] - xy[None, :, 0], pred[..., 1] - xy[None, :, 1]) < gate
+            moved &= (snap[block, None] != snap[None, :]) & (comp[block, None] == comp[None, :])
+            n_sky[block] = moved.sum(axis=1)
         hot[single] = (n_sky[single] <= 1) & (n_sky[partner] <= 1)
     # the stationary companions of a clear hot pixel are hot too: in the
     # middle of a slow drift they have fewer partners the sky moved away from
@@ -323,7 +333,8 @@ def _noise_sigma_px(residual_sq_px: np.ndarray, dof_factor: np.ndarray, p: Extra
         return p.sigma_default_px
     scaled = residual_sq_px / dof_factor
     middle = len(scaled) // 2  # the upper median: np.median's overhead is most of the cost here
-    sigma = math.sqrt(float(np.partition(scaled, middle)[middle]) / _CHI2_2_MEDIAN)
+    # Squared chords computed as 2 - 2 cos can come out a rounding error below zero (exact matches).
+    sigma = math.sqrt(max(0.0, float(np.partition(scaled, middle)[middle])) / _CHI2_2_MEDIAN)
     return float(np.clip(sigma, p.sigma_min_px, p.sigma_max_px))
 
 
@@ -388,7 +399,7 @@ def extract(sequence: Sequence, parameters: ExtractionParameters = DEFAULT_PARAM
     flat_of[snap, index] = np.arange(len(snap))
 
     # 1. motion, without recurring sources while they are a minority
-    rows, _ = _same_pixel_pairs(xy, snap, p.hot_tol_floor_px)
+    rows, _ = _same_pixel_pairs(xy, snap, p.hot_tol_floor_px, p.max_pixel_partners)
     recurring = np.bincount(rows, minlength=len(snap)) >= 2
     motion_valid = valid.copy()
     if 0 < recurring.sum() < 0.5 * len(snap):
@@ -408,7 +419,8 @@ def extract(sequence: Sequence, parameters: ExtractionParameters = DEFAULT_PARAM
     hot_tol = max(p.hot_tol_floor_px, p.hot_tol_sigmas * sigma)
 
     # 4. hot pixels, 5. association
-    hot = _hot_pixels(xy, snap, comp, _predicted_pixels(camera, to_common, common), hot_tol, gate)
+    hot = _hot_pixels(xy, snap, comp, _predicted_pixels(camera, to_common, common), hot_tol, gate,
+                      p.max_pixel_partners)
     linked_snapshot = np.bincount(component)[comp] >= 2  # a lone snapshot has nothing to track against
     label = _associate(common, snap, comp, ~hot & linked_snapshot, gate * chord_px)
     # the full tracks (gaps bridged, more stars per snapshot) pin the rotations better

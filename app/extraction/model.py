@@ -10,7 +10,9 @@ import numpy as np
 #: Version of the extraction method.  Stored extractions carry it; patterns refer to their
 #: track ids, so a change that can number tracks differently must raise it (the archive then
 #: refuses to re-extract old uploads silently: see app.workflow.archive).
-EXTRACTION_VERSION = 1
+#: 2: the work per snapshot link is capped (ExtractionParameters.max_link_work); sequences of
+#: up to ~30 sources per snapshot extract as in version 1.
+EXTRACTION_VERSION = 2
 
 #: 1-sigma position noise of one sighting, pixels per axis, wherever it could not be measured
 #: (a single snapshot, too few tracks); the estimate's bounds are in ExtractionParameters.
@@ -49,6 +51,16 @@ class ExtractionParameters:
     min_match_radius_px: float = 0.7
     #: Hypotheses come from the K brightest sources of each snapshot.
     hypothesis_sources: int = 20
+    #: Most (hypothesis x source pair) evaluations per snapshot link: a link of n_a and n_b
+    #: sources scores at most max(min_link_hypotheses, max_link_work // (n_a n_b)) hypotheses,
+    #: the brightest (see app.extraction.motion).  2**18 never cuts the ~200 hypotheses of 10
+    #: sources per snapshot (nor ~650 of 20) and keeps 64 x 64 random sources near 0.3 s.
+    max_link_work: int = 1 << 18
+    min_link_hypotheses: int = 64
+    #: Sources of other snapshots examined around each source as its possible hot-pixel partners
+    #: (nearest in x first): far more than real telemetry has within a few pixels, and a bound on
+    #: the pairs of a file that puts every source on one pixel (64 x 64 would give 16 million).
+    max_pixel_partners: int = 256
     #: A snapshot with no rotation to its predecessor is linked to up to this
     #: many snapshots back (so one bad snapshot does not cut the sequence).
     max_skip: int = 3

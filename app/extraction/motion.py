@@ -26,6 +26,17 @@ follow it.  ``R`` is found by a vectorised RANSAC:
 Everything is done for all snapshot pairs in a handful of numpy calls, no
 Python loop over hypotheses or pairs.  Chords stand in for angles: they
 are monotonic in the angle, accurate for small angles and need no arccos.
+
+**Bounded work.**  Scoring costs (hypotheses) x (sources of a) x (sources
+of b) per link, and the hypotheses grow with the fourth power of the
+sources: 10 sources give at most ~200 per link, 64 random ones ~900 and a
+regular grid of 64 up to 72,000, which took seconds and gigabytes.  So, as
+the identification search caps its work, each link scores at most
+``max_work // (n_a n_b)`` hypotheses (never fewer than ``min_hypotheses``),
+those of the brightest sources first (a star is more often bright than a
+ghost, and the seed, too, starts from the brightest stars).  Below the cap
+nothing is dropped or reordered, so ordinary telemetry extracts exactly as
+without it; and the scoring runs in chunks of bounded memory.
 """
 
 from __future__ import annotations
@@ -41,6 +52,11 @@ from app.attitude import rotation_from_pair, solve_wahba
 #: Slot width separating the chords of different snapshot pairs in one
 #: sorted array; chords are at most 2.
 _SLOT = 10.0
+#: Most (hypothesis x source pair) distances held in memory at once while scoring (8 bytes each).
+_SCORE_CHUNK = 1 << 21
+#: Hypotheses expanded per link before the brightest are chosen, as a multiple of the link's cap
+#: (bounds the memory of the expansion itself, which a regular grid would blow up).
+_EXPANSION_FACTOR = 8
 
 
 @dataclass(frozen=True, eq=False)
@@ -72,10 +88,15 @@ def expand_ranges(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 
 def _hypotheses(chords: np.ndarray, pi: np.ndarray, pj: np.ndarray, links: np.ndarray,
-                pair_tol: float, min_baseline: float):
-    """All (link, a-pair, b-pair) combinations whose chords agree within ``pair_tol``.
+                pair_tol: float, min_baseline: float, cap: np.ndarray | None = None):
+    """The (link, a-pair, b-pair) combinations whose chords agree within ``pair_tol``.
 
-    Returns (link, a1, a2, b1, b2) index arrays, grouped by link.
+    Points are indexed in order of brightness (``hypothesis_sources``), so a
+    hypothesis' rank is the faintest of its four points.  With ``cap``
+    ((L,) ints) a link keeps at most ``cap[l]`` hypotheses, the brightest
+    (:func:`_brightest_first`); a link with no more than that keeps all, in
+    the same order as without a cap.  Returns (link, a1, a2, b1, b2) index
+    arrays, grouped by link.
     """
     n_links, n_pairs = len(links), chords.shape[1]
     # b side: both orientations of every pair; unusable chords are parked in
@@ -97,12 +118,43 @@ def _hypotheses(chords: np.ndarray, pi: np.ndarray, pj: np.ndarray, links: np.nd
     keys_a = chord_a[link_of_a, pair_of_a] + _SLOT * link_of_a
     lo = np.searchsorted(sorted_b, keys_a - pair_tol, side="left")
     hi = np.searchsorted(sorted_b, keys_a + pair_tol, side="right")
+    if cap is not None:
+        # Expand only the a-pairs of the brightest points, up to a multiple of the cap per link.
+        a_rank = np.maximum(pi[pair_of_a], pj[pair_of_a])
+        hi = lo + _brightest_first(link_of_a, a_rank, hi - lo, _EXPANSION_FACTOR * cap)
     hyp_a, position = expand_ranges(lo, hi)
     flat_b = order_b[position]
     link = link_of_a[hyp_a]
     pa = pair_of_a[hyp_a]
     pb = flat_b % (2 * n_pairs)
-    return link, pi[pa], pj[pa], b1[pb], b2[pb]
+    a1, a2, bb1, bb2 = pi[pa], pj[pa], b1[pb], b2[pb]
+    if cap is not None:
+        rank = np.maximum(np.maximum(a1, a2), np.maximum(bb1, bb2))
+        keep = _brightest_first(link, rank, np.ones(len(link), dtype=int), cap).astype(bool)
+        link, a1, a2, bb1, bb2 = link[keep], a1[keep], a2[keep], bb1[keep], bb2[keep]
+    return link, a1, a2, bb1, bb2
+
+
+def _brightest_first(group: np.ndarray, rank: np.ndarray, count: np.ndarray, cap: np.ndarray) -> np.ndarray:
+    """How many of each item's ``count`` to keep so that no group keeps more than ``cap[group]``.
+
+    Items are taken in order of ``rank`` (lower first, ties in their given
+    order), whole while they fit; the one that crosses the cap is cut short
+    and the rest get 0.  A group whose total fits keeps everything.
+    """
+    if len(group) == 0:
+        return count
+    order = np.lexsort((np.arange(len(group)), rank, group))
+    counts = count[order]
+    ends = np.cumsum(counts)
+    group_sorted = group[order]
+    starts = np.r_[True, group_sorted[1:] != group_sorted[:-1]]
+    before = np.maximum.accumulate(np.where(starts, ends - counts, 0))  # total of earlier groups
+    taken_before = ends - counts - before  # this group's items ahead of this one
+    kept = np.clip(cap[group_sorted] - taken_before, 0, counts)
+    result = np.empty_like(count)
+    result[order] = kept
+    return result
 
 
 def _nearest_chord_sq(rotation: np.ndarray, va: np.ndarray, vb: np.ndarray) -> np.ndarray:
@@ -152,10 +204,24 @@ def _refit(rotation: np.ndarray, va: np.ndarray, vb: np.ndarray, gate: float) ->
     return np.where((mutual.sum(axis=1) >= 2)[:, None, None], refined, rotation)
 
 
+def _scores(rotation: np.ndarray, va_index: np.ndarray, vb_index: np.ndarray, vectors: np.ndarray,
+            score_gate: float) -> np.ndarray:
+    """(H,) truncated-quadratic score of each hypothesis, in chunks of bounded memory."""
+    n = vectors.shape[1]
+    step = max(1, _SCORE_CHUNK // max(1, n * n))
+    score = np.empty(len(rotation))
+    for start in range(0, len(rotation), step):
+        part = slice(start, start + step)
+        d2 = _nearest_chord_sq(rotation[part], vectors[va_index[part]], vectors[vb_index[part]]).min(axis=2)
+        score[part] = np.clip(1.0 - d2 / score_gate**2, 0.0, None).sum(axis=1)
+    return score
+
+
 def estimate_pair_rotations(vectors: np.ndarray, hypothesis_sources: np.ndarray, links: np.ndarray, *,
                             pair_tol: float, min_baseline: float, score_gate: float,
                             fit_gate: float, min_inliers: int, field_area: float, min_radius: float,
-                            max_false_alarms: float = 0.1, n_refine: int = 4) -> PairRotations:
+                            max_false_alarms: float = 0.1, n_refine: int = 4,
+                            max_work: int | None = None, min_hypotheses: int = 64) -> PairRotations:
     """Robust rotation a -> b for every snapshot pair ``links[l] = (a, b)``.
 
     ``vectors`` (S, N, 3) camera-frame unit vectors, zero-padded;
@@ -167,7 +233,9 @@ def estimate_pair_rotations(vectors: np.ndarray, hypothesis_sources: np.ndarray,
     ``min_inliers`` mutual matches (two points always fit a pair hypothesis)
     and when chance explains them poorly: :func:`false_alarms` at most
     ``max_false_alarms`` (``field_area`` is the sensor's area in squared
-    chords, ``min_radius`` the smallest match radius credited).
+    chords, ``min_radius`` the smallest match radius credited).  With
+    ``max_work`` a link scores at most ``max(min_hypotheses, max_work //
+    (n_a n_b))`` hypotheses, the brightest (module docstring).
     """
     links = np.asarray(links, dtype=int).reshape(-1, 2)
     n_links = len(links)
@@ -181,15 +249,19 @@ def estimate_pair_rotations(vectors: np.ndarray, hypothesis_sources: np.ndarray,
     hyp_vectors = np.take_along_axis(padded, np.where(hypothesis_sources < 0, vectors.shape[1],
                                                       hypothesis_sources)[..., None], axis=1)
     chords, pi, pj = _pair_chords(hyp_vectors)
-    link, a1, a2, b1, b2 = _hypotheses(chords, pi, pj, links, pair_tol, min_baseline)
+    cap = None
+    if max_work is not None:
+        n_sources = (np.abs(vectors).sum(axis=2) > 0).sum(axis=1)  # zero rows are padding
+        cost = np.maximum(1, n_sources[links[:, 0]] * n_sources[links[:, 1]])
+        cap = np.maximum(min_hypotheses, max_work // cost)
+    link, a1, a2, b1, b2 = _hypotheses(chords, pi, pj, links, pair_tol, min_baseline, cap)
     if len(link) == 0:
         return PairRotations(rotation, n_inliers, np.full((n_links, vectors.shape[1]), -1), np.zeros(0))
 
     sa, sb = links[link, 0], links[link, 1]
     hyp_r = rotation_from_pair(hyp_vectors[sb, b1], hyp_vectors[sb, b2],
                                hyp_vectors[sa, a1], hyp_vectors[sa, a2])
-    d2 = _nearest_chord_sq(hyp_r, vectors[sa], vectors[sb]).min(axis=2)
-    score = np.clip(1.0 - d2 / score_gate**2, 0.0, None).sum(axis=1)
+    score = _scores(hyp_r, sa, sb, vectors, score_gate)
 
     # the best few hypotheses per link: sort by (link, -score), keep each group's head
     order = np.lexsort((-score, link))

@@ -23,6 +23,20 @@ from app.telemetry.model import Sequence
 MANUAL_BRIGHTNESS_RADIUS_PX = 3.0
 
 
+class PatternError(ValueError):
+    """An operator's pattern that cannot be built, and which entry is at fault.
+
+    ``field`` is ``include_tracks`` or ``manual_points``; ``key`` the track id
+    or the manual point's position in the list given, so that an interface
+    can point at the entry the user sent.
+    """
+
+    def __init__(self, field: str, key: int, message: str) -> None:
+        super().__init__(message)
+        self.field = field
+        self.key = key
+
+
 def average_into_reference(camera: Camera, motion: np.ndarray, snapshot_of: np.ndarray,
                            vectors: np.ndarray, group: np.ndarray,
                            n_groups: int) -> tuple[np.ndarray, np.ndarray]:
@@ -79,6 +93,16 @@ def carried_tracks(tracks: SequenceOf[Track], motion: np.ndarray) -> list[Track]
     return [t for t in tracks if np.all(np.isfinite(motion[t.snapshots[0]]))]
 
 
+def describe_track_ids(ids) -> str:
+    """"tracks are 0..15" (extraction numbers its tracks 0..T-1), or that there are none."""
+    ids = sorted(ids)
+    if not ids:
+        return "this sequence has no tracks"
+    if ids == list(range(ids[0], ids[-1] + 1)):
+        return f"tracks are {ids[0]}..{ids[-1]}"
+    return "tracks are " + ", ".join(map(str, ids))
+
+
 def _motion_known(motion: np.ndarray, snapshots: np.ndarray) -> bool:
     return bool(np.all(np.isfinite(motion[snapshots])))
 
@@ -95,11 +119,12 @@ def _select_tracks(extraction: Extraction, exclude_tracks: Iterable[int],
     for raw in include_tracks:
         track_id = int(raw)
         if track_id not in by_id:
-            raise ValueError(f"track {track_id} does not exist (tracks are 0..{len(by_id) - 1})")
+            raise PatternError("include_tracks", track_id, f"track {track_id} does not exist ({describe_track_ids(by_id)})")
         track = by_id[track_id]
         if not _motion_known(extraction.motion, track.snapshots):
-            raise ValueError(f"track {track_id} cannot be carried into reference snapshot "
-                             f"{extraction.reference}: the motion between them could not be estimated")
+            raise PatternError("include_tracks", track_id,
+                               f"track {track_id} cannot be carried into reference snapshot "
+                               f"{extraction.reference}: the motion between them could not be estimated")
         if track_id not in exclude and track not in chosen:
             chosen.append(track)
     return sorted(chosen, key=lambda t: t.id)
@@ -114,16 +139,18 @@ def _manual_pattern(sequence: Sequence, extraction: Extraction, manual_points) -
             position, x, y = point
             position, x, y = int(position), float(x), float(y)
         except (TypeError, ValueError):
-            raise ValueError(f"manual point {k}: expected (snapshot position, x, y), got {point!r}") from None
+            raise PatternError("manual_points", k, f"manual point {k}: expected (snapshot position, x, y), "
+                                                   f"got {point!r}") from None
         if not 0 <= position < n_snapshots:
-            raise ValueError(f"manual point {k}: snapshot position {position} is not in 0..{n_snapshots - 1}")
+            raise PatternError("manual_points", k, f"manual point {k}: snapshot position {position} is not in "
+                                                   f"0..{n_snapshots - 1}")
         if not (math.isfinite(x) and math.isfinite(y)) or not camera.on_sensor(np.array([x, y]))[0]:
-            raise ValueError(f"manual point {k}: ({x}, {y}) is not a pixel of the "
-                             f"{camera.width}x{camera.height} sensor")
+            raise PatternError("manual_points", k, f"manual point {k}: ({x}, {y}) is not a pixel of the "
+                                                   f"{camera.width}x{camera.height} sensor")
         if not _motion_known(extraction.motion, np.array([position])):
-            raise ValueError(f"manual point {k}: the motion from snapshot {position} into reference "
-                             f"snapshot {extraction.reference} could not be estimated; pick the point "
-                             f"in a snapshot linked to the reference")
+            raise PatternError("manual_points", k, f"manual point {k}: the motion from snapshot {position} into "
+                                                   f"reference snapshot {extraction.reference} could not be "
+                                                   f"estimated; pick the point in a snapshot linked to the reference")
         rows.append((position, x, y))
     if not rows:
         return Pattern.empty()
@@ -149,6 +176,12 @@ def _concat(a: Pattern, b: Pattern) -> Pattern:
                      ("track_ids", "xy", "vectors", "brightness", "sightings", "sigma_px")))
 
 
+def unknown_tracks(extraction: Extraction, track_ids: Iterable[int]) -> list[int]:
+    """The ids among ``track_ids`` that are not tracks of ``extraction``, in the order given."""
+    known = {t.id for t in extraction.tracks}
+    return [int(t) for t in track_ids if int(t) not in known]
+
+
 def build_pattern(sequence: Sequence, extraction: Extraction, *, exclude_tracks: Iterable[int] = (),
                   include_tracks: Iterable[int] | None = None, manual_points=()) -> Pattern:
     """The averaged pattern after an operator's edits.
@@ -158,8 +191,12 @@ def build_pattern(sequence: Sequence, extraction: Extraction, *, exclude_tracks:
     ``manual_points`` are ``(snapshot_position, x, y)`` picked by hand in any
     snapshot; they are carried into the reference frame with ``motion`` and
     get track id -1, one sighting, the brightness of a reported source within
-    3 px (else 0).  Raises ValueError, with the reason, for an unknown track,
-    a bad point, or a track/point whose snapshot has no estimated motion.
+    3 px (else 0).  Raises :class:`PatternError` (a ValueError), with the
+    reason and the entry at fault, for an unknown included track, a bad
+    point, or a track/point whose snapshot has no estimated motion.
+    Excluding a track that does not exist changes nothing here (stored
+    patterns stay buildable); new edits are checked for that by
+    :func:`unknown_tracks`.
     """
     tracks = _select_tracks(extraction, exclude_tracks, include_tracks)
     noise = extraction.noise_px if math.isfinite(extraction.noise_px) else DEFAULT_SIGHTING_SIGMA_PX

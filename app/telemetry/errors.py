@@ -88,6 +88,9 @@ class ProblemCollector:
 
     problems: list[Problem] = field(default_factory=list)
     truncated: bool = False
+    #: Whether camera values are held to the physical bounds of a star camera (off only for text an
+    #: archive accepted under earlier bounds: see :func:`app.telemetry.formats.parse_telemetry`).
+    physical_bounds: bool = True
 
     def add(self, location: str, message: str) -> None:
         if len(self.problems) >= MAX_PROBLEMS:

@@ -50,6 +50,24 @@ from app.timefmt import utc_text
 CSV_COLUMNS = ("snapshot", "time", "x", "y", "brightness")
 MAX_SENSOR_SIZE_PX = 100_000
 MAX_DISTORTION = 10.0          # |k1|, |k2|; real lenses are well below 1
+# Physical bounds of a star camera.  Values beyond them are not cameras but typos or hostile input,
+# and the numerics downstream (pixel <-> direction, chords, logarithms of areas) break on them
+# with overflows, domain errors or meaningless fits rather than a clear refusal.
+#: Field of view across the sensor diagonal (pinhole), degrees: star trackers see 1 to 60 deg,
+#: 0.1 deg is a telescope's guide camera, a pinhole model past 120 deg is no longer a lens.
+MIN_FIELD_OF_VIEW_DEG = 0.1
+MAX_FIELD_OF_VIEW_DEG = 120.0
+#: How far the principal point may lie off the sensor, as a fraction of the sensor's size on each
+#: side (real decentring is a few percent; half a sensor beyond its edge is no camera model).
+MAX_PRINCIPAL_POINT_OUTSIDE = 0.5
+#: Radial distortion |k1 r^2 + k2 r^4| at the sensor corner, as a fraction of the corner's radius:
+#: star camera lenses stay within a few percent; beyond a quarter the pinhole-plus-radial model
+#: (and the fixed-point undistortion) no longer describes a lens.
+MAX_CORNER_DISTORTION = 0.25
+#: Faintest magnitude a sensor detects (Hp): below 0 only two or three stars of the whole sky are
+#: seen, beyond 12 no star field sensor of this kind reaches.
+MIN_MAG_LIMIT = 0.0
+MAX_MAG_LIMIT = 12.0
 MAX_FOCAL_LENGTH_TOLERANCE = 0.2   # a focal length known worse than 20 % is not a camera model
 MAX_DISTORTION_BOUND = 1.0     # k1_bound, k2_bound: 1 is already extreme for a star camera
 MAX_SPEED_KM_S = 100.0         # a spacecraft near the Earth moves at < 12 km/s
@@ -82,7 +100,7 @@ _MISSING = object()
 # =============================================================================
 def parse_telemetry(data: bytes | str, *, filename: str | None = None,
                     default_camera: Camera | None = None,
-                    max_bytes: int | None = None) -> Sequence:
+                    max_bytes: int | None = None, physical_bounds: bool = True) -> Sequence:
     """Validate a JSON or CSV telemetry document and return its Sequence.
 
     ``filename`` (optional) names the file in messages, supplies a missing
@@ -91,6 +109,9 @@ def parse_telemetry(data: bytes | str, *, filename: str | None = None,
     configured one, ``CAMERAS[settings().default_camera]`` (an empty or
     unknown name there means: no default, a file without camera is invalid).
     ``max_bytes`` None means ``settings().max_upload_bytes``.
+    ``physical_bounds`` False skips the camera's physical bounds (field of
+    view, principal point, corner distortion, ``mag_limit`` range): only for
+    text an archive accepted under earlier bounds, which must stay readable.
 
     Raises TelemetryError, and nothing else, for any bad input.
     """
@@ -100,8 +121,8 @@ def parse_telemetry(data: bytes | str, *, filename: str | None = None,
     try:
         text = _decode(data, limit)
         if _looks_like_json(text, filename):
-            return _sequence_from_json(text, filename, fallback_camera)
-        return _sequence_from_csv(text, filename, fallback_camera)
+            return _sequence_from_json(text, filename, fallback_camera, physical_bounds)
+        return _sequence_from_csv(text, filename, fallback_camera, physical_bounds)
     except TelemetryError as err:
         if filename is None or err.filename is not None:
             raise
@@ -357,6 +378,8 @@ def _camera_from_fields(fields: Mapping[str, Any], where: Callable[[str], str],
         if values.get(key) is not None and abs(values[key]) > MAX_DISTORTION:
             problems.add(where(key), f"must be within +-{MAX_DISTORTION:g}, got {values[key]:g}")
             values[key] = None
+    if problems.physical_bounds:
+        _check_physical_bounds(values, where, problems)
     for key, limit in _CAMERA_UNCERTAINTY_LIMITS.items():
         if values.get(key) is not None and not 0.0 <= values[key] <= limit:
             problems.add(where(key), f"must be between 0 and {limit:g}, got {values[key]:g}")
@@ -376,6 +399,60 @@ def _camera_from_fields(fields: Mapping[str, Any], where: Callable[[str], str],
                   k1=values.get("k1", 0.0), k2=values.get("k2", 0.0), name=values.get("name"),
                   mag_limit=values.get("mag_limit"),
                   **{key: values[key] for key in _CAMERA_UNCERTAINTY_LIMITS if key in values})
+
+
+def _check_physical_bounds(values: dict[str, Any], where: Callable[[str], str], problems: ProblemCollector) -> None:
+    """Physical bounds of a star camera: magnitude limit, field of view, principal point, distortion.
+
+    Each check runs only when the fields it needs are valid on their own; a
+    failing field is set to None in ``values`` (the camera is then refused).
+    """
+    mag_limit = values.get("mag_limit")
+    if mag_limit is not None and not MIN_MAG_LIMIT <= mag_limit <= MAX_MAG_LIMIT:
+        problems.add(where("mag_limit"), f"must be between {MIN_MAG_LIMIT:g} and {MAX_MAG_LIMIT:g} "
+                                         f"(the faintest Hipparcos magnitude the sensor detects), got {mag_limit:g}")
+        values["mag_limit"] = None
+    width, height, focal = values.get("width"), values.get("height"), values.get("focal_length_px")
+    if width is None or height is None:
+        return
+    if focal is not None:
+        diagonal_deg = 2.0 * math.degrees(math.atan(math.hypot(width, height) / (2.0 * focal)))
+        if not MIN_FIELD_OF_VIEW_DEG <= diagonal_deg <= MAX_FIELD_OF_VIEW_DEG:
+            problems.add(where("focal_length_px"),
+                         f"{focal:g} px gives the {width}x{height} sensor a field of view of {diagonal_deg:.3g} deg "
+                         f"across its diagonal; a star camera sees {MIN_FIELD_OF_VIEW_DEG:g} to "
+                         f"{MAX_FIELD_OF_VIEW_DEG:g} deg")
+            values["focal_length_px"] = focal = None
+    for key, size in (("cx", width), ("cy", height)):
+        value = values.get(key)
+        margin = MAX_PRINCIPAL_POINT_OUTSIDE * size
+        low, high = -0.5 - margin, size - 0.5 + margin
+        if value is not None and not low <= value <= high:
+            problems.add(where(key), f"{key} = {value:g} puts the principal point far off the sensor: it must lie "
+                                     f"within {low:g} to {high:g} px (the sensor widened by half its size)")
+            values[key] = None
+    k1, k2 = values.get("k1", 0.0), values.get("k2", 0.0)
+    if focal is None or values.get("cx") is None or values.get("cy") is None or k1 is None or k2 is None:
+        return
+    if k1 == 0.0 and k2 == 0.0:
+        return
+    # The normalised radius of the sensor corner farthest from the principal point (Camera.corner_radius).
+    r = math.hypot(max(values["cx"] + 0.5, width - 0.5 - values["cx"]),
+                   max(values["cy"] + 0.5, height - 0.5 - values["cy"])) / focal
+    corner = k1 * r**2 + k2 * r**4
+    # d/dr [r (1 + k1 r^2 + k2 r^4)] > 0 out to the corner: else two directions land on one pixel.
+    radii_sq = np.linspace(0.0, r, 65) ** 2
+    increasing = bool(np.all(1.0 + 3.0 * k1 * radii_sq + 5.0 * k2 * radii_sq**2 > 0.0))
+    key = "k2" if k1 == 0.0 else "k1"
+    if abs(corner) > MAX_CORNER_DISTORTION:
+        problems.add(where(key), f"k1 = {k1:g}, k2 = {k2:g} move the sensor corner by {100 * corner:.3g} % of its "
+                                 f"distance from the principal point; a star camera's lens distorts at most "
+                                 f"{100 * MAX_CORNER_DISTORTION:g} %")
+        values[key] = None
+    elif not increasing:
+        problems.add(where(key), f"k1 = {k1:g}, k2 = {k2:g} fold the image over before the sensor corner "
+                                 "(the radial distortion must grow monotonically out to it)")
+        values[key] = None
 
 
 def _named_camera(name: str, loc: str, problems: ProblemCollector) -> Camera | None:
@@ -656,8 +733,9 @@ def _json_snapshots(value: Any, camera: Camera | None, problems: ProblemCollecto
     return drafts
 
 
-def _sequence_from_json(text: str, filename: str | None, default_camera: Camera | None) -> Sequence:
-    problems = ProblemCollector()
+def _sequence_from_json(text: str, filename: str | None, default_camera: Camera | None,
+                        physical_bounds: bool = True) -> Sequence:
+    problems = ProblemCollector(physical_bounds=physical_bounds)
     doc = _load_json(text, problems)
     if not isinstance(doc, dict):
         raise TelemetryError.at("file", f"the top level must be a JSON object {{...}}, got {_describe(doc)}")
@@ -893,8 +971,9 @@ def _csv_source(cell: Callable[[str], str], loc: Callable[[str], str], group: _C
         draft.brightness.append(b)
 
 
-def _sequence_from_csv(text: str, filename: str | None, default_camera: Camera | None) -> Sequence:
-    problems = ProblemCollector()
+def _sequence_from_csv(text: str, filename: str | None, default_camera: Camera | None,
+                       physical_bounds: bool = True) -> Sequence:
+    problems = ProblemCollector(physical_bounds=physical_bounds)
     # Split on newlines only: str.splitlines would also split on \x0c, \u2028...
     lines = [line.removesuffix("\r") for line in text.split("\n")]
     header = _csv_preamble(lines, problems)

@@ -19,7 +19,11 @@ state or the archive behind it changes, so the console and this view stay
 in step without talking to each other.
 
 Security: viser's websocket has no authentication, so it is bound to
-127.0.0.1 whatever the API's host.
+127.0.0.1 whatever the API's host.  The panel's text is Markdown, which
+viser renders with raw HTML allowed, so every string that comes from
+telemetry or from a person (sequence id, spacecraft, operator, error
+messages quoting input) goes through :func:`markdown_text` and is shown as
+the characters it is, never as markup.
 """
 
 from __future__ import annotations
@@ -39,6 +43,34 @@ log = logging.getLogger(__name__)
 
 #: Loopback only: the viser websocket accepts anyone who can reach it.
 VIEWER_HOST = "127.0.0.1"
+#: Characters that start markup in CommonMark (all ASCII punctuation may be backslash-escaped there).
+_MARKDOWN_PUNCTUATION = frozenset("!\"#$%&'()*+,-./:;<=>?@[\\]^_`{|}~")
+
+
+def markdown_text(value) -> str:
+    """``value`` as Markdown that displays exactly its characters: no HTML, links, emphasis or blocks.
+
+    CommonMark lets every ASCII punctuation character be escaped with a
+    backslash and then treats it as a literal character, so escaping all of
+    them leaves nothing that could open a tag, a link, emphasis, code or an
+    entity; line breaks become spaces so no new block can start.  ``&``,
+    ``<`` and ``>`` are written as character references, which stay literal
+    text even for a renderer that passes raw HTML through.
+    """
+    text = " ".join(str(value).splitlines())
+    out = []
+    for ch in text:
+        if ch == "&":
+            out.append("&amp;")
+        elif ch == "<":
+            out.append("&lt;")
+        elif ch == ">":
+            out.append("&gt;")
+        elif ch in _MARKDOWN_PUNCTUATION:
+            out.append("\\" + ch)
+        else:
+            out.append(ch)
+    return "".join(out)
 #: How often the view re-reads the shared state (seconds).
 POLL_S = 0.3
 STAR_COLOUR = (235, 235, 245)
@@ -74,6 +106,12 @@ class SkyModel:
         index = {int(h): i for i, h in enumerate(self.hip)}
         rows = [index[int(h)] for h in hips if int(h) in index]
         return self.vectors[rows] if rows else np.zeros((0, 3))
+
+
+def panel_title(sequence_id, spacecraft: str | None, status: str) -> str:
+    """The panel's first line: the sequence (bold), its spacecraft and status, all shown as text."""
+    return (f"**{markdown_text(sequence_id)}** ({markdown_text(spacecraft or 'unknown spacecraft')}), "
+            f"status {markdown_text(status)}")
 
 
 class Viewer:
@@ -152,10 +190,10 @@ class Viewer:
         try:
             message = action()
         except WorkflowError as exc:
-            message = f"**Error:** {exc.detail}"
+            message = f"**Error:** {markdown_text(exc.detail)}"
         except Exception as exc:  # keep the view alive whatever went wrong
             log.exception("3D view action failed")
-            message = f"**Error:** {exc}"
+            message = f"**Error:** {markdown_text(exc)}"
         self._message.content = message or ""
         self._wake.set()
 
@@ -184,7 +222,7 @@ class Viewer:
                 return "**Error:** enter the operator's name before confirming."
             comment = self._comment.value.strip() or None
             result = confirming.confirm(self._ctx, doc.sequence, doc.rank, operator, comment)
-            return f"Confirmed rank {result.rank} as attitude {result.id} by {operator}."
+            return f"Confirmed rank {result.rank} as attitude {result.id} by {markdown_text(operator)}."
         self._act(action)
 
     def _toggle(self, definition_change) -> None:
@@ -249,7 +287,7 @@ class Viewer:
             self._info.content = "No sequence selected yet: open one in the console."
             return
         row = archive.require_sequence(self._ctx, doc.sequence)
-        title = f"**{row.sequence_id or row.id}** ({row.spacecraft or 'unknown spacecraft'}), status {row.status}"
+        title = panel_title(row.sequence_id or row.id, row.spacecraft, row.status)
         if doc.search_id is None or doc.rank is None:
             self._info.content = f"{title}\n\nNot searched yet, or no candidate."
             return

@@ -19,13 +19,15 @@ from __future__ import annotations
 
 import dataclasses
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from app.camera import CAMERAS, Camera
-from app.extraction import Pattern, build_pattern, extract
+from app.extraction import Pattern, PatternError, build_pattern, describe_track_ids, extract, unknown_tracks
 from app.storage import PatternVersion, SequenceRow, content_sha256
 from app.telemetry import Sequence, parse_telemetry
 from app.timefmt import utc_text
+from app.workflow.compute import BULK, INTERACTIVE
 from app.workflow.context import AppContext, LoadedSequence
 from app.workflow.documents import (AttitudeDocument, ExtractionDocument, PatternDefinition, PatternDocument, PatternPoint,
                                     SearchDocument, SequenceDetail, SequencePage, SequenceSummary, UploadDocument)
@@ -65,12 +67,13 @@ def loaded(ctx: AppContext, row: SequenceRow) -> LoadedSequence:
     """The stored upload parsed again, with its stored extraction (cached by id: uploads never change)."""
     item = ctx.cache.get(row.id)
     if item is None:
-        # Stored text passed validation once; the size limit may have shrunk since, so none here.
+        # Stored text passed validation once; the size limit and the camera's physical bounds may
+        # have tightened since, so neither applies here: what was accepted stays readable.
         # A file without a camera block gets the camera it was given at upload (the default then, or
         # the spacecraft's calibration then), whatever the defaults and calibrations are now.
         sequence = parse_telemetry(row.raw_text, filename=row.filename,
                                    default_camera=Camera(**row.camera) if row.camera else None,
-                                   max_bytes=len(row.raw_text.encode("utf-8")))
+                                   max_bytes=len(row.raw_text.encode("utf-8")), physical_bounds=False)
         item = LoadedSequence(sequence, stored_extraction(row, sequence))
         ctx.cache.put(row.id, item)
     return item
@@ -133,6 +136,19 @@ def stored_upload(ctx: AppContext, upload: ParsedUpload) -> UploadDocument | Non
 def extraction_job(sequence: Sequence, *, sky=None):
     """Extraction as a compute-pool job (it needs no catalogue)."""
     return extract(sequence)
+
+
+#: Uploads with more sources than this (16 snapshots of 16) are extracted on the compute pool's bulk
+#: lane: extraction's work is capped per snapshot link (app.extraction.motion), but the cap is
+#: reached only by files far denser than a star sensor's ~10 sources per snapshot, which then take
+#: 0.1-0.4 s, too long to share the workers that answer searches in tens of milliseconds.
+LARGE_UPLOAD_SOURCES = 256
+
+
+def extraction_lane(sequence: Sequence) -> str:
+    """The compute-pool lane that extracts ``sequence`` (see :data:`LARGE_UPLOAD_SOURCES`)."""
+    sources = sum(snapshot.n_sources for snapshot in sequence.snapshots)
+    return BULK if sources > LARGE_UPLOAD_SOURCES else INTERACTIVE
 
 
 def store_upload(ctx: AppContext, upload: ParsedUpload, extraction) -> UploadDocument:
@@ -217,12 +233,31 @@ def current_pattern(ctx: AppContext, seq_id: int) -> PatternDocument:
     return pattern_document(loaded(ctx, row), ctx.storage.current_pattern(seq_id))
 
 
-def set_pattern(ctx: AppContext, seq_id: int, definition: PatternDefinition, operator: str | None) -> PatternDocument:
-    """Store the operator's pattern as a new version after checking it can be built."""
+def set_pattern(ctx: AppContext, seq_id: int, definition: PatternDefinition, operator: str | None,
+                locate: Callable[[str, int], str] | None = None) -> PatternDocument:
+    """Store the operator's pattern as a new version after checking it can be built.
+
+    Every track it names, excluded or included, must exist: an unknown id is
+    a mistake either way, and is refused at its location.  ``locate(field,
+    key)`` gives that location for a track id or a manual point's position
+    (default: ``body.<field>``).
+    """
+    where = locate or (lambda field, key: f"body.{field}")
     row = require_sequence(ctx, seq_id)
     item = loaded(ctx, row)
+    known = describe_track_ids(t.id for t in item.extraction.tracks)
+    problems = [{"location": where(field, track), "message": f"track {track} does not exist ({known})"}
+                for field, ids in (("exclude_tracks", definition.exclude_tracks),
+                                   ("include_tracks", definition.include_tracks or ()))
+                for track in unknown_tracks(item.extraction, ids)]
+    if problems:
+        raise Invalid("the pattern names tracks this sequence does not have: "
+                      + "; ".join(f"{p['location']}: {p['message']}" for p in problems[:5]), problems=problems)
     try:
         pattern_from_definition(item, definition)
+    except PatternError as exc:
+        raise Invalid(f"the pattern cannot be built: {exc}", location=where(exc.field, exc.key),
+                      message=str(exc)) from None
     except ValueError as exc:
         raise Invalid(f"the pattern cannot be built: {exc}", message=str(exc)) from None
     version = ctx.storage.add_pattern_version(seq_id, definition.model_dump(), kind="edit", operator=operator)

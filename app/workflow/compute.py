@@ -7,104 +7,581 @@ worker processes instead (``spawn``ed: safe beside the server's threads, and
 nothing of the server - sockets, the database - is inherited).  Each worker
 builds its own :class:`app.identification.Sky` once, at start-up (about a
 second; the server loads its own first, so that on a first start the index
-cache the workers read exists), and a job carries only its sequence and
+cache the workers read exist), and a job carries only its sequence and
 pattern.
 
-With ``processes=0`` (tests, or a server given its own ``Sky``) the same
-jobs run in a thread pool with the server's ``Sky``.
+The pool is written out here rather than taken from
+:class:`concurrent.futures.ProcessPoolExecutor` because the server needs
+four things that executor cannot give (issue 12):
 
-Job functions take the ``Sky`` as a keyword argument ``sky``; in a worker
-process it is filled in from :data:`worker_context`.
+* **Lanes.**  Interactive work (searches, ordinary uploads) runs on the
+  ``processes`` workers; large uploads (:data:`BULK`) run on their own
+  ``bulk_processes`` workers, which load no catalogue and run only on CPU
+  time nothing else wants (``SCHED_IDLE``), so that a client sending
+  worst-case files occupies at most those and ordinary searches keep their
+  speed.
+* **Deadlines.**  :meth:`ComputePool.submit_within` gives a job the time by
+  which its answer is useless; a job still waiting then is dropped
+  (:class:`JobExpired`) instead of occupying a worker for a client that
+  already got its 503.
+* **A hard limit.**  A job running longer than its hard limit (``hard_limit_s``
+  for jobs with a deadline, :data:`UNDATED_HARD_LIMIT_S` for the others) has
+  its worker killed and replaced (:class:`JobKilled`): every piece of work
+  has a bound even where the code it runs has none.
+* **A life-cycle that ends with the server.**  Workers are started from the
+  pool's own thread, which lives as long as the pool, and ask Linux to
+  SIGKILL them when that thread's process dies (``PR_SET_PDEATHSIG``); a
+  watcher thread also compares the parent's pid with the server's, which
+  covers a server killed while the worker was still starting.  Nothing
+  here uses multiprocessing queues or semaphores (only pipes), so a normal
+  stop leaves nothing for the resource tracker to report.
+
+With ``processes=0`` (tests, or a server given its own ``Sky``) the same
+jobs run in threads of the server with the server's ``Sky``.
+
+Job functions take the ``Sky`` as a keyword argument ``sky`` (None in a
+bulk worker, which loads none).
 """
 
 from __future__ import annotations
 
+import collections
+import itertools
+import logging
 import multiprocessing
 import os
+import pickle
+import signal
+import socket
 import threading
 import time
-from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
-from dataclasses import dataclass
+import traceback
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from multiprocessing.connection import wait as wait_for_connections
 from typing import Any, Callable
 
+from app.workflow.errors import Busy
+
+log = logging.getLogger(__name__)
+
+#: Searches and ordinary uploads.
+INTERACTIVE = "interactive"
+#: Large uploads: their own workers, at a lower CPU priority.
+BULK = "bulk"
+LANES = (INTERACTIVE, BULK)
+
+#: How often a worker checks that the server is still its parent, seconds.
+PARENT_CHECK_S = 0.2
+#: CPU priority of the bulk workers (added niceness) where the idle scheduling class is not available.
+BULK_NICENESS = 19
+#: A worker that fails to start is started again after this many seconds, doubling up to the cap.
+RESTART_BACKOFF_S = (0.5, 30.0)
+#: How long :meth:`ComputePool.warm_up` waits for the workers to load the catalogue, seconds.
+WARM_UP_TIMEOUT_S = 120.0
+#: Default hard limit of one job, as a multiple of the search time-out (STARID_SEARCH_TIMEOUT_S).
+HARD_LIMIT_FACTOR = 3.0
+#: Hard limit of a job submitted without a deadline (background work, or callers with budgets of
+#: their own such as reading image frames, 60 s by default): generous, but a bound.
+UNDATED_HARD_LIMIT_S = 300.0
+
+_PR_SET_PDEATHSIG = 1
+
+
+class JobExpired(Busy):
+    """The job's deadline passed before a worker was free for it; it never ran."""
+
+
+class JobKilled(Busy):
+    """The job ran past the pool's hard limit; its worker was killed and replaced."""
+
+
+class WorkerLost(RuntimeError):
+    """The worker process died while running the job (a crash, or the pool shutting down)."""
+
+
+# ---------------------------------------------------------------------------
+# The worker process
+# ---------------------------------------------------------------------------
 
 @dataclass
 class WorkerContext:
     """The application context of one worker process, built at its start-up."""
 
-    sky: Any  # app.identification.Sky
+    sky: Any  # app.identification.Sky, or None in a bulk worker
 
 
-#: Set in each worker process by :func:`_start_worker`; None in the server itself.
+#: Set in each worker process by :func:`_worker_main`; None in the server itself.
 worker_context: WorkerContext | None = None
 
 
-#: How often a worker checks that the server is still there, seconds.
-PARENT_CHECK_S = 1.0
+def _die_with_server(server_pid: int) -> None:
+    """Exit when the server dies: after a SIGKILL nobody stops the workers, and an orphan would wait forever.
 
+    The kernel's parent-death signal acts at once; the watcher thread is the
+    fallback for a server that died before the signal was asked for (then
+    the parent is already someone else) and for systems without prctl.
+    """
+    try:
+        import ctypes
 
-def _start_worker() -> None:
-    global worker_context
-    from app.identification import Sky
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != server_pid:
+        os._exit(0)
 
-    _exit_with_parent(os.getppid())
-    worker_context = WorkerContext(sky=Sky())
-
-
-def _exit_with_parent(parent_pid: int) -> None:
-    """Exit when the server dies: after a SIGKILL nobody shuts the pool down, and an orphaned
-    worker would wait for jobs forever."""
     def watch() -> None:
-        while os.getppid() == parent_pid:
+        while os.getppid() == server_pid:
             time.sleep(PARENT_CHECK_S)
         os._exit(0)
 
-    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+    threading.Thread(target=watch, name="server-watch", daemon=True).start()
 
 
-def _in_worker(fn: Callable, args: tuple, kwargs: dict):
-    if worker_context is None:
-        raise RuntimeError("the worker process was not initialised")
-    return fn(*args, sky=worker_context.sky, **kwargs)
+def _sendable_error(exc: BaseException) -> BaseException:
+    """``exc`` if it survives pickling, else a RuntimeError with its text; the worker's traceback as a note."""
+    try:
+        exc.add_note("in the worker process:\n" + "".join(traceback.format_exception(exc)).rstrip())
+    except Exception:  # noqa: BLE001 - a note is a courtesy
+        pass
+    try:
+        pickle.loads(pickle.dumps(exc))
+        return exc
+    except Exception:  # noqa: BLE001 - custom exceptions often cannot be rebuilt from their args
+        return RuntimeError(f"{type(exc).__name__}: {exc}")
 
 
-def _ready() -> bool:
-    return worker_context is not None
+def _lower_priority(niceness: int) -> None:
+    """Run only on CPU time nothing else wants: Linux's SCHED_IDLE class, else the lowest nice level.
+
+    A bulk worker busy with a worst-case file must not slow the searches down:
+    with nice 10 it still took a tenth of a core from them whenever both ran.
+    """
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError):
+        os.nice(niceness)
+
+
+def _worker_main(conn, server_pid: int, load_sky: bool, niceness: int) -> None:
+    """A worker's life: set up, say ready, then run one job at a time until told to stop or orphaned."""
+    global worker_context
+    _die_with_server(server_pid)
+    if niceness:
+        _lower_priority(niceness)
+    sky = None
+    if load_sky:
+        from app.identification import Sky
+
+        sky = Sky()
+    worker_context = WorkerContext(sky=sky)
+    conn.send(("ready",))
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):  # the server closed its end: nothing more will come
+            return
+        if message is None:
+            return
+        job_id, fn, args, kwargs = message
+        try:
+            reply = (job_id, True, fn(*args, sky=sky, **kwargs))
+        except BaseException as exc:  # noqa: BLE001 - every failure goes back to the caller
+            reply = (job_id, False, _sendable_error(exc))
+        try:
+            conn.send(reply)
+        except (EOFError, OSError):
+            return
+        except Exception as exc:  # noqa: BLE001 - an unpicklable result
+            conn.send((job_id, False, RuntimeError(f"the result could not be sent back: {exc}")))
+
+
+# ---------------------------------------------------------------------------
+# The pool, in the server
+# ---------------------------------------------------------------------------
+
+@dataclass(eq=False)
+class _Job:
+    id: int
+    fn: Callable
+    args: tuple
+    kwargs: dict
+    future: Future
+    lane: str
+    deadline: float | None  # time.monotonic() after which the job is not started
+    limit_s: float  # the job's worker is killed once it has run this long
+
+
+@dataclass(eq=False)
+class _Worker:
+    lane: str
+    process: Any  # multiprocessing.Process
+    conn: Any  # the server's end of the pipe
+    ready: bool = False
+    job: _Job | None = None
+    started: float = 0.0  # when the current job was sent
+    stopping: bool = False
+
+
+@dataclass(eq=False)
+class _Lane:
+    name: str
+    size: int
+    load_sky: bool
+    niceness: int
+    queue: collections.deque = field(default_factory=collections.deque)
+    failures: int = 0  # workers of this lane that died before they were ready, in a row
+    restart_at: float = 0.0
 
 
 class ComputePool:
-    """``processes`` worker processes (or, with 0, ``threads`` threads sharing ``sky``)."""
+    """``processes`` interactive and ``bulk_processes`` bulk worker processes (or, with 0, threads sharing ``sky``).
 
-    def __init__(self, processes: int, *, threads: int = 1, sky: Any = None) -> None:
+    ``hard_limit_s``: a job running longer has its worker killed (default
+    :data:`HARD_LIMIT_FACTOR` times the configured search time-out);
+    ``load_sky`` False starts interactive workers without a catalogue (tests
+    of the pool itself).
+    """
+
+    def __init__(self, processes: int, *, threads: int = 1, sky: Any = None, bulk_processes: int | None = None,
+                 hard_limit_s: float | None = None, load_sky: bool = True) -> None:
+        from app.config import settings
+
+        config = settings()
         self.processes = max(0, int(processes))
         self._threads = max(1, threads)
         self._sky = sky
-        self._executor: Executor
-        if self.processes:
-            self._executor = ProcessPoolExecutor(max_workers=self.processes,
-                                                 mp_context=multiprocessing.get_context("spawn"),
-                                                 initializer=_start_worker)
-        else:
+        self.hard_limit_s = float(hard_limit_s if hard_limit_s is not None
+                                  else HARD_LIMIT_FACTOR * config.search_timeout_s)
+        bulk = config.bulk_workers if bulk_processes is None else bulk_processes
+        self.bulk_processes = max(1, int(bulk)) if self.processes else 0
+        # Re-entrant: a future's done-callback runs in the thread that completes it and may submit again.
+        self._lock = threading.RLock()
+        self._ready_changed = threading.Condition(self._lock)
+        self._closing = False
+        self._ids = itertools.count(1)
+        if not self.processes:
             if sky is None:
                 raise ValueError("a thread pool needs the server's Sky")
-            self._executor = ThreadPoolExecutor(max_workers=self._threads, thread_name_prefix="compute")
+            self._executors = {INTERACTIVE: ThreadPoolExecutor(max_workers=self._threads, thread_name_prefix="compute"),
+                               BULK: ThreadPoolExecutor(max_workers=1, thread_name_prefix="compute-bulk")}
+            return
+        self._context = multiprocessing.get_context("spawn")
+        self._lanes = {INTERACTIVE: _Lane(INTERACTIVE, self.processes, load_sky, 0),
+                       BULK: _Lane(BULK, self.bulk_processes, False, BULK_NICENESS)}
+        self._workers: list[_Worker] = []
+        self._wake_read, self._wake_write = socket.socketpair()
+        self._wake_read.setblocking(False)
+        self._dispatcher = threading.Thread(target=self._run, name="compute-pool", daemon=True)
+        self._dispatcher.start()
 
     @property
     def kind(self) -> str:
         """What the pool is, in words (``/api/health`` shows it)."""
         return f"{self.processes} processes" if self.processes else f"{self._threads} threads"
 
+    # --- submitting ---------------------------------------------------------
     def submit(self, fn: Callable, *args, **kwargs) -> Future:
-        """Run ``fn(*args, sky=<Sky>, **kwargs)`` in the pool."""
-        if self.processes:
-            return self._executor.submit(_in_worker, fn, args, kwargs)
-        return self._executor.submit(fn, *args, sky=self._sky, **kwargs)
+        """Run ``fn(*args, sky=<Sky>, **kwargs)`` on the interactive lane, without a deadline.
 
-    def warm_up(self) -> None:
-        """Start every worker now (each loads the catalogue), so the first searches do not wait."""
-        if self.processes:
-            for _ in range(self.processes):
-                self._executor.submit(_ready)
+        Its hard limit is :data:`UNDATED_HARD_LIMIT_S` (or the pool's, if longer).
+        """
+        return self.submit_within(fn, *args, lane=INTERACTIVE, deadline=None, **kwargs)
 
-    def shutdown(self) -> None:
-        self._executor.shutdown(wait=False, cancel_futures=True)
+    def submit_within(self, fn: Callable, *args, lane: str = INTERACTIVE, deadline: float | None = None,
+                      **kwargs) -> Future:
+        """Run ``fn(*args, sky=<Sky>, **kwargs)`` on ``lane`` unless ``deadline`` (``time.monotonic()``)
+        passes before a worker is free for it (then the future fails with :class:`JobExpired`).
+
+        Cancelling the future before the job starts removes it from the queue.
+        A job with a deadline is killed after the pool's ``hard_limit_s``, one
+        without after :data:`UNDATED_HARD_LIMIT_S`.
+        """
+        if lane not in LANES:
+            raise ValueError(f"unknown lane {lane!r}")
+        if not self.processes:
+            return self._executors[lane].submit(_run_in_thread, fn, args, kwargs, deadline, self._sky)
+        future: Future = Future()
+        with self._lock:
+            if self._closing:
+                raise RuntimeError("the compute pool is shut down")
+            limit = self.hard_limit_s if deadline is not None else max(self.hard_limit_s, UNDATED_HARD_LIMIT_S)
+            self._lanes[lane].queue.append(_Job(next(self._ids), fn, args, kwargs, future, lane, deadline, limit))
+        self._wake()
+        return future
+
+    def warm_up(self, timeout_s: float = WARM_UP_TIMEOUT_S) -> bool:
+        """Wait until every worker has started (each loads the catalogue, ~1 s), at most ``timeout_s``.
+
+        The server calls this before it answers: a request that arrived while
+        the workers were still loading would spend its time-out waiting for
+        them.  Returns whether all were ready in time (if not, it is logged and
+        the requests of the first seconds may be answered 503).
+        """
+        if not self.processes:
+            return True
+        deadline = time.monotonic() + timeout_s
+        with self._ready_changed:
+            while not self._all_ready():
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or self._closing:
+                    log.error("the compute workers were not all ready after %.0f s", timeout_s)
+                    return False
+                self._ready_changed.wait(remaining)
+        return True
+
+    def _all_ready(self) -> bool:
+        return all(sum(1 for w in self._workers if w.lane == lane.name and w.ready) >= lane.size
+                   for lane in self._lanes.values())
+
+    def pids(self) -> list[int]:
+        """Process ids of the live workers (tests and diagnostics)."""
+        if not self.processes:
+            return []
+        with self._lock:
+            return [w.process.pid for w in self._workers if w.process.pid is not None]
+
+    # --- stopping -----------------------------------------------------------
+    def shutdown(self, timeout_s: float = 5.0) -> None:
+        """Stop: queued jobs are cancelled, running ones get ``timeout_s`` to finish, then their workers are killed.
+
+        Returns once every worker process has exited (or, at worst, has been
+        SIGKILLed and reaped), so nothing outlives a normal stop.
+        """
+        if not self.processes:
+            for executor in self._executors.values():
+                executor.shutdown(wait=False, cancel_futures=True)
+            return
+        with self._lock:
+            if self._closing:
+                return
+            self._closing = True
+            self._stop_deadline = time.monotonic() + timeout_s
+            self._ready_changed.notify_all()  # nobody waits for a start that will not come
+        self._wake()
+        self._dispatcher.join(timeout_s + 10.0)
+        if self._dispatcher.is_alive():  # never expected: the dispatcher kills what does not stop
+            log.error("the compute pool's dispatcher did not stop within %.0f s", timeout_s + 10.0)
+
+    # --- the dispatcher thread ----------------------------------------------
+    def _wake(self) -> None:
+        try:
+            self._wake_write.send(b"\0")
+        except (BlockingIOError, OSError):  # already woken (buffer full) or closing
+            pass
+
+    def _run(self) -> None:
+        try:
+            with self._lock:
+                for lane in self._lanes.values():
+                    for _ in range(lane.size):
+                        self._start_worker(lane)
+            while True:
+                with self._lock:
+                    if self._closing and self._stop_step():
+                        break
+                    if not self._closing:
+                        self._restart_missing()
+                        self._dispatch()
+                    waits = [self._wake_read] + [w.conn for w in self._workers] + \
+                            [w.process.sentinel for w in self._workers]
+                    timeout = self._next_check()
+                ready = wait_for_connections(waits, timeout)
+                with self._lock:
+                    for item in ready:
+                        if item is self._wake_read:
+                            self._drain_wake()
+                        else:
+                            worker = next((w for w in self._workers if item is w.conn or item == w.process.sentinel),
+                                          None)
+                            if worker is not None:
+                                self._serve(worker)
+                    self._enforce_hard_limit()
+        except Exception:  # noqa: BLE001 - must never die silently: log, fail what waits, kill what runs
+            log.exception("the compute pool's dispatcher failed")
+            with self._lock:
+                self._closing = True
+                self._fail_everything(WorkerLost("the compute pool failed; see the server log"))
+        finally:
+            self._wake_read.close()
+            self._wake_write.close()
+
+    def _drain_wake(self) -> None:
+        try:
+            while self._wake_read.recv(4096):
+                pass
+        except (BlockingIOError, OSError):
+            pass
+
+    def _start_worker(self, lane: _Lane) -> None:
+        server_end, worker_end = self._context.Pipe(duplex=True)
+        process = self._context.Process(target=_worker_main, name=f"starid-{lane.name}-worker",
+                                        args=(worker_end, os.getpid(), lane.load_sky, lane.niceness),
+                                        daemon=True)
+        process.start()
+        worker_end.close()  # the worker holds its own copy: EOF here means the worker is gone
+        self._workers.append(_Worker(lane.name, process, server_end))
+
+    def _restart_missing(self) -> None:
+        now = time.monotonic()
+        for lane in self._lanes.values():
+            missing = lane.size - sum(1 for w in self._workers if w.lane == lane.name)
+            if missing > 0 and now >= lane.restart_at:
+                for _ in range(missing):
+                    self._start_worker(lane)
+
+    def _dispatch(self) -> None:
+        now = time.monotonic()
+        for lane in self._lanes.values():
+            idle = [w for w in self._workers if w.lane == lane.name and w.ready and w.job is None and not w.stopping]
+            while lane.queue and idle:
+                job = lane.queue.popleft()
+                if not job.future.set_running_or_notify_cancel():
+                    continue  # cancelled while it waited
+                if job.deadline is not None and now > job.deadline:
+                    job.future.set_exception(JobExpired(
+                        "the work waited for a free worker past its time-out and was not started"))
+                    continue
+                worker = idle.pop()
+                try:
+                    worker.conn.send((job.id, job.fn, job.args, job.kwargs))
+                except (pickle.PicklingError, TypeError, AttributeError) as exc:
+                    job.future.set_exception(exc)
+                    idle.append(worker)
+                    continue
+                except OSError:  # the worker died just now: _serve will replace it
+                    job.future.set_exception(WorkerLost("the worker process died before the job started"))
+                    continue
+                worker.job, worker.started = job, now
+            # Jobs whose deadline passed while every worker was busy are answered now, not when one frees up.
+            for job in [j for j in lane.queue if j.deadline is not None and now > j.deadline]:
+                lane.queue.remove(job)
+                if job.future.set_running_or_notify_cancel():
+                    job.future.set_exception(JobExpired(
+                        "the work waited for a free worker past its time-out and was not started"))
+
+    def _next_check(self) -> float:
+        """Seconds until the next deadline, hard limit or restart the dispatcher must act on (at most 1)."""
+        now = time.monotonic()
+        moments = [now + 1.0]
+        moments += [w.started + w.job.limit_s for w in self._workers if w.job is not None]
+        moments += [j.deadline for lane in self._lanes.values() for j in lane.queue if j.deadline is not None]
+        moments += [lane.restart_at for lane in self._lanes.values() if lane.restart_at > now]
+        if self._closing:
+            moments.append(self._stop_deadline)
+        return max(0.0, min(moments) - now) + 0.001
+
+    def _serve(self, worker: _Worker) -> None:
+        """A worker's pipe is readable or its process ended: take its message, or bury it."""
+        try:
+            while worker.conn.poll():
+                message = worker.conn.recv()
+                if message[0] == "ready":
+                    worker.ready = True
+                    self._lanes[worker.lane].failures = 0
+                    self._ready_changed.notify_all()
+                    continue
+                job_id, ok, value = message
+                job, worker.job = worker.job, None
+                if job is None or job.id != job_id:
+                    log.error("compute worker %s answered a job it was not given", worker.process.pid)
+                    continue
+                if ok:
+                    job.future.set_result(value)
+                else:
+                    job.future.set_exception(value)
+                if worker.stopping:
+                    self._send_stop(worker)
+        except (EOFError, OSError):
+            self._bury(worker, "died")
+        except Exception as exc:  # noqa: BLE001 - e.g. a result that cannot be unpickled here
+            job, worker.job = worker.job, None
+            if job is not None:
+                job.future.set_exception(RuntimeError(f"the worker's answer could not be read: {exc}"))
+        if worker.process.exitcode is not None and worker in self._workers:
+            self._bury(worker, f"exited with code {worker.process.exitcode}")
+
+    def _bury(self, worker: _Worker, how: str) -> None:
+        """Forget a worker whose process ended: fail its job, count a failed start, schedule its replacement."""
+        if worker not in self._workers:
+            return
+        self._workers.remove(worker)
+        worker.conn.close()
+        worker.process.join(timeout=1.0)
+        lane = self._lanes[worker.lane]
+        if worker.job is not None:
+            worker.job.future.set_exception(WorkerLost(f"the worker process {how} while running the job"))
+            worker.job = None
+        if not self._closing:
+            if not worker.ready:
+                lane.failures += 1
+                low, high = RESTART_BACKOFF_S
+                lane.restart_at = time.monotonic() + min(high, low * 2 ** (lane.failures - 1))
+            log.warning("compute worker %s (%s) %s; starting another", worker.process.pid, worker.lane, how)
+
+    def _kill(self, worker: _Worker) -> None:
+        try:
+            worker.process.kill()
+        except (OSError, ValueError, AttributeError):
+            pass
+        worker.process.join(timeout=5.0)
+
+    def _enforce_hard_limit(self) -> None:
+        now = time.monotonic()
+        for worker in [w for w in self._workers if w.job is not None and now - w.started > w.job.limit_s]:
+            job = worker.job
+            worker.job = None
+            log.error("a %s job ran past its hard limit of %.0f s: killing worker %s", worker.lane,
+                      job.limit_s, worker.process.pid)
+            self._kill(worker)
+            job.future.set_exception(JobKilled(
+                f"the work ran past its hard limit of {job.limit_s:.0f} s and was stopped"))
+            worker.ready = True  # not a start failure: replace it at once
+            self._bury(worker, "was killed")
+
+    def _send_stop(self, worker: _Worker) -> None:
+        worker.stopping = True
+        try:
+            worker.conn.send(None)
+        except OSError:
+            pass
+
+    def _fail_everything(self, error: BaseException) -> None:
+        for lane in self._lanes.values():
+            while lane.queue:
+                job = lane.queue.popleft()
+                if job.future.set_running_or_notify_cancel():
+                    job.future.set_exception(error)
+        for worker in list(self._workers):
+            if worker.job is not None:
+                worker.job.future.set_exception(error)
+                worker.job = None
+            self._kill(worker)
+            worker.conn.close()
+        self._workers.clear()
+
+    def _stop_step(self) -> bool:
+        """One step of a shutdown; True once every worker has exited."""
+        for lane in self._lanes.values():
+            while lane.queue:
+                lane.queue.popleft().future.cancel()
+        for worker in list(self._workers):
+            if worker.process.exitcode is not None:
+                self._workers.remove(worker)
+                worker.conn.close()
+                worker.process.join(timeout=1.0)
+                if worker.job is not None:
+                    worker.job.future.set_exception(WorkerLost("the server stopped while the job ran"))
+            elif worker.job is None and not worker.stopping:
+                self._send_stop(worker)
+        if self._workers and time.monotonic() >= self._stop_deadline:
+            self._fail_everything(WorkerLost("the server stopped while the job ran"))
+        return not self._workers
+
+
+def _run_in_thread(fn: Callable, args: tuple, kwargs: dict, deadline: float | None, sky: Any):
+    """A thread pool job: the same deadline rule as the worker processes."""
+    if deadline is not None and time.monotonic() > deadline:
+        raise JobExpired("the work waited for a free worker past its time-out and was not started")
+    return fn(*args, sky=sky, **kwargs)

@@ -98,11 +98,12 @@ class WatchedPage:
 
 @pytest.fixture
 def new_page(browser):
-    """Factory of fresh 1280x800 pages (own context each, downloads accepted); closed after the test."""
+    """Factory of fresh pages, 1280x800 unless ``width``/``height`` say otherwise (own browser context each,
+    so own sessionStorage: each is a console session of its own; downloads accepted); closed after the test."""
     contexts = []
 
-    def make() -> WatchedPage:
-        context = browser.new_context(viewport=VIEWPORT, accept_downloads=True)
+    def make(width: int = VIEWPORT["width"], height: int = VIEWPORT["height"]) -> WatchedPage:
+        context = browser.new_context(viewport={"width": width, "height": height}, accept_downloads=True)
         contexts.append(context)
         return WatchedPage(context.new_page())
 

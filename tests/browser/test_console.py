@@ -29,6 +29,22 @@ def expect_text(locator, pattern: str, timeout: int = TIMEOUT_MS) -> None:
     expect(locator).to_contain_text(re.compile(pattern), timeout=timeout)
 
 
+def wait_for_state(read, wanted, timeout_s: float = TIMEOUT_MS / 1000, interval_s: float = 0.1):
+    """Poll ``read()`` until it returns ``wanted`` or ``timeout_s`` passes; the last value read.
+
+    The browser's writes reach the server asynchronously, so a test reads the
+    server's state only once it has arrived (or the deadline says it never will).
+    """
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    value = read()
+    while value != wanted and time.monotonic() < deadline:
+        time.sleep(interval_s)
+        value = read()
+    return value
+
+
 def track_to_take_out(detail: dict) -> int:
     """A pattern track whose sightings are not all stars (a ghost, a hot pixel), else the shortest track."""
     kinds: dict[int, set] = {}
@@ -91,6 +107,8 @@ def test_operator_flow(server, api, new_page):
     page = watched.page
     page.goto(server + "/")
     expect_text(page.locator("#health"), "ready")
+    # This console's own selection (issue 13: every console has its session).
+    view = f"/api/view?session={page.evaluate('document.body.dataset.session')}"
 
     # Upload: the file is stored and opened.
     page.set_input_files("#file-input", [str(SAMPLE)])
@@ -132,6 +150,8 @@ def test_operator_flow(server, api, new_page):
 
     # Search: rank 1 of N is the true attitude of the reference snapshot.
     page.click("#search")
+    # The upload was searched automatically already (pattern version 1): wait for this search's result.
+    expect_text(page.locator("#search-summary"), rf"\(pattern version {version + 3}\)")
     expect_text(page.locator("#cand-rank"), r"rank 1 of \d+")
     search = api(f"/api/sequences/{seq_id}")["search"]
     n = len(search["candidates"])
@@ -145,10 +165,10 @@ def test_operator_flow(server, api, new_page):
     page.mouse.move(0, 0)
     watched.screenshot("03-candidate-rank1")
 
-    # Next / Prev buttons and the arrow keys; the shared view state follows.
+    # Next / Prev buttons and the arrow keys; this console's view state follows.
     page.click("#cand-next")
     expect_text(page.locator("#cand-rank"), rf"rank 2 of {n}")
-    assert api("/api/view")["rank"] == 2
+    assert api(view)["rank"] == 2
     watched.screenshot("04-candidate-rank2")
     page.click("#cand-prev")
     expect_text(page.locator("#cand-rank"), rf"rank 1 of {n}")
@@ -157,14 +177,14 @@ def test_operator_flow(server, api, new_page):
     expect_text(page.locator("#cand-rank"), rf"rank 2 of {n}")
     page.keyboard.press("ArrowLeft")
     expect_text(page.locator("#cand-rank"), rf"rank 1 of {n}")
-    assert api("/api/view")["rank"] == 1
+    assert api(view)["rank"] == 1
 
     # The magnitude slider redraws with fainter stars (the server lists more of them).
     page.locator("#mag-slider").fill("7")
     page.locator("#mag-slider").dispatch_event("change")
     expect_text(page.locator("#mag-label"), r"7\.0")
-    page.wait_for_function("() => true")
-    assert api("/api/view")["mag"] == 7.0
+    # The label changes before the console's PUT /api/view reaches the server: wait for the server's state.
+    assert wait_for_state(lambda: api(view)["mag"], 7.0) == 7.0
 
     # Confirm rank 1.
     page.fill("#operator", "Test Operator")
@@ -192,51 +212,71 @@ def test_operator_flow(server, api, new_page):
     assert watched.errors == []
 
 
-def test_3d_view_follows_and_drives_the_console(server, api, new_page):
-    # A searched sequence selected in the shared view (as another operator would leave it).
+def test_3d_view_follows_the_console_that_opened_it(server, api, new_page):
     doc = api("/api/sequences", "POST", raw=(SAMPLES / "04-big-dipper.json").read_bytes())
     seq_id = doc["id"]
     search = api(f"/api/sequences/{seq_id}/search", "POST", body={})
     n = len(search["candidates"])
     assert n >= 2
-    api("/api/view", "PUT", body={"sequence": seq_id, "rank": 1})
+
+    # A console opens the sequence from its work queue.
+    console = new_page()
+    console.page.goto(server + "/")
+    session = console.page.evaluate("document.body.dataset.session")
+    view = f"/api/view?session={session}"
+    console.page.fill("#filter-search", "04-big-dipper")
+    console.page.locator(f"#sequence-list li[data-id='{seq_id}']").click()
+    expect_text(console.page.locator("#seq-title"), "04-big-dipper")
+    expect_text(console.page.locator("#cand-rank"), rf"rank 1 of {n}")
+    assert (api(view)["sequence"], api(view)["rank"]) == (seq_id, 1)
     # A rank the latest search does not have is refused with its location.
     with pytest.raises(urllib.error.HTTPError) as refused:
-        api("/api/view", "PUT", body={"rank": n + 1})
+        api(view, "PUT", body={"rank": n + 1})
     assert refused.value.code == 422
     assert json.loads(refused.value.read())["problems"][0]["location"] == "body.rank"
 
-    console = new_page()
-    console.page.goto(server + "/")
-    expect_text(console.page.locator("#seq-title"), "04-big-dipper")
-    expect_text(console.page.locator("#cand-rank"), rf"rank 1 of {n}")
-
+    # Its 3D tab makes the 3D view draw this console's selection.
     info = api("/api/viewer")
     assert info["available"] and info["url"].startswith("http://127.0.0.1:")
     console.page.click("#tab-3d")
+    expect_text(console.page.locator("#viewer-note"), "Draws this console's selection")
     expect_text(console.page.locator("#viewer-note"), re.escape(info["url"]))
+    assert api("/api/view")["session"] == session  # requests without a session mean the 3D view's
     frame = console.page.frame_locator("#viewer-frame")
     expect_text(frame.locator("body"), r"Candidate 1 of", timeout=40_000)
     console.screenshot("06-console-3d-tab")
 
     viewer = new_page()
-    viewer.page.goto(info["url"])
+    viewer.page.goto(f"{info['url']}?session={session}")
     expect_text(viewer.page.locator("body"), rf"Candidate 1 of {n}", timeout=40_000)
     viewer.page.wait_for_timeout(1500)  # let the software renderer draw the sphere before the screenshot
     viewer.screenshot("07-viewer-rank1")
     viewer.page.get_by_role("button", name="Next").click()
     expect_text(viewer.page.locator("body"), rf"Candidate 2 of {n}")
-    assert api("/api/view")["rank"] == 2
+    assert wait_for_state(lambda: api(view)["rank"], 2) == 2
 
-    # The console follows the shared state: back on its sequence tab it shows rank 2.
+    # The console follows its own session: back on its sequence tab it shows rank 2.
     console.page.click("#tab-work")
     expect_text(console.page.locator("#cand-rank"), rf"rank 2 of {n}")
     expect_text(console.page.locator("#cand-facts"), rf"2 of {n}")
     console.screenshot("08-console-after-3d-next")
     viewer.page.wait_for_timeout(1000)
     viewer.screenshot("09-viewer-rank2")
-    assert console.errors == []
-    assert viewer.errors == []
+
+    # Another console opening its 3D tab takes the view over; the first says so and can take it back.
+    other = new_page()
+    other.page.goto(server + "/")
+    other.page.click("#tab-3d")
+    expect_text(other.page.locator("#viewer-note"), "Draws this console's selection")
+    console.page.click("#tab-3d")
+    expect_text(console.page.locator("#viewer-note"), "Draws this console's selection")  # opening it follows again
+    other.page.click("#tab-work")
+    other.page.click("#tab-3d")
+    expect_text(console.page.locator("#viewer-note"), "Another console took the 3D view")
+    console.page.get_by_role("button", name="Draw this console's selection").click()
+    expect_text(console.page.locator("#viewer-note"), "Draws this console's selection")
+    assert api("/api/view")["session"] == session
+    assert console.errors == [] and viewer.errors == [] and other.errors == []
 
 
 def test_api_docs_render_without_internet(server, new_page):

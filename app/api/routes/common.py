@@ -1,14 +1,46 @@
-"""What every router needs: the context, the writer check, bounded body reading."""
+"""What every router needs: the context, the writer check, bounded body reading, bounded computing."""
 
 from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass
+from typing import Callable
 
 from fastapi import Depends, Request
 from fastapi.responses import PlainTextResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from starlette.requests import ClientDisconnect
 
 from app.api.errors import ApiError
 from app.api.schemas import MAX_ID
 from app.workflow import AppContext
+from app.workflow.compute import INTERACTIVE, JobExpired, JobKilled
+
+#: An oversized body is read and thrown away up to this many bytes, so that a client that sends its
+#: whole body before reading the answer (Python's urllib, our `upload` command) reads the 413
+#: instead of "connection reset by peer"; beyond it the connection is closed (the client may then
+#: see the reset, but nobody makes the server read gigabytes).
+DRAIN_LIMIT_BYTES = 64 * 1024 * 1024
+#: How long a body may take to arrive, and how long an oversized one is drained, seconds.
+BODY_READ_TIMEOUT_S = 60.0
+DRAIN_TIMEOUT_S = 10.0
+#: Part of the time-out kept for what follows the computation (storing the result), at most this
+#: many seconds and this fraction of the time-out.
+STORE_RESERVE_S = 1.0
+STORE_RESERVE_FRACTION = 0.2
+#: A job is not started later than this before the computation's deadline (same bounds): a search
+#: takes tens of milliseconds and the largest extraction ~0.4 s, so one that starts in time ends in time.
+START_MARGIN_S = 1.0
+START_MARGIN_FRACTION = 0.2
+
+
+@dataclass(frozen=True)
+class Deadline:
+    """When a request's computation must be done (``done_by``) and may still start (``start_by``), monotonic."""
+
+    done_by: float
+    start_by: float
 
 #: Path parameters are database integers.
 ID_LIMITS = {"ge": 1, "le": MAX_ID}
@@ -54,26 +86,94 @@ def attachment(text: str, filename: str) -> PlainTextResponse:
                              headers={"Content-Disposition": f'attachment; filename="{filename}"'})
 
 
-def too_large(limit: int) -> ApiError:
-    return ApiError(413, f"the upload is larger than the limit of {limit} bytes")
+def too_large(limit: int, close: bool = False) -> ApiError:
+    return ApiError(413, f"the upload is larger than the limit of {limit} bytes",
+                    headers={"Connection": "close"} if close else None)
 
 
 async def read_body_limited(request: Request, limit: int, reported_limit: int | None = None) -> bytes:
-    """The request body, refusing (413) as soon as it exceeds ``limit`` bytes.
+    """The request body, refusing (413) once it exceeds ``limit`` bytes, keeping at most ``limit`` in memory.
 
-    A declared Content-Length above the limit is refused before anything is
-    read; a chunked or lying body is cut off while it streams in.
+    The rest of an oversized body is read and discarded (up to
+    :data:`DRAIN_LIMIT_BYTES` and :data:`DRAIN_TIMEOUT_S`) before the 413 is
+    sent: many clients write the whole body before they read anything, and
+    a server that answers and closes early makes them fail with "connection
+    reset by peer" instead of showing the 413.  A body declared larger than
+    the drain limit is refused at once.  A body that takes longer than
+    :data:`BODY_READ_TIMEOUT_S` to arrive is refused with 408.
     """
+    reported = reported_limit or limit
     declared = request.headers.get("content-length", "")
-    if declared.isdigit() and int(declared) > limit:
-        raise too_large(reported_limit or limit)
+    if declared.isdigit() and int(declared) > DRAIN_LIMIT_BYTES:
+        raise too_large(reported, close=True)
     chunks, size = [], 0
-    async for chunk in request.stream():
-        size += len(chunk)
-        if size > limit:
-            raise too_large(reported_limit or limit)
-        chunks.append(chunk)
-    return b"".join(chunks)
+    stream = request.stream()
+    try:
+        async with asyncio.timeout(BODY_READ_TIMEOUT_S):
+            if not (declared.isdigit() and int(declared) > limit):
+                async for chunk in stream:
+                    size += len(chunk)
+                    if size > limit:
+                        break
+                    chunks.append(chunk)
+                else:
+                    return b"".join(chunks)
+    except TimeoutError:
+        raise ApiError(408, f"the request body did not arrive within {BODY_READ_TIMEOUT_S:g} s",
+                       headers={"Connection": "close"}) from None
+    except ClientDisconnect:
+        raise ApiError(400, "the client disconnected before the request body was complete",
+                       headers={"Connection": "close"}) from None
+    await _drain(stream, DRAIN_LIMIT_BYTES - size)
+    # Closed after the answer: an oversized body may not have been read to its end.
+    raise too_large(reported, close=True)
+
+
+async def _drain(stream, budget: int) -> None:
+    """Read and discard up to ``budget`` more bytes of a refused body, for at most DRAIN_TIMEOUT_S."""
+    try:
+        async with asyncio.timeout(DRAIN_TIMEOUT_S):
+            async for chunk in stream:
+                budget -= len(chunk)
+                if budget < 0:
+                    return
+    except (TimeoutError, ClientDisconnect):
+        return
+
+
+def work_deadline(ctx: AppContext) -> Deadline:
+    """The deadlines of a request's computation, so that it is answered within the time-out.
+
+    The time-out users see is ``STARID_SEARCH_TIMEOUT_S`` from the moment the
+    request's body is in; a little of it is kept for storing the result, and
+    a job that has not started a little before its end is not started at all.
+    """
+    timeout = ctx.settings.search_timeout_s
+    done_by = time.monotonic() + timeout - min(STORE_RESERVE_S, STORE_RESERVE_FRACTION * timeout)
+    return Deadline(done_by=done_by, start_by=done_by - min(START_MARGIN_S, START_MARGIN_FRACTION * timeout))
+
+
+def busy(ctx: AppContext, what: str) -> ApiError:
+    return ApiError(503, f"{what} was not done within the time-out of {ctx.settings.search_timeout_s:g} s "
+                         "(STARID_SEARCH_TIMEOUT_S): the server is busy. Nothing was stored; try again.",
+                    headers={"Retry-After": "1"})
+
+
+async def compute_within(ctx: AppContext, deadline: Deadline, what: str, fn: Callable, *args,
+                         lane: str = INTERACTIVE):
+    """``fn(*args)`` in the compute pool, or 503 (:func:`busy`) when it is not done by ``deadline.done_by``.
+
+    A job still queued at ``deadline.start_by`` is never started (the pool
+    drops it), so a burst of requests that time out does not leave the
+    workers busy with answers nobody waits for.
+    """
+    future = ctx.compute.submit_within(fn, *args, lane=lane, deadline=deadline.start_by)
+    try:
+        # wrap_future passes a cancellation on to the pool's future: a queued job is dropped.
+        return await asyncio.wait_for(asyncio.wrap_future(future),
+                                      timeout=max(0.0, deadline.done_by - time.monotonic()))
+    except (asyncio.TimeoutError, JobExpired, JobKilled):
+        raise busy(ctx, what) from None
 
 
 def replay_request(request: Request, body: bytes) -> Request:
