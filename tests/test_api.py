@@ -242,7 +242,10 @@ def test_confirm_apm_aem_and_supersession(api, uploaded, sample_dir):
         Ri = rotation_from_ccsds_quaternion(q1, q2, q3, qc)
         assert _boresight_error_deg(Ri, truth["radec_roll_deg"][i]) < 0.1
 
-    second = api.post(f"/api/sequences/{sid}/confirm", json={"rank": 1, "operator": "bob"}).json()
+    # The same candidate again is the same record (200); a new record needs an explicit supersede (issue 13).
+    repeat = api.post(f"/api/sequences/{sid}/confirm", json={"rank": 1, "operator": "bob"})
+    assert repeat.status_code == 200 and repeat.json()["id"] == first["id"]
+    second = api.post(f"/api/sequences/{sid}/confirm", json={"rank": 1, "operator": "bob", "supersede": True}).json()
     assert second["id"] > first["id"]
     again = api.get(f"/api/attitudes/{first['id']}").json()
     assert again["superseded_by"] == second["id"] and not again["current"]

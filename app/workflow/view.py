@@ -1,47 +1,70 @@
-"""The view workflow: the shared selection (:mod:`app.workflow.view_state`) read with its archive state,
-and written after checking it against the archive."""
+"""The view workflow: a console session's selection (:mod:`app.workflow.view_state`) read with its
+archive state, and written after checking it against the archive.
+
+``session=None`` means the session the 3D view draws (see
+:class:`app.workflow.view_state.ViewStateStore`), so the 3D view itself
+calls these functions without naming one.
+"""
 
 from __future__ import annotations
 
+from app.storage import ConfirmationRow
 from app.timefmt import utc_text
 from app.workflow.context import AppContext
 from app.workflow.documents import ViewDocument
 from app.workflow.errors import Invalid
+from app.workflow.view_state import check_session
 
 
-def view_document(ctx: AppContext) -> ViewDocument:
-    """The shared view state plus what the archive says about its sequence now.
+def _session(ctx: AppContext, session: str | None) -> str:
+    """The session meant, checked: Invalid (located at the query parameter) for a malformed id."""
+    if session is None:
+        return ctx.view.followed
+    try:
+        return check_session(session)
+    except ValueError as exc:
+        raise Invalid(str(exc), location="query.session", message=str(exc)) from None
+
+
+def view_document(ctx: AppContext, session: str | None = None) -> ViewDocument:
+    """A session's view state plus what the archive says about its sequence now.
 
     The derived fields (latest search, its size, the pattern version, the
-    current confirmation) are read fresh on every call, so a reader notices
-    a search, an edit or a confirmation made by the other window even though
-    only the selection itself is stored.
+    current verdict) are read fresh on every call, so a reader notices a
+    search, an edit or a verdict made elsewhere even though only the
+    selection itself is stored.
     """
-    state = ctx.view.get()
+    name = _session(ctx, session)
+    state = ctx.view.get(name)
     doc = ViewDocument(sequence=state.sequence, rank=state.rank, mag=state.mag, revision=state.revision,
-                       updated_by=state.updated_by, updated_at=utc_text(state.updated_at))
+                       updated_by=state.updated_by, updated_at=utc_text(state.updated_at), session=name,
+                       followed_by_3d=name == ctx.view.followed)
     row = ctx.storage.get_sequence(state.sequence) if state.sequence is not None else None
     if row is not None:
         search = ctx.storage.latest_search(row.id)
         version = ctx.storage.current_pattern(row.id)
-        confirmation = ctx.storage.current_confirmation(row.id)
+        verdict = ctx.storage.current_verdict(row.id)
         doc.status = row.status
         doc.pattern_version = version.version if version else None
-        doc.confirmation_id = confirmation.id if confirmation else None
+        if isinstance(verdict, ConfirmationRow):
+            doc.confirmation_id = verdict.id
+        elif verdict is not None:
+            doc.rejection_id = verdict.id
         if search is not None:
             doc.search_id = search.id
             doc.n_candidates = len(search.result.get("candidates", []))
     return doc
 
 
-def set_view(ctx: AppContext, changes: dict, writer_name: str) -> ViewDocument:
-    """Write the given view fields (checked against the archive) and return the new document.
+def set_view(ctx: AppContext, changes: dict, writer_name: str, session: str | None = None) -> ViewDocument:
+    """Write the given view fields of a session (checked against the archive) and return the new document.
 
     A new sequence without a rank starts at rank 1 of its latest search (or
     none); a rank must exist in the latest search of the sequence shown.
     """
+    name = _session(ctx, session)
     changes = dict(changes)
-    seq_id = changes.get("sequence", ctx.view.get().sequence)
+    seq_id = changes.get("sequence", ctx.view.get(name).sequence)
     if "sequence" in changes and seq_id is not None and ctx.storage.get_sequence(seq_id) is None:
         raise Invalid(f"no sequence with id {seq_id}", location="body.sequence", message="no such sequence")
     search = ctx.storage.latest_search(seq_id) if seq_id is not None else None
@@ -53,7 +76,14 @@ def set_view(ctx: AppContext, changes: dict, writer_name: str) -> ViewDocument:
         raise Invalid(f"rank {rank} is not a candidate of the latest search (it has {n_candidates})",
                       location="body.rank", message=f"not in 1..{n_candidates}")
     try:
-        ctx.view.update(**changes, updated_by=writer_name)
+        ctx.view.update(session=name, **changes, updated_by=writer_name)
     except ValueError as exc:
         raise Invalid(str(exc)) from None
-    return view_document(ctx)
+    return view_document(ctx, name)
+
+
+def follow(ctx: AppContext, session: str) -> ViewDocument:
+    """Make the 3D view draw ``session`` (the console that opens it calls this) and return its state."""
+    name = _session(ctx, session)
+    ctx.view.follow(name)
+    return view_document(ctx, name)

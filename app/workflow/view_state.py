@@ -1,22 +1,29 @@
-"""The shared view state: which sequence, candidate rank and magnitude limit operators look at.
+"""The view state of each console session: which sequence, candidate rank and magnitude limit it shows.
 
-The browser console and the 3D view are two windows onto one selection.
-Neither talks to the other: both write this small record (the console
-through ``PUT /api/view``, the viser GUI directly in-process) and both read
-it back (the console polls ``GET /api/view`` about once a second, the 3D
-view polls the store in its own thread).  ``revision`` grows by one on
-every write, so a reader only has to compare one integer to know whether
-anything changed.
+Every browser tab of the console is a *session* with its own selection
+(issue 13: two operators, or two tabs, must not move each other's
+sequence).  A console names its session in every ``GET``/``PUT /api/view``
+(``?session=...``, a random id the tab keeps in its sessionStorage); the
+3D view draws one session at a time, the one the console that opened it
+named last (``PUT /api/viewer``), and a request without a session means
+that one.  So the 3D view and the console that opened it stay two windows
+onto one selection, while other consoles keep theirs.
 
-The record lives in the application context (one per server process): it is
-a presentation state, not archive data, and it must not outlive the server
-or be replayed by a restore.
+``revision`` grows by one on every write to a session, so a reader only
+compares one integer to know whether anything changed.
+
+The records live in the application context (one per server process): they
+are presentation state, not archive data, and must not outlive the server
+or be replayed by a restore.  Sessions nobody wrote to for a long time are
+forgotten first once there are :data:`MAX_SESSIONS` of them.
 """
 
 from __future__ import annotations
 
 import math
+import re
 import threading
+from collections import OrderedDict
 from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 
@@ -25,11 +32,18 @@ DEFAULT_MAG = 6.0
 MAG_MIN, MAG_MAX = -2.0, 7.0
 #: Who may have made a write, for the record.
 WRITERS = ("console", "viewer", "server")
+#: The session of clients that name none (scripts, the 3D view before any console opened it).
+DEFAULT_SESSION = "shared"
+#: What a session id may look like: the console makes UUIDs; scripts may choose a name.
+SESSION_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+_SESSION_RE = re.compile(SESSION_PATTERN)
+#: Sessions kept in memory (a few hundred bytes each); the least recently used go first.
+MAX_SESSIONS = 1000
 
 
 @dataclass(frozen=True)
 class ViewState:
-    """One immutable snapshot of the shared view."""
+    """One immutable snapshot of a session's view."""
 
     sequence: int | None = None  # archive id of the sequence shown, None before any choice
     rank: int | None = None  # candidate rank of its latest search, None when there is none
@@ -37,30 +51,52 @@ class ViewState:
     revision: int = 0  # +1 per write
     updated_by: str = "server"
     updated_at: datetime | None = None
-
+    session: str = DEFAULT_SESSION
 
 
 _UNSET = object()
 
 
 class ViewStateStore:
-    """Thread-safe holder of the current :class:`ViewState`.
+    """Thread-safe holder of every session's :class:`ViewState` and of the session the 3D view draws.
 
     ``update`` changes only the fields it is given (``None`` is a value: it
     clears a field), so the console setting the rank never undoes a
-    magnitude change the 3D view just made.
+    magnitude change the 3D view just made.  ``session=None`` everywhere
+    means the session the 3D view follows (:attr:`followed`).
     """
 
-    def __init__(self) -> None:
-        self._state = ViewState()
+    def __init__(self, max_sessions: int = MAX_SESSIONS) -> None:
+        self._states: OrderedDict[str, ViewState] = OrderedDict()
+        self._followed = DEFAULT_SESSION
+        self._max = max_sessions
         self._lock = threading.Lock()
 
-    def get(self) -> ViewState:
+    @property
+    def followed(self) -> str:
+        """The session the 3D view draws (and that requests without a session read and write)."""
         with self._lock:
-            return self._state
+            return self._followed
 
-    def update(self, *, sequence=_UNSET, rank=_UNSET, mag=_UNSET, updated_by: str = "server") -> ViewState:
-        """Apply the given fields as one write; ValueError for a value out of its range."""
+    def follow(self, session: str) -> str:
+        """Make the 3D view draw ``session`` from now on; ValueError for a malformed id."""
+        session = check_session(session)
+        with self._lock:
+            self._followed = session
+            return session
+
+    def _resolve(self, session: str | None) -> str:
+        return self._followed if session is None else check_session(session)
+
+    def get(self, session: str | None = None) -> ViewState:
+        """The session's state (a fresh one, not stored, for a session that never wrote)."""
+        with self._lock:
+            name = self._resolve(session)
+            return self._states.get(name) or ViewState(session=name)
+
+    def update(self, *, session: str | None = None, sequence=_UNSET, rank=_UNSET, mag=_UNSET,
+               updated_by: str = "server") -> ViewState:
+        """Apply the given fields to one session as one write; ValueError for a value out of its range."""
         changes = {}
         if sequence is not _UNSET:
             changes["sequence"] = _optional_positive_int("sequence", sequence)
@@ -71,9 +107,30 @@ class ViewStateStore:
         if updated_by not in WRITERS:
             raise ValueError(f"unknown writer {updated_by!r}")
         with self._lock:
-            self._state = replace(self._state, **changes, revision=self._state.revision + 1,
-                                  updated_by=updated_by, updated_at=datetime.now(timezone.utc))
-            return self._state
+            name = self._resolve(session)
+            old = self._states.get(name) or ViewState(session=name)
+            state = replace(old, **changes, revision=old.revision + 1, updated_by=updated_by,
+                            updated_at=datetime.now(timezone.utc))
+            self._states[name] = state
+            self._states.move_to_end(name)
+            while len(self._states) > self._max:
+                oldest = next(iter(self._states))
+                if oldest == self._followed:  # the 3D view's session is never forgotten under it
+                    self._states.move_to_end(oldest)
+                    oldest = next(iter(self._states))
+                self._states.pop(oldest)
+            return state
+
+    def sessions(self) -> int:
+        with self._lock:
+            return len(self._states)
+
+
+def check_session(value) -> str:
+    """``value`` as a session id; ValueError saying what one looks like."""
+    if not isinstance(value, str) or not _SESSION_RE.match(value):
+        raise ValueError(f"a session id is 1-64 letters, digits, '-' or '_', not {value!r}")
+    return value
 
 
 def _optional_positive_int(name: str, value) -> int | None:

@@ -1,5 +1,6 @@
 // The REST API as promises. Every failure becomes an ApiError carrying the server's
 // {"detail", "problems": [{location, message}]} so callers can show it where it belongs.
+// Writes carry the operator's bearer token when the server needs one (set by setToken).
 
 export class ApiError extends Error {
   constructor(status, detail, problems = []) {
@@ -10,6 +11,16 @@ export class ApiError extends Error {
   }
 }
 
+let token = "";
+// The bearer token sent with every request (empty: none; a loopback server needs none).
+export function setToken(value) { token = (value || "").trim(); }
+
+function headers(extra = {}) {
+  const h = { Accept: "application/json", ...extra };
+  if (token) h.Authorization = `Bearer ${token}`;
+  return h;
+}
+
 async function errorFrom(response) {
   let body = null;
   try { body = await response.json(); } catch { /* not JSON: fall back to the status text */ }
@@ -18,8 +29,10 @@ async function errorFrom(response) {
   return new ApiError(response.status, detail, (body && Array.isArray(body.problems)) ? body.problems : []);
 }
 
-export async function request(method, path, body) {
-  const options = { method, headers: { Accept: "application/json" } };
+// request(...) resolves the parsed body; requestWithStatus(...) resolves {status, body}
+// for the endpoints whose 200 and 201 mean different things (confirm, reject, upload).
+export async function requestWithStatus(method, path, body) {
+  const options = { method, headers: headers() };
   if (body !== undefined) {
     options.headers["Content-Type"] = "application/json";
     options.body = JSON.stringify(body);
@@ -31,7 +44,11 @@ export async function request(method, path, body) {
     throw new ApiError(0, `the server cannot be reached (${err.message})`);
   }
   if (!response.ok) throw await errorFrom(response);
-  return response.json();
+  return { status: response.status, body: await response.json() };
+}
+
+export async function request(method, path, body) {
+  return (await requestWithStatus(method, path, body)).body;
 }
 
 export const get = (path) => request("GET", path);
@@ -40,10 +57,11 @@ export const post = (path, body) => request("POST", path, body);
 
 // Upload one file as multipart/form-data with progress (fetch has no upload progress).
 // Resolves {status, body}; rejects with ApiError carrying the located problems.
-export function uploadFile(file, onProgress) {
+export function uploadFile(file, onProgress, { search = false } = {}) {
   return new Promise((resolve, reject) => {
     const xhr = new XMLHttpRequest();
-    xhr.open("POST", "/api/sequences");
+    xhr.open("POST", search ? "/api/sequences?search=true" : "/api/sequences");
+    if (token) xhr.setRequestHeader("Authorization", `Bearer ${token}`);
     xhr.responseType = "json";
     xhr.upload.onprogress = (e) => { if (e.lengthComputable) onProgress(e.loaded / e.total); };
     xhr.onerror = () => reject(new ApiError(0, "the upload failed: the server cannot be reached"));

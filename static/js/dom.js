@@ -20,14 +20,22 @@ export function el(tag, attrs = {}, ...children) {
 }
 
 let toastTimer = null;
-// Show the result of an action (kind "ok" or "error") for a few seconds; errors stay longer.
+// Show the result of an action (kind "ok" or "error") in the status line of the header. The
+// status line has its own place in the sticky header, so it never covers a list or a link;
+// long messages are cut to one line there and shown whole on hover and in the message log.
 export function toast(message, kind = "ok") {
   const box = $("toast");
-  box.textContent = message;
+  box.textContent = message.split("\n")[0];
+  box.title = message;
   box.className = `toast ${kind}`;
   box.hidden = false;
+  const log = $("message-log");
+  if (log) {
+    log.prepend(el("li", { class: kind }, el("time", {}, new Date().toLocaleTimeString()), " ", message));
+    while (log.children.length > 30) log.lastChild.remove();
+  }
   clearTimeout(toastTimer);
-  toastTimer = setTimeout(() => { box.hidden = true; }, kind === "error" ? 9000 : 3500);
+  toastTimer = setTimeout(() => { box.hidden = true; }, kind === "error" ? 12000 : 5000);
 }
 
 export function errorText(err) {
@@ -46,6 +54,21 @@ export function trackColour(track, alpha = 1) {
 export const fmt = (value, digits = 3) => (value === null || value === undefined || Number.isNaN(value))
   ? "-" : Number(value).toFixed(digits);
 
+// A probability as an operator reads it: 5.3e-27, 0.013, 1.
+export function fmtProbability(p) {
+  if (p === null || p === undefined) return "-";
+  if (p === 0) return "0";
+  return p >= 0.001 ? String(Number(p.toPrecision(2))) : p.toExponential(1);
+}
+
 export function fmtTime(text) {
   return text ? text.replace("T", " ").replace(/\.\d+Z$/, "Z") : "-";
+}
+
+// Browser storage that never throws (private windows, disabled storage): the console still works.
+export function stored(storage, key, fallback = null) {
+  try { const v = storage.getItem(key); return v === null ? fallback : v; } catch { return fallback; }
+}
+export function store(storage, key, value) {
+  try { storage.setItem(key, value); } catch { /* not kept: only a convenience */ }
 }

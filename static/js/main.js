@@ -1,27 +1,24 @@
-// Operator console: wires the panels to the REST API and to the shared view state.
+// Operator console: wires the panels to the REST API and to this console's own view state.
 //
-// The selection (sequence, candidate rank, magnitude limit) is stored on the server
-// (PUT /api/view) and polled back every second (GET /api/view), so the 3D view and
-// other consoles follow each other. Every action ends in a visible result or error.
+// Each browser tab is a session (state.js) whose selection (sequence, candidate rank,
+// magnitude limit) is stored on the server (PUT /api/view?session=...) and polled back every
+// second, so the 3D view opened from this console follows it and its Next/Prev come back
+// here, while other consoles keep their own selection. Nothing moves under the operator's
+// hands: another console's search or pattern edit of the same sequence is announced, and a
+// confirmation names the search it was made on. Every action ends in a visible result or error.
 import * as api from "./api.js";
-import { $, el, toast, errorText, trackColour, fmt, fmtTime } from "./dom.js";
+import { $, el, toast, errorText, fmt, fmtProbability, fmtTime, store, stored } from "./dom.js";
 import { SnapshotPlayer } from "./player.js";
-import { drawSky, candidateFacts } from "./sky.js";
+import { drawSky, hitAt } from "./sky.js";
+import { SESSION, state } from "./state.js";
+import { loadAttitudes, loadSequences, loadSpacecraft, markSelected, setupQueue, statusText } from "./queue.js";
+import { cancelSteps, confirmClick, openReject, renderCandidates, setupDecision,
+  verdictSummary } from "./decision.js";
+import { calibrate, showCalibration } from "./calibration.js";
 
-const PAGE_SIZE = 8;
-const ATTITUDE_PAGE = 6;
 const POLL_MS = 1000;
-
-const state = {
-  detail: null,          // GET /api/sequences/{id}
-  view: null,            // the last candidate view shown
-  rank: null,
-  mag: 6.0,
-  seqOffset: 0,
-  attOffset: 0,
-  viewRevision: -1,      // newest shared-state revision applied or written
-  busy: 0,               // actions in flight: the poll does not apply state meanwhile
-};
+const QUEUE_REFRESH_MS = 4000;
+const viewPath = (extra = "") => `/api/view?session=${encodeURIComponent(SESSION)}${extra}`;
 
 const player = new SnapshotPlayer({
   onToggleTrack: (track) => editPattern((def) => toggleTrack(def, track), `track T${track}`),
@@ -48,10 +45,10 @@ async function action(label, fn) {
 
 async function writeView(changes) {
   try {
-    const doc = await api.put("/api/view", changes);
+    const doc = await api.put(viewPath(), changes);
     state.viewRevision = Math.max(state.viewRevision, doc.revision);
   } catch (err) {
-    toast(`Could not share the selection with the 3D view: ${errorText(err)}`, "error");
+    toast(`Could not store this console's selection: ${errorText(err)}`, "error");
   }
 }
 
@@ -69,7 +66,7 @@ function toggleTrack(def, track) {
   return { ...def, include_tracks: [...include].sort((a, b) => a - b), exclude_tracks: [...exclude] };
 }
 
-// ---------------------------------------------------------------- health
+// ---------------------------------------------------------------- health and operator
 
 async function checkHealth() {
   const badge = $("health");
@@ -77,145 +74,75 @@ async function checkHealth() {
     const h = await api.get("/api/health");
     badge.textContent = h.status === "ok" ? `ready · ${h.index.stars} stars` : `degraded`;
     badge.className = `health ${h.status === "ok" ? "ok" : "bad"}`;
+    if (h.auth_required_for_writes !== state.authRequired) {
+      state.authRequired = h.auth_required_for_writes;
+      $("token").hidden = !state.authRequired;
+      if (state.authRequired) await identify();
+    }
   } catch (err) {
     badge.textContent = "server unreachable";
     badge.className = "health bad";
   }
 }
 
-// ---------------------------------------------------------------- upload
-
-function setupUpload() {
-  const zone = $("dropzone"), input = $("file-input");
-  input.addEventListener("change", () => { uploadFiles([...input.files]); input.value = ""; });
-  zone.addEventListener("keydown", (e) => { if (e.key === "Enter" || e.key === " ") input.click(); });
-  for (const type of ["dragenter", "dragover"]) {
-    zone.addEventListener(type, (e) => { e.preventDefault(); zone.classList.add("over"); });
-  }
-  for (const type of ["dragleave", "drop"]) {
-    zone.addEventListener(type, (e) => { e.preventDefault(); zone.classList.remove("over"); });
-  }
-  zone.addEventListener("drop", (e) => uploadFiles([...(e.dataTransfer?.files || [])]));
-}
-
-async function uploadFiles(files) {
-  if (!files.length) return;
-  const list = $("upload-list");
-  let lastStored = null, failures = 0;
-  // One at a time: the server validates and extracts each; the list shows each result next to its file.
-  for (const file of files) {
-    const bar = el("progress", { max: 1, value: 0 });
-    const result = el("div", {}, "uploading...");
-    list.prepend(el("li", { class: "upload-item", dataset: { file: file.name } },
-      el("div", { class: "name" }, file.name), bar, result));
-    try {
-      const { status, body } = await api.uploadFile(file, (f) => { bar.value = f; });
-      bar.value = 1;
-      result.className = "ok";
-      result.textContent = status === 201
-        ? `stored as #${body.id}: ${body.pattern.points.length} pattern points`
-        : `already stored as #${body.id}`;
-      lastStored = body.id;
-    } catch (err) {
-      failures++;
-      bar.remove();
-      result.className = "error";
-      result.replaceChildren(el("div", {}, err.detail),
-        err.problems.length ? el("ul", { class: "problems" },
-          err.problems.map((p) => el("li", {}, el("code", {}, p.location), ": ", p.message))) : null);
-    }
-  }
-  toast(failures ? `${files.length - failures} of ${files.length} files uploaded; see the errors next to the files`
-    : `${files.length} file${files.length > 1 ? "s" : ""} uploaded`, failures ? "error" : "ok");
-  await loadSequences();
-  if (lastStored !== null) await selectSequence(lastStored);
-}
-
-// ---------------------------------------------------------------- sequence list
-
-async function loadSequences() {
-  const status = $("filter-status").value, spacecraft = $("filter-spacecraft").value.trim();
-  const query = new URLSearchParams({ offset: state.seqOffset, limit: PAGE_SIZE });
-  if (status) query.set("status", status);
-  if (spacecraft) query.set("spacecraft", spacecraft);
+// Off loopback every write needs a token and the token names the operator: the name field
+// then shows the token's operator, read-only. On loopback the name typed is remembered here.
+async function identify() {
+  api.setToken($("token").value);
+  const name = $("operator");
+  if (!state.authRequired) { name.readOnly = false; return; }
   try {
-    const page = await api.get(`/api/sequences?${query}`);
-    const list = $("sequence-list");
-    list.replaceChildren(...page.items.map((s) => el("li", {
-      class: state.detail && state.detail.id === s.id ? "selected" : "",
-      dataset: { id: s.id }, tabindex: 0,
-      onclick: () => selectSequence(s.id),
-      onkeydown: (e) => { if (e.key === "Enter") selectSequence(s.id); },
-    }, el("span", { class: "mono" }, s.sequence_id || `#${s.id}`),
-    el("span", { class: `badge ${s.status}` }, s.status.replace("_", " ")),
-    el("span", { class: "sub" }, `#${s.id} · ${s.spacecraft || "unknown spacecraft"} · ${fmtTime(s.first_time)}`))));
-    if (!page.items.length) list.replaceChildren(el("li", { class: "dim" }, page.total ? "no more" : "no sequences match"));
-    const last = Math.min(page.total, state.seqOffset + page.items.length);
-    $("seq-page-info").textContent = page.total ? `${state.seqOffset + 1}-${last} of ${page.total}` : "0";
-    $("seq-prev-page").disabled = state.seqOffset === 0;
-    $("seq-next-page").disabled = last >= page.total;
+    const me = await api.get("/api/operator");
+    name.value = me.operator || "";
+    name.readOnly = true;
+    name.placeholder = me.operator ? "" : "enter your token";
   } catch (err) {
-    toast(`Could not list the sequences: ${errorText(err)}`, "error");
+    name.value = "";
+    toast(`The token is not valid: ${errorText(err)}`, "error");
   }
 }
 
-function setupSequenceList() {
-  let debounce = null;
-  $("filter-status").addEventListener("change", () => { state.seqOffset = 0; loadSequences(); });
-  $("filter-spacecraft").addEventListener("input", () => {
-    clearTimeout(debounce);
-    debounce = setTimeout(() => { state.seqOffset = 0; loadSequences(); }, 300);
-  });
-  $("seq-prev-page").addEventListener("click", () => { state.seqOffset = Math.max(0, state.seqOffset - PAGE_SIZE); loadSequences(); });
-  $("seq-next-page").addEventListener("click", () => { state.seqOffset += PAGE_SIZE; loadSequences(); });
-}
-
-// ---------------------------------------------------------------- attitudes
-
-async function loadAttitudes() {
-  try {
-    const page = await api.get(`/api/attitudes?offset=${state.attOffset}&limit=${ATTITUDE_PAGE}`);
-    $("attitude-list").replaceChildren(...page.items.map((a) => el("tr", {
-      class: a.current ? "" : "superseded", dataset: { id: a.id },
-      title: `attitude ${a.id}, rank ${a.rank}, confirmed ${fmtTime(a.confirmed_at)}${a.comment ? `: ${a.comment}` : ""}`,
-    },
-    el("td", {}, a.sequence_id || `#${a.sequence}`), el("td", {}, fmt(a.ra_deg, 3)), el("td", {}, fmt(a.dec_deg, 3)),
-    el("td", {}, fmt(a.roll_deg, 2)), el("td", {}, a.operator),
-    el("td", {}, el("a", { href: a.apm_url, download: "", class: "apm-link" }, "APM"), " ",
-      a.aem_url ? el("a", { href: a.aem_url, download: "", class: "aem-link" }, "AEM") : null))));
-    if (!page.items.length) $("attitude-list").replaceChildren(el("tr", {}, el("td", { colspan: 6, class: "dim" }, "none yet")));
-    const last = Math.min(page.total, state.attOffset + page.items.length);
-    $("att-page-info").textContent = page.total ? `${state.attOffset + 1}-${last} of ${page.total}` : "";
-    $("att-prev-page").disabled = state.attOffset === 0;
-    $("att-next-page").disabled = last >= page.total;
-  } catch (err) {
-    toast(`Could not list the confirmed attitudes: ${errorText(err)}`, "error");
-  }
+function setupOperator() {
+  const name = $("operator"), token = $("token");
+  name.value = stored(localStorage, "starid-operator", "");
+  name.addEventListener("change", () => { if (!name.readOnly) store(localStorage, "starid-operator", name.value.trim()); });
+  // The token is kept for this tab only (sessionStorage), never in localStorage.
+  token.value = stored(sessionStorage, "starid-token", "");
+  api.setToken(token.value);
+  token.addEventListener("change", () => { store(sessionStorage, "starid-token", token.value.trim()); identify(); });
 }
 
 // ---------------------------------------------------------------- the selected sequence
 
 async function selectSequence(id) {
   await action("Opening the sequence", async () => {
-    await loadDetail(id);
-    await writeView({ sequence: id });
+    cancelSteps();
+    await loadDetail(id, { fresh: true });
     state.rank = state.detail.search && state.detail.search.candidates.length ? 1 : null;
+    await writeView({ sequence: id });
     await showCandidate();
   });
 }
 
-async function loadDetail(id) {
-  const detail = await api.get(`/api/sequences/${id}`);
+async function loadDetail(id, { fresh = false } = {}) {
+  const [detail, review] = await Promise.all([api.get(`/api/sequences/${id}`), api.get(`/api/sequences/${id}/review`)]);
   state.detail = detail;
+  state.review = review;
   $("empty-hint").hidden = true;
   $("workspace").hidden = false;
+  if (fresh) $("change-notice").hidden = true;
   $("seq-title").textContent = detail.sequence_id || `sequence #${detail.id}`;
   $("seq-meta").textContent = `#${detail.id} · ${detail.spacecraft || "unknown spacecraft"} · ${detail.camera.name || "camera"} · ` +
-    `${detail.n_snapshots} snapshots from ${fmtTime(detail.first_time)} · ${detail.filename || ""}`;
+    `${detail.n_snapshots} snapshots from ${fmtTime(detail.first_time)}${detail.filename ? ` · ${detail.filename}` : ""}`;
   const badge = $("seq-status");
-  badge.textContent = detail.status.replace("_", " ");
+  badge.textContent = statusText(detail.status);
   badge.className = `badge ${detail.status}`;
-  for (const li of $("sequence-list").children) li.classList.toggle("selected", Number(li.dataset.id) === id);
+  $("seq-verdict").textContent = verdictSummary();
+  markSelected(id);
+  if (detail.spacecraft !== state.calibrationShown) {
+    state.calibrationShown = detail.spacecraft;
+    action("Loading the camera calibration", () => showCalibration(detail.spacecraft));
+  }
   player.setSequence(detail);
   renderPattern();
   renderSearchSummary();
@@ -229,25 +156,19 @@ function renderPattern() {
   const automatic = d.extraction.pattern;   // every track the automatic pattern could use
   const rows = [];
   const seen = new Set();
+  const row = (track, shown, current) => el("tr", { class: current ? "" : "out", dataset: { track } },
+    el("td", {}, el("input", { type: "checkbox", checked: !!current, "aria-label": `track ${track} in pattern`,
+      onchange: () => editPattern((def) => toggleTrack(def, track), `track T${track}`) })),
+    el("td", {}, el("span", { class: "swatch", style: `background:hsla(${((track * 137.508) % 360).toFixed(1)}, 85%, 62%, 1)` }), `T${track}`),
+    el("td", {}, shown.sightings), el("td", {}, `${fmt(shown.x, 1)}, ${fmt(shown.y, 1)}`), el("td", {}, fmt(shown.brightness, 0)));
   for (const p of automatic) {
     if (p.track === null) continue;
     seen.add(p.track);
     const current = inPattern.get(p.track);
-    const shown = current || p;
-    rows.push(el("tr", { class: current ? "" : "out", dataset: { track: p.track } },
-      el("td", {}, el("input", { type: "checkbox", checked: !!current, "aria-label": `track ${p.track} in pattern`,
-        onchange: () => editPattern((def) => toggleTrack(def, p.track), `track T${p.track}`) })),
-      el("td", {}, el("span", { class: "swatch", style: `background:${trackColour(p.track)}` }), `T${p.track}`),
-      el("td", {}, shown.sightings), el("td", {}, `${fmt(shown.x, 1)}, ${fmt(shown.y, 1)}`), el("td", {}, fmt(shown.brightness, 0))));
+    rows.push(row(p.track, current || p, current));
   }
   // Tracks in the pattern that the automatic one leaves out (included explicitly).
-  for (const [track, p] of inPattern) {
-    if (seen.has(track)) continue;
-    rows.push(el("tr", { dataset: { track } },
-      el("td", {}, el("input", { type: "checkbox", checked: true, "aria-label": `track ${track} in pattern`,
-        onchange: () => editPattern((def) => toggleTrack(def, track), `track T${track}`) })),
-      el("td", {}, `T${track}`), el("td", {}, p.sightings), el("td", {}, `${fmt(p.x, 1)}, ${fmt(p.y, 1)}`), el("td", {}, fmt(p.brightness, 0))));
-  }
+  for (const [track, p] of inPattern) if (!seen.has(track)) rows.push(row(track, p, p));
   (pattern.definition.manual_points || []).forEach((m, k) => {
     rows.push(el("tr", { class: "manual", dataset: { manual: k } },
       el("td", {}, el("button", { class: "small", title: "remove this point",
@@ -262,9 +183,12 @@ function renderPattern() {
 function renderSearchSummary() {
   const s = state.detail.search;
   const stale = s && s.pattern_version !== state.detail.pattern.version;
-  $("search-summary").textContent = s
-    ? `Latest search: ${s.status.replace("_", " ")}, ${s.candidates.length} candidates in ${Math.round(s.elapsed_ms)} ms ` +
-      `(pattern version ${s.pattern_version})${stale ? " - the pattern changed since: search again" : ""}. ${(s.notes || []).join("; ")}`
+  const box = $("search-summary");
+  box.classList.toggle("stale", !!stale);
+  box.textContent = s
+    ? `Latest search: ${statusText(s.status)} by ${s.method.replace("_", " ")}, ${s.candidates.length} candidates in ` +
+      `${Math.round(s.elapsed_ms)} ms (pattern version ${s.pattern_version})` +
+      `${stale ? ` - STALE: the pattern is at version ${state.detail.pattern.version} now; search again` : ""}. ${(s.notes || []).join("; ")}`
     : "Not searched yet.";
 }
 
@@ -273,15 +197,14 @@ async function editPattern(change, what) {
   if (!d) return;
   await action("Changing the pattern", async () => {
     const definition = change(structuredClone(d.pattern.definition));
-    const doc = await api.put(`/api/sequences/${d.id}/pattern`, {
+    await api.put(`/api/sequences/${d.id}/pattern`, {
       exclude_tracks: definition.exclude_tracks || [], include_tracks: definition.include_tracks ?? null,
       manual_points: definition.manual_points || [], operator: $("operator").value.trim() || null,
     });
-    d.pattern = doc;
-    player.setSequence(d);
-    renderPattern();
-    renderSearchSummary();
-    toast(`Pattern version ${doc.version}: ${what} changed, ${doc.points.length} points. Press Search to identify it.`);
+    await loadDetail(d.id);
+    renderCandidates();
+    toast(`Pattern version ${state.detail.pattern.version}: ${what} changed, ${state.detail.pattern.points.length} points. ` +
+      "Press Search to identify it.");
   });
 }
 
@@ -289,33 +212,71 @@ async function resetPattern() {
   const d = state.detail;
   if (!d) return;
   await action("Resetting the pattern", async () => {
-    d.pattern = await api.post(`/api/sequences/${d.id}/pattern/reset`, { operator: $("operator").value.trim() || null });
-    player.setSequence(d);
-    renderPattern();
-    renderSearchSummary();
-    toast(`Pattern reset to the automatic one (version ${d.pattern.version}, ${d.pattern.points.length} points)`);
+    await api.post(`/api/sequences/${d.id}/pattern/reset`, { operator: $("operator").value.trim() || null });
+    await loadDetail(d.id);
+    renderCandidates();
+    toast(`Pattern reset to the automatic one (version ${state.detail.pattern.version}, ${state.detail.pattern.points.length} points)`);
   });
+}
+
+// ---------------------------------------------------------------- search
+
+function searchBody() {
+  const method = $("search-method").value;
+  if (method !== "tracking" || $("prior-last").checked) return { method };
+  const number = (id) => { const v = $(id).value.trim(); return v === "" ? NaN : Number(v); };
+  const prior = { ra_deg: number("prior-ra"), dec_deg: number("prior-dec"), roll_deg: number("prior-roll"),
+    sigma_deg: number("prior-sigma") };
+  for (const [key, id] of [["ra_deg", "prior-ra"], ["dec_deg", "prior-dec"], ["roll_deg", "prior-roll"], ["sigma_deg", "prior-sigma"]]) {
+    if (!Number.isFinite(prior[key])) {
+      $(id).focus();
+      throw new api.ApiError(0, `the prior needs a number in ${id.replace("prior-", "")}`);
+    }
+  }
+  // RA is asked in [0, 360): 360 and negative values are the same directions.
+  prior.ra_deg = ((prior.ra_deg % 360) + 360) % 360;
+  return { method, prior };
 }
 
 async function runSearch() {
   const d = state.detail;
   if (!d) return;
   const button = $("search");
+  if (button.disabled) return;
   button.disabled = true;
   button.textContent = "Searching...";
   await action("The search", async () => {
-    const result = await api.post(`/api/sequences/${d.id}/search`, {});
-    await loadDetail(d.id);
+    const result = await api.post(`/api/sequences/${d.id}/search`, searchBody());
+    cancelSteps();
+    await loadDetail(d.id, { fresh: true });
     state.rank = result.candidates.length ? 1 : null;
     await writeView({ sequence: d.id, rank: state.rank });
     await showCandidate();
     $("candidate-card").scrollIntoView({ block: "start" });
     await loadSequences();
-    toast(`Search done: ${result.status.replace("_", " ")}, ${result.candidates.length} candidates`,
-      result.status === "identified" ? "ok" : "error");
+    toast(`Search done: ${statusText(result.status)}, ${result.candidates.length} candidates` +
+      `${result.reused ? " (unchanged pattern: the stored search)" : ""}`, result.status === "identified" ? "ok" : "error");
   });
   button.disabled = false;
   button.textContent = "Search";
+}
+
+function setupSearch() {
+  const method = $("search-method");
+  method.value = stored(localStorage, "starid-method", "bright_pair");
+  const showPrior = () => { $("prior-box").hidden = method.value !== "tracking"; };
+  method.addEventListener("change", () => { store(localStorage, "starid-method", method.value); showPrior(); });
+  showPrior();
+  for (const id of ["prior-ra", "prior-dec", "prior-roll", "prior-sigma"]) {
+    $(id).addEventListener("input", () => { $("prior-given").checked = true; });
+  }
+  $("prior-from-candidate").addEventListener("click", () => {
+    const c = state.view?.candidate;
+    if (!c) { toast("No candidate shown to start from", "error"); return; }
+    $("prior-ra").value = fmt(c.ra_deg, 4); $("prior-dec").value = fmt(c.dec_deg, 4); $("prior-roll").value = fmt(c.roll_deg, 3);
+    $("prior-given").checked = true;
+  });
+  $("search").addEventListener("click", runSearch);
 }
 
 // ---------------------------------------------------------------- candidate view
@@ -324,16 +285,19 @@ async function showCandidate() {
   const d = state.detail;
   const hasCandidates = !!(d && d.search && d.search.candidates.length);
   if (hasCandidates && !(state.rank >= 1 && state.rank <= d.search.candidates.length)) state.rank = 1;
-  $("candidate-body").hidden = !hasCandidates;
+  if (!hasCandidates) state.rank = null;
+  // Without candidates the decision panel stays: "no valid attitude" is still a verdict to give.
+  $("candidate-body").hidden = !d;
+  $("candidate-body").classList.toggle("empty", !hasCandidates);
   $("candidate-empty").hidden = hasCandidates;
   $("candidate-empty").textContent = !d || !d.search ? "No search yet: press Search."
-    : `The latest search found no candidate (${d.search.status.replace("_", " ")}).`;
+    : `The latest search found no candidate (${statusText(d.search.status)}): edit the pattern and search again, ` +
+      "or record that there is no valid attitude.";
   $("cand-rank").textContent = hasCandidates ? `rank ${state.rank} of ${d.search.candidates.length}` : "";
   $("cand-prev").disabled = !hasCandidates || state.rank <= 1;
   $("cand-next").disabled = !hasCandidates || state.rank >= d.search.candidates.length;
-  $("confirm").textContent = hasCandidates ? `Confirm rank ${state.rank}` : "Confirm";
-  renderConfirmed();
-  if (!hasCandidates) return;
+  if (!hasCandidates) { state.view = null; renderCandidates(); return; }
+  renderCandidates();
   const view = await api.get(`/api/sequences/${d.id}/candidates/${state.rank}?mag=${state.mag}`);
   state.view = view;
   drawCandidate();
@@ -342,17 +306,59 @@ async function showCandidate() {
 function drawCandidate() {
   const view = state.view;
   if (!view) return;
-  const factor = drawSky($("sky-canvas"), view, {
+  const verdict = state.review?.candidates.find((v) => v.rank === view.rank);
+  state.drawn = drawSky($("sky-canvas"), view, {
     names: $("show-names").checked, constellations: $("show-constellations").checked, edge: $("show-edge").checked,
+    credible: !!verdict?.credible, highlight: player.highlight ?? undefined,
   });
-  const facts = candidateFacts(view);
-  facts.push(["residuals", `drawn × ${factor} (green lines)`]);
-  $("cand-facts").replaceChildren(...facts.flatMap(([k, v]) => [el("dt", {}, k), el("dd", {}, v)]));
+  $("residual-factor").textContent = `×${state.drawn.factor}`;
+  // What was drawn where, for whoever inspects the page (the browser tests check labels never overlap).
+  $("sky-canvas").dataset.labels = JSON.stringify(state.drawn.labels.map(({ x, y, w, h, text, kind }) => ({ x, y, w, h, text, kind })));
+  $("sky-canvas").dataset.points = JSON.stringify(state.drawn.hits.filter((h) => h.kind === "point")
+    .map(({ x, y, track }) => ({ x, y, track })));
+  const c = view.candidate;
+  const facts = [
+    ["rank", `${view.rank} of ${view.n_candidates}`, "ranked by matched points, then false-match probability"],
+    ["search", `${statusText(view.status)} (the sequence's search, not this candidate)`, "the status of the whole search"],
+    ["deviation", `${fmt(c.deviation_arcsec, 1)}″ (${fmt(c.deviation_px_per_point, 3)} px/point)`,
+      "sum over the pattern points of the angle to the nearest catalogue star under this attitude; per point in pixels"],
+    ["false match", fmtProbability(c.false_match_probability),
+      "probability that a chance alignment of catalogue stars fits as well; 'identified' needs at most 1e-6"],
+    ["matched", `${c.n_matched} of ${view.sky.pattern_points.length} points`, "pattern points with a catalogue star"],
+    ["RA, Dec", `${c.ra_deg.toFixed(4)}°, ${c.dec_deg.toFixed(4)}°`, "boresight"],
+    ["roll", `${c.roll_deg.toFixed(4)}°`, "position angle of the image's up direction, from north through east"],
+    ["field", `${view.sky.center.constellation}, ${view.reference_time}`, "constellation at the centre, reference time"],
+  ];
+  if (c.camera_fit) facts.push(["optics", opticsText(c.camera_fit),
+    "optics fitted with this attitude (focal length from 3 stars, k1 from 6); 'used': the declared camera was " +
+    "rejected by the stars, or the pattern was found at another focal length"]);
+  $("cand-facts").replaceChildren(...facts.flatMap(([k, v, why]) => [el("dt", { title: why }, k), el("dd", { title: why }, v)]));
   const matches = view.sky.pattern_points.map((p) => {
     const target = p.name || (p.hip !== null ? `HIP ${p.hip}` : p.planet ? `planet ${p.planet}` : "unmatched");
     return `${p.track !== null ? `T${p.track}` : "hand"} → ${target}${p.residual_arcsec !== null ? ` (${fmt(p.residual_arcsec, 1)}″)` : ""}`;
   });
   $("cand-matches").textContent = matches.join(" · ");
+}
+
+function opticsText(fit) {
+  const parts = [];
+  if (fit.focal_length_px !== null) parts.push(`f ${fmt(fit.focal_length_px, 1)} ± ${fmt(fit.sigma.focal_length_px, 1)} px`);
+  if (fit.k1 !== null) parts.push(`k1 ${fmt(fit.k1, 4)} ± ${fmt(fit.sigma.k1, 4)}`);
+  return `${parts.join(", ")}; rms ${fmt(fit.rms_px, 2)} px over the ${fit.over}; ${fit.adopted ? "used" : "declared camera kept"}`;
+}
+
+async function goToRank(rank) {
+  const d = state.detail;
+  if (!d || !d.search || !d.search.candidates.length) return;
+  rank = Math.min(Math.max(1, rank), d.search.candidates.length);
+  if (rank === state.rank) return;
+  await action("Showing the candidate", async () => {
+    cancelSteps();
+    state.rank = rank;
+    renderCandidates();
+    await writeView({ rank });   // first, so the 3D view moves with the console
+    await showCandidate();
+  });
 }
 
 async function stepCandidate(delta) {
@@ -363,44 +369,41 @@ async function stepCandidate(delta) {
     toast(delta > 0 ? "This is the last candidate" : "This is the first candidate");
     return;
   }
-  await action("Showing the candidate", async () => {
-    state.rank = rank;
-    await writeView({ rank });   // first, so the 3D view moves with the console
-    await showCandidate();
+  await goToRank(rank);
+}
+
+// After this console's confirmation or rejection: the verdict, the lists and the 3D view agree.
+async function afterVerdict() {
+  const d = state.detail;
+  await loadDetail(d.id);
+  renderCandidates();
+  await Promise.all([loadAttitudes(), loadSequences()]);
+}
+
+function setupSkyCanvas() {
+  const canvas = $("sky-canvas"), tip = $("sky-tip");
+  const toCanvas = (e) => {
+    const rect = canvas.getBoundingClientRect();
+    return [(e.clientX - rect.left) * canvas.width / rect.width, (e.clientY - rect.top) * canvas.height / rect.height];
+  };
+  canvas.addEventListener("mousemove", (e) => {
+    const hit = state.drawn && hitAt(state.drawn, ...toCanvas(e));
+    if (!hit) { tip.hidden = true; canvas.style.cursor = ""; return; }
+    tip.textContent = hit.text;
+    tip.hidden = false;
+    const rect = canvas.getBoundingClientRect();
+    tip.style.left = `${Math.min(e.clientX - rect.left + 14, rect.width - 220)}px`;
+    tip.style.top = `${e.clientY - rect.top + 14}px`;
+    canvas.style.cursor = hit.kind === "point" && hit.track !== null ? "pointer" : "";
   });
-}
-
-function renderConfirmed() {
-  const d = state.detail;
-  const box = $("confirmed");
-  const c = d && d.confirmation;
-  if (!c) { box.hidden = true; return; }
-  box.hidden = false;
-  box.replaceChildren(
-    el("div", {}, el("strong", {}, `Confirmed: attitude #${c.id}`), ` (rank ${c.rank} of search ${c.search_id})`),
-    el("div", { class: "dim" }, `by ${c.operator} at ${fmtTime(c.confirmed_at)}${c.comment ? ` - "${c.comment}"` : ""}`),
-    el("div", { class: "mono" }, `RA ${fmt(c.ra_deg, 4)}°  Dec ${fmt(c.dec_deg, 4)}°  roll ${fmt(c.roll_deg, 4)}°`),
-    el("div", {}, el("a", { href: c.apm_url, download: "", id: "confirmed-apm" }, "Download APM"),
-      c.aem_url ? el("a", { href: c.aem_url, download: "", id: "confirmed-aem" }, "Download AEM") : null));
-}
-
-async function confirmCandidate(e) {
-  e.preventDefault();
-  const d = state.detail;
-  if (!d || !state.rank) return;
-  const operator = $("operator").value.trim();
-  if (!operator) {
-    toast("Enter the operator's name to confirm", "error");
-    $("operator").focus();
-    return;
-  }
-  await action("The confirmation", async () => {
-    const c = await api.post(`/api/sequences/${d.id}/confirm`, { rank: state.rank, operator, comment: $("comment").value.trim() || null });
-    await loadDetail(d.id);
-    renderConfirmed();
-    $("confirmed").scrollIntoView({ block: "nearest" });
-    await Promise.all([loadAttitudes(), loadSequences()]);
-    toast(`Attitude #${c.id} confirmed by ${c.operator}: RA ${fmt(c.ra_deg, 3)}°, Dec ${fmt(c.dec_deg, 3)}°, roll ${fmt(c.roll_deg, 2)}°`);
+  canvas.addEventListener("mouseleave", () => { tip.hidden = true; });
+  canvas.addEventListener("click", (e) => {
+    const hit = state.drawn && hitAt(state.drawn, ...toCanvas(e));
+    if (!hit || hit.kind !== "point" || hit.track === null) return;
+    player.showTrack(hit.track);
+    drawCandidate();
+    $("player-card").scrollIntoView({ block: "nearest" });
+    toast(`T${hit.track} is ringed in the snapshots`);
   });
 }
 
@@ -415,47 +418,114 @@ function setupCandidate() {
     await writeView({ mag: state.mag });
     await showCandidate();
   }));
-  $("confirm-form").addEventListener("submit", confirmCandidate);
+  setupSkyCanvas();
+  setupDecision({ goToRank, afterVerdict });
+}
+
+// ---------------------------------------------------------------- keyboard and help
+
+function toggleHelp(show) {
+  const help = $("help");
+  help.hidden = show === undefined ? !help.hidden : !show;
+  if (!help.hidden) $("help-close").focus();
+}
+
+function nextSequence(delta) {
+  const ids = state.queueIds;
+  if (!ids.length) return;
+  const at = state.detail ? ids.indexOf(state.detail.id) : -1;
+  const next = at < 0 ? ids[0] : ids[Math.min(Math.max(0, at + delta), ids.length - 1)];
+  if (state.detail && next === state.detail.id) { toast(delta > 0 ? "Last sequence of this page" : "First sequence of this page"); return; }
+  selectSequence(next);
+}
+
+function setupKeys() {
+  $("help-open").addEventListener("click", () => toggleHelp(true));
+  $("help-close").addEventListener("click", () => toggleHelp(false));
+  $("help").addEventListener("click", (e) => { if (e.target === $("help")) toggleHelp(false); });
   document.addEventListener("keydown", (e) => {
+    if (e.key === "Escape") { toggleHelp(false); cancelSteps(); return; }
     const t = e.target;
     const typing = t instanceof HTMLInputElement || t instanceof HTMLTextAreaElement || t instanceof HTMLSelectElement;
-    if (typing || e.altKey || e.ctrlKey || e.metaKey || $("panel-work").hidden) return;
-    if (e.key === "ArrowRight") { e.preventDefault(); stepCandidate(+1); }
-    if (e.key === "ArrowLeft") { e.preventDefault(); stepCandidate(-1); }
+    if (typing || e.altKey || e.ctrlKey || e.metaKey) return;
+    if (e.key === "?") { e.preventDefault(); toggleHelp(); return; }
+    if (!$("help").hidden || $("panel-work").hidden) return;
+    const keys = {
+      ArrowRight: () => stepCandidate(+1), ArrowLeft: () => stepCandidate(-1),
+      s: runSearch, " ": () => player.togglePlay(), c: confirmClick, r: openReject,
+      j: () => nextSequence(+1), k: () => nextSequence(-1),
+    };
+    if (keys[e.key]) { e.preventDefault(); keys[e.key](); return; }
+    if (/^[1-9]$/.test(e.key)) { e.preventDefault(); goToRank(Number(e.key)); }
   });
 }
 
-// ---------------------------------------------------------------- shared view state
+// ---------------------------------------------------------------- this session's view state
 
 async function pollView() {
   if (state.busy) return;
   let doc;
-  try { doc = await api.get("/api/view"); } catch { return; /* the health badge reports an unreachable server */ }
+  try { doc = await api.get(viewPath()); } catch { return; /* the health badge reports an unreachable server */ }
   if (state.busy) return;
-  const d = state.detail;
-  const selectionChanged = doc.revision > state.viewRevision;
-  const archiveChanged = d && doc.sequence === d.id && (doc.pattern_version !== d.pattern.version ||
-    doc.search_id !== (d.search ? d.search.search_id : null) || doc.confirmation_id !== (d.confirmation ? d.confirmation.id : null));
-  if (!selectionChanged && !archiveChanged) return;
+  note3D(doc);
+  const d = state.detail, review = state.review;
+  const selectionChanged = doc.revision > state.viewRevision;   // only the 3D view writes this session besides us
+  const sameSequence = d && doc.sequence === d.id;
+  const searchChanged = sameSequence && doc.search_id !== (d.search ? d.search.search_id : null);
+  const patternChanged = sameSequence && doc.pattern_version !== d.pattern.version;
+  const verdictChanged = sameSequence && (doc.confirmation_id !== (review?.confirmation?.id ?? null) ||
+    doc.rejection_id !== (review?.rejection?.id ?? null));
+  if (!selectionChanged && !searchChanged && !patternChanged && !verdictChanged) return;
   state.viewRevision = Math.max(state.viewRevision, doc.revision);
-  await action("Following the 3D view", async () => {
+  await action("Following the archive", async () => {
     if (doc.sequence === null) return;
-    if (!d || doc.sequence !== d.id || archiveChanged) await loadDetail(doc.sequence);
+    if (!d || doc.sequence !== d.id || searchChanged || patternChanged || verdictChanged) await loadDetail(doc.sequence);
     if (doc.mag !== state.mag) {
       state.mag = doc.mag;
       $("mag-slider").value = doc.mag;
       $("mag-label").textContent = doc.mag.toFixed(1);
     }
-    state.rank = doc.rank;
+    if (selectionChanged) state.rank = doc.rank;
+    else if (searchChanged) state.rank = doc.n_candidates ? 1 : null;
+    // Announce what changed elsewhere rather than swap it silently.
+    const notes = [];
+    if (searchChanged && !d?.search) toast(`${d?.sequence_id || "The sequence"} was searched: ${statusText(doc.status)}`);
+    else if (searchChanged) notes.push(`a new search (#${doc.search_id}) replaced the candidates shown; back at rank ${state.rank ?? "-"}`);
+    if (patternChanged && !searchChanged) notes.push(`the pattern changed elsewhere (version ${doc.pattern_version}): the candidates are stale until a new search`);
+    if (verdictChanged) notes.push(`the sequence's verdict changed: ${verdictSummary()}`);
+    if (notes.length) {
+      $("change-notice").textContent = `Changed by another console: ${notes.join("; ")}.`;
+      $("change-notice").hidden = false;
+      cancelSteps();
+    }
     await showCandidate();
-    if (archiveChanged) await Promise.all([loadAttitudes(), loadSequences()]);
+    if (verdictChanged || searchChanged) await Promise.all([loadAttitudes(), loadSequences()]);
   });
 }
 
 // ---------------------------------------------------------------- 3D view tab
 
-async function setup3D() {
-  let loaded = false;
+function note3D(doc) {
+  if ($("panel-3d").hidden || !$("viewer-frame").dataset.url) return;
+  const url = $("viewer-frame").dataset.url;
+  $("viewer-note").replaceChildren(doc.followed_by_3d
+    ? el("span", {}, "Draws this console's selection. Also at ", el("a", { href: url, target: "_blank", rel: "noopener" }, url),
+      " (this machine only); its Next / Prev / Confirm act on this console.")
+    : el("span", { class: "warn-text" }, "Another console took the 3D view. ",
+      el("button", { class: "small", onclick: follow3D }, "Draw this console's selection")));
+}
+
+async function follow3D() {
+  try {
+    await api.put("/api/viewer", { session: SESSION });
+    const doc = await api.get(viewPath());
+    note3D(doc);
+  } catch (err) {
+    toast(`The 3D view cannot follow this console: ${errorText(err)}`, "error");
+  }
+}
+
+function setup3D() {
   const open = async (panelId) => {
     for (const tab of document.querySelectorAll(".tab")) {
       const active = tab.dataset.panel === panelId;
@@ -463,20 +533,17 @@ async function setup3D() {
       tab.setAttribute("aria-selected", active);
       $(tab.dataset.panel).hidden = !active;
     }
-    if (panelId === "panel-3d" && !loaded) {
-      try {
-        const info = await api.get("/api/viewer");
-        if (info.available) {
-          $("viewer-frame").src = info.url;
-          $("viewer-note").replaceChildren("Also at ", el("a", { href: info.url, target: "_blank", rel: "noopener" }, info.url),
-            " (this machine only). Next / Prev / Confirm there change the selection here.");
-          loaded = true;
-        } else {
-          $("viewer-note").textContent = info.detail || "The 3D view is not running.";
-        }
-      } catch (err) {
-        $("viewer-note").textContent = `The 3D view is not available: ${errorText(err)}`;
-      }
+    if (panelId !== "panel-3d") return;
+    try {
+      const info = await api.get("/api/viewer");
+      if (!info.available) { $("viewer-note").textContent = info.detail || "The 3D view is not running."; return; }
+      // The 3D view draws one console at a time: the one that opened it last.
+      const url = `${info.url}?session=${encodeURIComponent(SESSION)}`;
+      $("viewer-frame").dataset.url = url;
+      await follow3D();
+      if ($("viewer-frame").src !== url) $("viewer-frame").src = url;
+    } catch (err) {
+      $("viewer-note").textContent = `The 3D view is not available: ${errorText(err)}`;
     }
   };
   for (const tab of document.querySelectorAll(".tab")) tab.addEventListener("click", () => open(tab.dataset.panel));
@@ -485,19 +552,25 @@ async function setup3D() {
 // ---------------------------------------------------------------- start
 
 async function start() {
-  setupUpload();
-  setupSequenceList();
+  setupOperator();
+  setupQueue({ select: selectSequence });
+  setupSearch();
   setupCandidate();
+  setupKeys();
   setup3D();
-  $("search").addEventListener("click", runSearch);
   $("reset-pattern").addEventListener("click", resetPattern);
   $("pick-mode").addEventListener("change", (e) => player.setPicking(e.target.checked));
-  $("att-prev-page").addEventListener("click", () => { state.attOffset = Math.max(0, state.attOffset - ATTITUDE_PAGE); loadAttitudes(); });
-  $("att-next-page").addEventListener("click", () => { state.attOffset += ATTITUDE_PAGE; loadAttitudes(); });
-  await Promise.all([checkHealth(), loadSequences(), loadAttitudes()]);
-  await pollView();
+  $("calibrate-button").addEventListener("click", () => action("Calibrating the camera", async () => {
+    const doc = await calibrate($("operator").value);
+    if (doc) toast(`Calibration version ${doc.version} stored: later uploads without a camera block use it`);
+  }));
+  document.body.dataset.session = SESSION;
+  await Promise.all([checkHealth(), loadSequences(), loadAttitudes(), loadSpacecraft()]);
+  await pollView();   // a reloaded tab finds its own selection again
   setInterval(pollView, POLL_MS);
+  setInterval(() => { if (!state.busy) loadSequences({ periodic: true }); }, QUEUE_REFRESH_MS);
   setInterval(checkHealth, 15000);
+  document.body.dataset.ready = "1";
 }
 
 start();

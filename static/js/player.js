@@ -17,6 +17,7 @@ export class SnapshotPlayer {
     this.index = 0;
     this.timer = null;
     this.picking = false;
+    this.highlight = null;   // a track picked in the sky view, ringed here
     this.slider.addEventListener("input", () => this.show(Number(this.slider.value)));
     $("step-back").addEventListener("click", () => this.step(-1));
     $("step-fwd").addEventListener("click", () => this.step(+1));
@@ -32,7 +33,7 @@ export class SnapshotPlayer {
     this.canvas.height = Math.round(cam.height * this.scale);
     const n = detail.telemetry.snapshots.length;
     this.slider.max = Math.max(0, n - 1);
-    if (first) { this.stop(); this.index = detail.extraction.reference_snapshot ?? 0; }
+    if (first) { this.stop(); this.index = detail.extraction.reference_snapshot ?? 0; this.highlight = null; }
     this.index = Math.min(this.index, n - 1);
     this.inPattern = new Set(detail.pattern.points.filter((p) => p.track !== null).map((p) => p.track));
     this.draw();
@@ -50,6 +51,18 @@ export class SnapshotPlayer {
   }
 
   show(index) { this.index = index; this.draw(); }
+
+  // Ring a track (picked in the sky view) and show it: in the snapshot shown if it was seen
+  // there, else in the reference snapshot or its first sighting.
+  showTrack(track) {
+    if (!this.detail) return;
+    const t = this.detail.extraction.tracks.find((x) => x.id === track);
+    if (!t) return;
+    this.highlight = track;
+    const ref = this.detail.extraction.reference_snapshot;
+    if (!t.snapshots.includes(this.index)) this.index = t.snapshots.includes(ref) ? ref : t.snapshots[0];
+    this.draw();
+  }
 
   togglePlay() { if (this.timer) this.stop(); else this.play(); }
 
@@ -100,6 +113,12 @@ export class SnapshotPlayer {
     ctx.setLineDash([]);
 
     for (const s of this.sourcesOf(this.index)) this.drawSource(s);
+    const ringed = this.highlight === null ? null : this.sourcesOf(this.index).find((s) => s.track === this.highlight);
+    if (ringed) {
+      const [cx, cy] = this.toCanvas(ringed.x, ringed.y);
+      ctx.strokeStyle = "#ffffff"; ctx.lineWidth = 2;
+      ctx.beginPath(); ctx.arc(cx, cy, 13, 0, 2 * Math.PI); ctx.stroke();
+    }
 
     // Points picked by hand in this snapshot.
     for (const p of this.detail.pattern.definition.manual_points || []) {

@@ -1,11 +1,18 @@
 // Candidate view: the sky section of one candidate (GET .../candidates/{rank}) on a canvas.
 // Stars sized by magnitude, the pattern points over their matched stars with exaggerated
-// residual vectors, the generating edge, star names, constellation and planet labels.
-import { $ } from "./dom.js";
+// residual vectors and their track labels (T3, the player's names), the generating edge,
+// star, planet and constellation labels placed so that none overlaps another, and north and
+// east arrows. drawSky returns what it drew so the page can explain it (tooltips, clicks).
+import { trackColour } from "./dom.js";
 
 // Residual vectors are drawn this many times longer than they are, chosen from 1-2-5 steps so
 // the longest one is about TARGET_RESIDUAL_CSS canvas pixels.
 const TARGET_RESIDUAL_CSS = 28;
+const POINT_RADIUS = 9;
+export const COLOURS = {
+  matched: "#3fb950", doubtful: "#e3b341", unmatched: "#ff6b6b", residual: "#63e6be", edge: "#cc5de8",
+  planet: "#ff922b", star: "#e6ebf2", matchedStar: "#ffd43b", compass: "#9ec5fe",
+};
 
 export function exaggeration(points, scale) {
   const longest = Math.max(0, ...points.filter((p) => p.residual_x !== null)
@@ -22,15 +29,95 @@ export function starRadius(mag) {
   return Math.max(1, 7 - mag * 0.95);
 }
 
+// Image directions of celestial north and east at the boresight, as unit [dx, dy] in pixels
+// (x right, y down), from the candidate's rotation R (ICRS -> camera, rows = camera axes).
+// North is the great circle towards the pole, east = pole x boresight (towards growing RA).
+export function northEast(R) {
+  const b = R[2];
+  const pole = [0, 0, 1];
+  const dot = (u, v) => u[0] * v[0] + u[1] * v[1] + u[2] * v[2];
+  const north = pole.map((p, i) => p - dot(pole, b) * b[i]);
+  const east = [pole[1] * b[2] - pole[2] * b[1], pole[2] * b[0] - pole[0] * b[2], pole[0] * b[1] - pole[1] * b[0]];
+  const image = (v) => {
+    const x = dot(R[0], v), y = dot(R[1], v), n = Math.hypot(x, y);
+    return n > 1e-9 ? [x / n, y / n] : null;   // null: the boresight is at a pole, no north
+  };
+  return { north: image(north), east: image(east) };
+}
+
+// Greedy label placement: each label (in priority order) takes the first of a few positions
+// around its anchor that stays on the canvas and overlaps no label placed before it nor any
+// obstacle (pattern circles, the compass); a label with no free position is left out.
+export function placeLabels(ctx, requests, obstacles, width, height) {
+  const placed = [];
+  const overlaps = (a, b) => a.x < b.x + b.w && b.x < a.x + a.w && a.y < b.y + b.h && b.y < a.y + a.h;
+  for (const r of [...requests].sort((a, b) => a.priority - b.priority)) {
+    ctx.font = r.font;
+    const w = Math.ceil(ctx.measureText(r.text).width) + 2, h = r.size + 2;
+    // Close around the anchor first; labels that must not be dropped (track names) may also go
+    // further out, with a leader line back to their point.
+    const rings = r.keep ? [r.radius + 3, r.radius + 12, r.radius + 24] : [r.radius + 3];
+    let done = false;
+    for (const gap of rings) {
+      const spots = [
+        [r.x + gap, r.y - h / 2], [r.x - gap - w, r.y - h / 2], [r.x - w / 2, r.y - gap - h],
+        [r.x - w / 2, r.y + gap], [r.x + gap * 0.7, r.y - gap * 0.7 - h], [r.x - gap * 0.7 - w, r.y + gap * 0.7],
+        [r.x + gap * 0.7, r.y + gap * 0.7], [r.x - gap * 0.7 - w, r.y - gap * 0.7 - h],
+      ];
+      for (const [x, y] of spots) {
+        const box = { x, y, w, h };
+        if (x < 0 || y < 0 || x + w > width || y + h > height) continue;
+        if (placed.some((p) => overlaps(p, box))) continue;
+        // An obstacle never blocks the label of its own point (owner); unowned ones block every label.
+        if (obstacles.some((o) => (o.owner === undefined || o.owner !== r.owner) && overlaps(o, box))) continue;
+        placed.push({ ...box, text: r.text, kind: r.kind });
+        if (gap > r.radius + 3) {
+          const cx = Math.min(Math.max(r.x, x), x + w), cy = Math.min(Math.max(r.y, y), y + h);
+          const d = Math.hypot(cx - r.x, cy - r.y) || 1;
+          ctx.strokeStyle = r.colour; ctx.lineWidth = 1;
+          ctx.beginPath(); ctx.moveTo(r.x + (cx - r.x) * r.radius / d, r.y + (cy - r.y) * r.radius / d);
+          ctx.lineTo(cx, cy); ctx.stroke();
+        }
+        ctx.fillStyle = r.colour;
+        ctx.textBaseline = "top";
+        ctx.fillText(r.text, x + 1, y + 1);
+        done = true;
+        break;
+      }
+      if (done) break;
+    }
+  }
+  ctx.textBaseline = "alphabetic";
+  return placed;
+}
+
+function arrow(ctx, x, y, dx, dy, length, label) {
+  const ex = x + dx * length, ey = y + dy * length;
+  ctx.beginPath(); ctx.moveTo(x, y); ctx.lineTo(ex, ey); ctx.stroke();
+  const a = Math.atan2(dy, dx);
+  ctx.beginPath();
+  ctx.moveTo(ex, ey);
+  ctx.lineTo(ex - 7 * Math.cos(a - 0.45), ey - 7 * Math.sin(a - 0.45));
+  ctx.lineTo(ex - 7 * Math.cos(a + 0.45), ey - 7 * Math.sin(a + 0.45));
+  ctx.closePath(); ctx.fill();
+  ctx.fillText(label, ex + dx * 9 - 4, ey + dy * 9 + 4);
+}
+
+// options: {names, constellations, edge, credible (the candidate's verdict), highlight (a track)}.
+// Returns {factor, labels (placed boxes), hits (what tooltips and clicks can find)}.
 export function drawSky(canvas, view, options) {
   const ctx = canvas.getContext("2d");
   const sky = view.sky;
   const b = sky.bounds;
   const scale = canvas.width / (b.x_max - b.x_min);
   canvas.height = Math.round((b.y_max - b.y_min) * scale);
+  const W = canvas.width, H = canvas.height;
   const P = (x, y) => [(x - b.x_min) * scale, (y - b.y_min) * scale];
+  const hits = [];
+  const requests = [];
+  const obstacles = [];
   ctx.fillStyle = "#05070b";
-  ctx.fillRect(0, 0, canvas.width, canvas.height);
+  ctx.fillRect(0, 0, W, H);
 
   // The sensor, inside the section's margin.
   const [sx0, sy0] = P(-0.5, -0.5);
@@ -40,41 +127,46 @@ export function drawSky(canvas, view, options) {
   ctx.setLineDash([]);
 
   if (options.constellations) {
-    ctx.font = "600 13px system-ui, sans-serif";
-    ctx.fillStyle = "rgba(120,160,220,0.55)";
     for (const c of sky.constellations) {
       if (c.x === null || c.y === null) continue;
       const [cx, cy] = P(c.x, c.y);
-      ctx.fillText(c.constellation, cx - 12, cy - 12);
+      requests.push({ text: c.constellation, x: cx, y: cy, radius: 6, font: "600 13px system-ui, sans-serif",
+        size: 13, colour: "rgba(120,160,220,0.6)", priority: 50, kind: "constellation" });
     }
   }
 
-  ctx.font = "11px system-ui, sans-serif";
   for (const s of sky.stars) {
     if (s.x === null || s.y === null) continue;
     const [cx, cy] = P(s.x, s.y);
-    ctx.fillStyle = s.matched ? "#ffd43b" : "#e6ebf2";
-    ctx.beginPath(); ctx.arc(cx, cy, starRadius(s.mag), 0, 2 * Math.PI); ctx.fill();
+    const r = starRadius(s.mag);
+    ctx.fillStyle = s.matched ? COLOURS.matchedStar : COLOURS.star;
+    ctx.beginPath(); ctx.arc(cx, cy, r, 0, 2 * Math.PI); ctx.fill();
+    hits.push({ x: cx, y: cy, r: Math.max(r, 4), kind: "star",
+      text: `${s.name || `HIP ${s.hip}`} (${s.constellation}), Hp ${s.mag.toFixed(2)}` +
+        `${s.matched ? ", matched" : ""}` });
     if (options.names && s.name) {
-      ctx.fillStyle = s.matched ? "#ffe8a3" : "#9fb0c4";
-      ctx.fillText(s.name, cx + starRadius(s.mag) + 3, cy + 4);
+      requests.push({ text: s.name, x: cx, y: cy, radius: r, font: "11px system-ui, sans-serif", size: 11,
+        colour: s.matched ? "#ffe8a3" : "#9fb0c4", priority: s.matched ? 20 : 30 + s.mag, kind: "star",
+        owner: s.matched ? `p${s.pattern_index}` : undefined });
     }
   }
 
   for (const p of sky.planets) {
     if (p.x === null || p.y === null) continue;
     const [cx, cy] = P(p.x, p.y);
-    ctx.strokeStyle = "#ff922b"; ctx.lineWidth = 2;
+    ctx.strokeStyle = COLOURS.planet; ctx.lineWidth = 2;
     ctx.beginPath(); ctx.arc(cx, cy, 8, 0, 2 * Math.PI); ctx.stroke();
-    ctx.fillStyle = "#ff922b"; ctx.font = "600 12px system-ui, sans-serif";
-    ctx.fillText(p.name, cx + 10, cy - 8);
+    hits.push({ x: cx, y: cy, r: 9, kind: "planet", text: `planet ${p.name}` });
+    requests.push({ text: p.name, x: cx, y: cy, radius: 8, font: "600 12px system-ui, sans-serif", size: 12,
+      colour: COLOURS.planet, priority: 15, kind: "planet",
+      owner: p.pattern_index === null ? undefined : `p${p.pattern_index}` });
   }
 
   if (options.edge && sky.generating_edge) {
     const [a, c] = sky.generating_edge.points;
     if (a.x !== null && c.x !== null) {
       const [ax, ay] = P(a.x, a.y), [cx, cy] = P(c.x, c.y);
-      ctx.strokeStyle = "#cc5de8"; ctx.lineWidth = 2; ctx.setLineDash([8, 5]);
+      ctx.strokeStyle = COLOURS.edge; ctx.lineWidth = 2; ctx.setLineDash([8, 5]);
       ctx.beginPath(); ctx.moveTo(ax, ay); ctx.lineTo(cx, cy); ctx.stroke();
       ctx.setLineDash([]);
     }
@@ -85,30 +177,53 @@ export function drawSky(canvas, view, options) {
     if (p.x === null || p.y === null) continue;
     const [cx, cy] = P(p.x, p.y);
     const matched = p.hip !== null || p.planet !== null;
-    ctx.strokeStyle = matched ? "#3fb950" : "#ff6b6b"; ctx.lineWidth = 1.6;
-    ctx.beginPath(); ctx.arc(cx, cy, 9, 0, 2 * Math.PI); ctx.stroke();
+    // A match of a candidate that is not credible is drawn as doubtful, never as a green "match".
+    const colour = !matched ? COLOURS.unmatched : options.credible ? COLOURS.matched : COLOURS.doubtful;
+    ctx.strokeStyle = colour; ctx.lineWidth = options.highlight !== undefined && p.track === options.highlight ? 3.5 : 1.6;
+    ctx.setLineDash(matched && !options.credible ? [4, 3] : []);
+    ctx.beginPath(); ctx.arc(cx, cy, POINT_RADIUS, 0, 2 * Math.PI); ctx.stroke();
+    ctx.setLineDash([]);
     if (p.residual_x !== null) {
-      ctx.strokeStyle = "#63e6be"; ctx.lineWidth = 2;
+      ctx.strokeStyle = COLOURS.residual; ctx.lineWidth = 2;
       ctx.beginPath(); ctx.moveTo(cx, cy);
       ctx.lineTo(cx + p.residual_x * factor * scale, cy + p.residual_y * factor * scale); ctx.stroke();
     }
+    const label = p.track !== null ? `T${p.track}` : `hand ${p.index + 1}`;
+    const target = p.name || (p.hip !== null ? `HIP ${p.hip}` : p.planet ? `planet ${p.planet}` : "no star");
+    hits.push({ x: cx, y: cy, r: POINT_RADIUS + 2, kind: "point", track: p.track, index: p.index,
+      text: `${label} → ${target}` + (p.residual_arcsec !== null ? `, residual ${p.residual_arcsec.toFixed(1)}″` : "") +
+        (p.track !== null ? " (click: show it in the snapshots)" : "") });
+    obstacles.push({ x: cx - POINT_RADIUS, y: cy - POINT_RADIUS, w: 2 * POINT_RADIUS, h: 2 * POINT_RADIUS,
+      owner: `p${p.index}` });
+    // Same colour as the track in the snapshot player, so T3 here is T3 there.
+    requests.push({ text: label, x: cx, y: cy, radius: POINT_RADIUS, font: "600 11px system-ui, sans-serif", size: 11,
+      colour: p.track !== null ? trackColour(p.track) : "#ffe066", priority: 10, kind: "track", owner: `p${p.index}`,
+      keep: true });
   }
-  return factor;
+
+  // North and east at the field centre, in the top-left corner, on a dark disc of their own.
+  const compass = northEast(view.candidate.rotation_matrix);
+  const ox = 44, oy = 44;
+  obstacles.push({ x: 0, y: 0, w: 90, h: 90 });
+  ctx.fillStyle = "rgba(10,14,20,0.85)";
+  ctx.beginPath(); ctx.arc(ox, oy, 40, 0, 2 * Math.PI); ctx.fill();
+  ctx.strokeStyle = COLOURS.compass; ctx.fillStyle = COLOURS.compass; ctx.lineWidth = 2;
+  ctx.font = "700 13px system-ui, sans-serif";
+  if (compass.north) arrow(ctx, ox, oy, compass.north[0], compass.north[1], 26, "N");
+  if (compass.east) arrow(ctx, ox, oy, compass.east[0], compass.east[1], 18, "E");
+
+  const labels = placeLabels(ctx, requests, obstacles, W, H);
+  return { factor, labels, hits, compass, scale };
 }
 
-export function candidateFacts(view) {
-  const c = view.candidate;
-  const rows = [
-    ["rank", `${view.rank} of ${view.n_candidates}`],
-    ["status", view.status],
-    ["deviation", c.deviation_arcsec === null ? "-" : `${c.deviation_arcsec.toFixed(1)}″ (${(c.deviation_px_per_point ?? NaN).toFixed(3)} px/point)`],
-    ["false match", c.false_match_probability === null ? "-" : c.false_match_probability.toExponential(2)],
-    ["matched", `${c.n_matched ?? c.matches.length} of ${view.sky.pattern_points.length} points`],
-    ["RA, Dec", `${c.ra_deg.toFixed(4)}°, ${c.dec_deg.toFixed(4)}°`],
-    ["roll", `${c.roll_deg.toFixed(4)}°`],
-    ["field", `${view.sky.center.constellation}, ${view.reference_time}`],
-  ];
-  return rows;
+// The thing under canvas pixel (x, y) among drawSky's hits: pattern points first, then planets, stars.
+export function hitAt(drawn, x, y) {
+  const order = { point: 0, planet: 1, star: 2 };
+  let best = null;
+  for (const h of drawn.hits) {
+    const d = Math.hypot(h.x - x, h.y - y);
+    if (d > h.r + 3) continue;
+    if (!best || order[h.kind] < order[best.h.kind] || (order[h.kind] === order[best.h.kind] && d < best.d)) best = { h, d };
+  }
+  return best ? best.h : null;
 }
-
-export const skyCanvas = () => $("sky-canvas");

@@ -1,10 +1,13 @@
-"""/api/attitudes: confirmed attitudes (newest first) and their CCSDS APM."""
+"""/api/attitudes: confirmed attitudes (newest first), their CCSDS APM and ACM, and bulk AEM exports."""
 
 from __future__ import annotations
+
+from datetime import datetime, timezone
 
 from fastapi import APIRouter, Depends, Path, Query
 from fastapi.responses import PlainTextResponse
 
+from app.api.errors import ApiError
 from app.api.routes.common import ID_LIMITS, attachment, get_context
 from app.workflow import AppContext, confirm as confirming
 from app.workflow.documents import AttitudeDocument, AttitudePage
@@ -13,11 +16,37 @@ router = APIRouter(prefix="/api/attitudes", tags=["attitudes"])
 AttitudeId = Path(description="id of the confirmed attitude", **ID_LIMITS)
 
 
+def _utc(t: datetime | None, name: str) -> datetime | None:
+    """A time from the query as UTC (a time without a zone is read as UTC, as everywhere in the archive).
+
+    A time whose conversion leaves the calendar (``0001-01-01T00:00+00:01``)
+    is refused at its parameter (found by the schema fuzz run of issue 12).
+    """
+    if t is None:
+        return None
+    try:
+        return t.replace(tzinfo=timezone.utc) if t.tzinfo is None or t.utcoffset() is None else t.astimezone(timezone.utc)
+    except (OverflowError, ValueError):
+        raise ApiError(422, f"invalid request: query.{name}: {t.isoformat()} is outside the years 1 to 9999 in UTC",
+                       problems=[{"location": f"query.{name}", "message": "outside the years 1 to 9999 in UTC"}]) from None
+
+
 @router.get("", response_model=AttitudePage,
             summary="A page of confirmed attitudes, newest first (superseded ones included)")
 def list_attitudes(offset: int = Query(0, ge=0, le=2**62), limit: int = Query(50, ge=1, le=1000),
                    ctx: AppContext = Depends(get_context)):
     return confirming.list_attitudes(ctx, offset, limit)
+
+
+# Before /{attitude_id}: "aem" is a path of its own, not an attitude id.
+@router.get("/aem", response_class=PlainTextResponse,
+            summary="CCSDS AEM 2.0 (KVN) of a spacecraft's confirmed attitudes in a time range, one segment per "
+                    "sequence as rendered at its confirmation")
+def bulk_aem(spacecraft: str = Query(min_length=1, max_length=128, description="the spacecraft name"),
+             start: datetime | None = Query(None, description="first reference epoch included (UTC, ISO 8601)"),
+             end: datetime | None = Query(None, description="reference epochs before this one (UTC, ISO 8601)"),
+             ctx: AppContext = Depends(get_context)):
+    return attachment(*confirming.bulk_aem(ctx, spacecraft, _utc(start, "start"), _utc(end, "end")))
 
 
 @router.get("/{attitude_id}", response_model=AttitudeDocument, summary="One confirmed attitude with its audit record")
@@ -29,3 +58,10 @@ def get_attitude(attitude_id: int = AttitudeId, ctx: AppContext = Depends(get_co
             summary="CCSDS APM 2.0 (KVN) of a confirmed attitude, byte for byte as rendered at confirmation")
 def get_apm(attitude_id: int = AttitudeId, ctx: AppContext = Depends(get_context)):
     return attachment(*confirming.attitude_apm(ctx, attitude_id))
+
+
+@router.get("/{attitude_id}/acm", response_class=PlainTextResponse,
+            summary="CCSDS ACM 2.0 (KVN) of a confirmed attitude: every snapshot's attitude with the body rate, the "
+                    "covariance and the attitude determination (method, sensor), as rendered at confirmation")
+def get_acm(attitude_id: int = AttitudeId, ctx: AppContext = Depends(get_context)):
+    return attachment(*confirming.attitude_acm(ctx, attitude_id))

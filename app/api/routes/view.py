@@ -1,26 +1,33 @@
-"""/api/view and /api/viewer: the selection shared by the console and the 3D view."""
+"""/api/view and /api/viewer: each console session's selection, and which one the 3D view draws."""
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter, Depends, Query
 
 from app.api.routes.common import get_context, writer
-from app.api.schemas import ViewEdit
+from app.api.schemas import ViewEdit, ViewerFollow
 from app.workflow import AppContext, view
 from app.workflow.documents import ViewDocument, ViewerDocument
+from app.workflow.view_state import SESSION_PATTERN
 
 router = APIRouter(prefix="/api", tags=["view"])
 
+Session = Query(None, pattern=SESSION_PATTERN,
+                description="the console session (each browser tab has its own); omitted: the session the 3D "
+                            "view draws")
+
 
 @router.get("/view", response_model=ViewDocument,
-            summary="The shared view state (sequence, rank, magnitude) with its sequence's latest state")
-def get_view(ctx: AppContext = Depends(get_context)):
-    return view.view_document(ctx)
+            summary="A console session's view state (sequence, rank, magnitude) with its sequence's latest state")
+def get_view(session: str | None = Session, ctx: AppContext = Depends(get_context)):
+    return view.view_document(ctx, session)
 
 
-@router.put("/view", response_model=ViewDocument, summary="Change the shared view state; only the fields sent change")
-def put_view(edit: ViewEdit, _operator: str | None = Depends(writer), ctx: AppContext = Depends(get_context)):
-    return view.set_view(ctx, edit.changes(), "console")
+@router.put("/view", response_model=ViewDocument,
+            summary="Change a console session's view state; only the fields sent change")
+def put_view(edit: ViewEdit, session: str | None = Session, _operator: str | None = Depends(writer),
+             ctx: AppContext = Depends(get_context)):
+    return view.set_view(ctx, edit.changes(), "console", session)
 
 
 @router.get("/viewer", response_model=ViewerDocument,
@@ -29,3 +36,10 @@ def get_viewer(ctx: AppContext = Depends(get_context)):
     if ctx.viewer is None:
         return ViewerDocument(available=False, url=None, detail="the 3D view is not running on this server")
     return ctx.viewer.describe()
+
+
+@router.put("/viewer", response_model=ViewDocument,
+            summary="Make the 3D view draw a console session (the console that opens it); that session's state")
+def follow_session(body: ViewerFollow, _operator: str | None = Depends(writer),
+                   ctx: AppContext = Depends(get_context)):
+    return view.follow(ctx, body.session)

@@ -1,0 +1,257 @@
+// Judging and deciding: the candidates side by side, each candidate's verdict, and the guard
+// rails of a confirmation. Confirming what is not the credible best (or replacing a verdict)
+// takes a second, explicit step; "no valid attitude" needs a reason. The server applies the
+// same rules (409 without override_reason / supersede), so the console only makes them visible.
+import * as api from "./api.js";
+import { $, el, toast, errorText, fmt, fmtProbability, fmtTime } from "./dom.js";
+import { state } from "./state.js";
+
+let hooks = { goToRank: async () => {}, afterVerdict: async () => {} };
+
+export function setupDecision(h) {
+  hooks = h;
+  $("confirm").addEventListener("click", confirmClick);
+  $("confirm-override").addEventListener("click", () => sendConfirmation(true));
+  $("override-cancel").addEventListener("click", cancelSteps);
+  $("reject-open").addEventListener("click", openReject);
+  $("reject-confirm").addEventListener("click", sendRejection);
+  $("reject-cancel").addEventListener("click", cancelSteps);
+}
+
+const verdictOf = (rank) => state.review?.candidates.find((v) => v.rank === rank) || null;
+const currentVerdict = () => state.review?.confirmation || state.review?.rejection || null;
+// Whether the candidate shown is the sequence's confirmed attitude already.
+function shownIsConfirmed() {
+  const c = state.review?.confirmation;
+  return !!c && c.search_id === state.review.search_id && c.rank === state.rank;
+}
+
+function describeCurrent() {
+  const r = state.review;
+  if (r.confirmation) return `attitude #${r.confirmation.id} (rank ${r.confirmation.rank}) confirmed by ${r.confirmation.operator}`;
+  if (r.rejection) return `"no valid attitude" recorded by ${r.rejection.operator}: ${r.rejection.reason}`;
+  return "";
+}
+
+// ---------------------------------------------------------------- candidates side by side
+
+export function renderCandidates() {
+  const d = state.detail, review = state.review;
+  const candidates = d?.search?.candidates || [];
+  const rows = candidates.map((c) => {
+    const v = verdictOf(c.rank);
+    const credible = v?.credible;
+    const gapTitle = v ? `deviation ${v.deviation_gap_arcsec >= 0 ? "+" : ""}${fmt(v.deviation_gap_arcsec, 0)}″ vs rank 1; ` +
+      `${v.odds_vs_best === null ? "" : `10^${fmt(v.odds_vs_best, 1)} times likelier to be chance; `}` +
+      `attitude ${fmt(v.separation_from_best_deg, 2)}° away` : "";
+    return el("tr", {
+      class: `${c.rank === state.rank ? "selected" : ""} ${credible ? "credible" : "doubtful"}`,
+      dataset: { rank: c.rank }, tabindex: 0, "aria-selected": c.rank === state.rank ? "true" : "false",
+      title: credible ? "credible best: confirm with one click" : `needs a reason to confirm: ${(v?.reasons || []).join("; ")}`,
+      onclick: () => hooks.goToRank(c.rank),
+      onkeydown: (e) => { if (e.key === "Enter") hooks.goToRank(c.rank); },
+    },
+    el("td", {}, `${c.rank} `, el("span", { class: credible ? "ok-mark" : "warn-mark" }, credible ? "✓" : "⚠")),
+    el("td", {}, fmt(c.deviation_arcsec, 0)), el("td", {}, fmt(c.deviation_px_per_point, 2)),
+    el("td", {}, `${c.n_matched}/${d.search.pattern.length}`), el("td", {}, fmtProbability(c.false_match_probability)),
+    el("td", {}, fmt(c.ra_deg, 2)), el("td", {}, fmt(c.dec_deg, 2)), el("td", {}, fmt(c.roll_deg, 1)),
+    el("td", { title: gapTitle }, c.rank === 1 ? "-" : `+${fmt(v?.deviation_gap_arcsec, 0)}″`));
+  });
+  $("candidate-rows").replaceChildren(...rows);
+  // Keep the selected row in view by scrolling the table only: the page must not move.
+  const selected = $("candidate-rows").querySelector("tr.selected"), wrap = $("candidate-rows").closest(".table-wrap");
+  if (selected && wrap) {
+    const top = selected.offsetTop - wrap.querySelector("thead").offsetHeight;
+    if (top < wrap.scrollTop || selected.offsetTop + selected.offsetHeight > wrap.scrollTop + wrap.clientHeight) {
+      wrap.scrollTop = Math.max(0, top);
+    }
+  }
+  renderVerdict();
+  renderDecision();
+  renderAudit();
+  return review;
+}
+
+export function renderVerdict() {
+  const box = $("cand-verdict");
+  const v = verdictOf(state.rank);
+  if (!v) { box.replaceChildren(); box.className = "verdict"; return; }
+  box.className = `verdict ${v.credible ? "credible" : "doubtful"}`;
+  box.replaceChildren(v.credible
+    ? el("div", {}, el("strong", {}, `✓ Rank ${v.rank} is credible`),
+      ` - the best candidate of an identified search (at most ${fmtProbability(state.review.identified_probability)} ` +
+      "likely by chance, no rival)")
+    : el("div", {}, el("strong", {}, `⚠ Rank ${v.rank} is not credible`),
+      el("ul", { class: "reasons" }, v.reasons.map((r) => el("li", {}, r)))));
+}
+
+// ---------------------------------------------------------------- the decision
+
+export function renderDecision() {
+  const button = $("confirm");
+  const v = verdictOf(state.rank);
+  const current = currentVerdict();
+  button.classList.remove("done", "warn");
+  if (!v) {
+    button.disabled = true;
+    button.textContent = "Confirm";
+  } else if (shownIsConfirmed()) {
+    button.disabled = true;
+    button.classList.add("done");
+    button.textContent = `Confirmed ✓ (attitude #${state.review.confirmation.id})`;
+  } else {
+    button.disabled = false;
+    const second = current || !v.credible;
+    if (second) button.classList.add("warn");
+    button.textContent = current ? `Supersede with rank ${state.rank}…` : `Confirm rank ${state.rank}${second ? "…" : ""}`;
+  }
+  $("reject-open").disabled = !state.detail;
+  $("reject-open").textContent = state.review?.rejection ? "No valid attitude (recorded)…" : "No valid attitude…";
+  renderConfirmed();
+}
+
+export function cancelSteps() {
+  $("override-step").hidden = true;
+  $("reject-step").hidden = true;
+}
+
+// The first step: confirm at once when the candidate is the credible best and nothing is to be
+// replaced, otherwise show what the confirmation would override and ask for the second step.
+export async function confirmClick() {
+  const v = verdictOf(state.rank);
+  if (!v || shownIsConfirmed()) {
+    if (shownIsConfirmed()) toast(`Rank ${state.rank} is confirmed already (attitude #${state.review.confirmation.id})`);
+    return;
+  }
+  if (!operatorName()) return;
+  const current = currentVerdict();
+  if (v.credible && !current) { await sendConfirmation(false); return; }
+  cancelSteps();
+  const reasons = [...(v.credible ? [] : v.reasons)];
+  if (current) reasons.push(`replaces the current verdict: ${describeCurrent()}`);
+  $("override-title").textContent = v.credible ? `Replace the verdict with rank ${state.rank}?`
+    : `Rank ${state.rank} is not the credible best: confirm anyway?`;
+  $("override-reasons").replaceChildren(...reasons.map((r) => el("li", {}, r)));
+  $("override-reason").hidden = v.credible;
+  $("override-reason").value = "";
+  $("confirm-override").textContent = current ? "Supersede" : "Confirm anyway";
+  $("override-step").hidden = false;
+  (v.credible ? $("confirm-override") : $("override-reason")).focus();
+  $("override-step").scrollIntoView({ block: "nearest" });
+}
+
+function operatorName() {
+  const operator = $("operator").value.trim();
+  if (!operator && !state.authRequired) {
+    toast("Enter your name (Operator, top right) to confirm", "error");
+    $("operator").focus();
+    return null;
+  }
+  return operator || "token";
+}
+
+async function sendConfirmation(secondStep) {
+  const d = state.detail, v = verdictOf(state.rank);
+  if (!d || !v || !operatorName()) return;
+  const body = { rank: state.rank, operator: $("operator").value.trim() || null,
+    comment: $("comment").value.trim() || null, search_id: d.search.search_id };
+  if (secondStep) {
+    if (!v.credible) {
+      const reason = $("override-reason").value.trim();
+      if (!reason) { toast("Give the reason for confirming this candidate anyway", "error"); $("override-reason").focus(); return; }
+      body.override_reason = reason;
+    }
+    if (currentVerdict()) body.supersede = true;
+  }
+  state.busy++;
+  try {
+    const { status, body: c } = await api.requestWithStatus("POST", `/api/sequences/${d.id}/confirm`, body);
+    cancelSteps();
+    await hooks.afterVerdict();
+    $("confirmed").scrollIntoView({ block: "nearest" });
+    toast(status === 201
+      ? `Attitude #${c.id} confirmed by ${c.operator}: RA ${fmt(c.ra_deg, 3)}°, Dec ${fmt(c.dec_deg, 3)}°, roll ${fmt(c.roll_deg, 2)}°`
+      : `Rank ${c.rank} was confirmed already (attitude #${c.id}); nothing new stored`);
+  } catch (err) {
+    toast(`The confirmation failed: ${errorText(err)}`, "error");
+    if (err.status === 409) await hooks.afterVerdict();   // someone else's verdict or search: show it
+  } finally {
+    state.busy--;
+  }
+}
+
+export function openReject() {
+  if (!state.detail) return;
+  if (!operatorName()) return;
+  cancelSteps();
+  const current = currentVerdict();
+  $("reject-note").textContent = current
+    ? `This replaces the current verdict: ${describeCurrent()}. The earlier record stays in the audit trail.`
+    : "Every candidate is wrong (the Earth, a ghost pattern, too few stars...): the sequence gets no attitude.";
+  $("reject-reason").value = "";
+  $("reject-step").hidden = false;
+  $("reject-reason").focus();
+  $("reject-step").scrollIntoView({ block: "nearest" });
+}
+
+async function sendRejection() {
+  const d = state.detail;
+  const reason = $("reject-reason").value.trim();
+  if (!reason) { toast("Give the reason why there is no valid attitude", "error"); $("reject-reason").focus(); return; }
+  const body = { reason, operator: $("operator").value.trim() || null, supersede: !!currentVerdict() };
+  state.busy++;
+  try {
+    const { status, body: r } = await api.requestWithStatus("POST", `/api/sequences/${d.id}/reject`, body);
+    cancelSteps();
+    await hooks.afterVerdict();
+    toast(status === 201 ? `Recorded: no valid attitude for ${d.sequence_id || `#${d.id}`} (${r.operator})`
+      : `"No valid attitude" was recorded already by ${r.operator}`);
+  } catch (err) {
+    toast(`Recording "no valid attitude" failed: ${errorText(err)}`, "error");
+  } finally {
+    state.busy--;
+  }
+}
+
+// ---------------------------------------------------------------- the verdict given
+
+export function renderConfirmed() {
+  const box = $("confirmed");
+  const r = state.review;
+  const c = r?.confirmation, j = r?.rejection;
+  if (!c && !j) { box.hidden = true; return; }
+  box.hidden = false;
+  box.className = `confirmed ${c ? "" : "rejected"}`;
+  const parts = (...items) => items.filter((x) => x !== null && x !== undefined);
+  if (c) {
+    box.replaceChildren(...parts(
+      el("div", {}, el("strong", {}, `Confirmed: attitude #${c.id}`), ` (rank ${c.rank} of search ${c.search_id})`),
+      el("div", { class: "dim" }, `by ${c.operator} at ${fmtTime(c.confirmed_at)}${c.comment ? ` - "${c.comment}"` : ""}`),
+      c.override_reason ? el("div", { class: "override" }, `override: ${c.override_reason}`) : null,
+      el("div", { class: "mono" }, `RA ${fmt(c.ra_deg, 4)}°  Dec ${fmt(c.dec_deg, 4)}°  roll ${fmt(c.roll_deg, 4)}°`),
+      el("div", {}, el("a", { href: c.apm_url, download: "", id: "confirmed-apm" }, "Download APM"),
+        c.aem_url ? el("a", { href: c.aem_url, download: "", id: "confirmed-aem" }, "Download AEM") : null)));
+  } else {
+    box.replaceChildren(...parts(
+      el("div", {}, el("strong", {}, "No valid attitude"), ` (rejection #${j.id})`),
+      el("div", { class: "dim" }, `by ${j.operator} at ${fmtTime(j.rejected_at)}`),
+      el("div", { class: "reason" }, j.reason)));
+  }
+}
+
+function renderAudit() {
+  const entries = state.review?.audit || [];
+  $("audit").hidden = entries.length === 0;
+  $("audit-list").replaceChildren(...entries.map((e) => el("li", { class: e.current ? "current" : "old" },
+    `${fmtTime(e.at)} ${e.operator}: `,
+    e.kind === "confirmed" ? `confirmed rank ${e.rank} (attitude #${e.id})` : `no valid attitude`,
+    e.reason ? ` - ${e.reason}` : "", e.current ? " (current)" : "")));
+}
+
+export function verdictSummary() {
+  const r = state.review;
+  if (!r) return "";
+  if (r.confirmation) return `confirmed by ${r.confirmation.operator}, attitude #${r.confirmation.id}`;
+  if (r.rejection) return `no valid attitude (${r.rejection.operator})`;
+  return r.search_id ? "awaiting a verdict" : "not searched yet";
+}

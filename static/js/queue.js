@@ -1,0 +1,215 @@
+// The work queue side of the console: uploads (searched automatically when asked), the sequence
+// list (filter, search, order: what needs an operator first), confirmed attitudes and the bulk AEM.
+import * as api from "./api.js";
+import { $, el, toast, errorText, fmt, fmtTime, store, stored } from "./dom.js";
+import { state } from "./state.js";
+
+const PAGE_SIZE = 20;
+const ATTITUDE_PAGE = 6;
+// Files the simulator writes beside its telemetry: the answer, not telemetry (the CLI skips them too).
+const TRUTH_SUFFIX = ".truth.json";
+const STATUS_TEXT = { no_match: "no match", rejected: "no valid attitude" };
+export const statusText = (s) => STATUS_TEXT[s] || s;
+
+let onSelect = () => {};
+let lastQueueKey = "";
+
+export function setupQueue({ select }) {
+  onSelect = select;
+  setupUpload();
+  const reload = () => { state.seqOffset = 0; loadSequences(); };
+  let debounce = null;
+  $("filter-status").addEventListener("change", reload);
+  $("filter-spacecraft").addEventListener("change", reload);
+  $("sort-order").addEventListener("change", () => { store(localStorage, "starid-order", $("sort-order").value); reload(); });
+  $("sort-order").value = stored(localStorage, "starid-order", "queue");
+  $("filter-search").addEventListener("input", () => { clearTimeout(debounce); debounce = setTimeout(reload, 250); });
+  $("seq-prev-page").addEventListener("click", () => { state.seqOffset = Math.max(0, state.seqOffset - PAGE_SIZE); loadSequences(); });
+  $("seq-next-page").addEventListener("click", () => { state.seqOffset += PAGE_SIZE; loadSequences(); });
+  $("att-prev-page").addEventListener("click", () => { state.attOffset = Math.max(0, state.attOffset - ATTITUDE_PAGE); loadAttitudes(); });
+  $("att-next-page").addEventListener("click", () => { state.attOffset += ATTITUDE_PAGE; loadAttitudes(); });
+  $("bulk-form").addEventListener("submit", bulkExport);
+}
+
+// ---------------------------------------------------------------- upload
+
+function setupUpload() {
+  const zone = $("dropzone"), input = $("file-input"), auto = $("auto-search");
+  auto.checked = stored(localStorage, "starid-auto-search", "1") === "1";
+  auto.addEventListener("change", () => store(localStorage, "starid-auto-search", auto.checked ? "1" : "0"));
+  input.addEventListener("change", () => { uploadFiles([...input.files]); input.value = ""; });
+  zone.addEventListener("keydown", (e) => { if (e.key === "Enter" || e.key === " ") input.click(); });
+  for (const type of ["dragenter", "dragover"]) {
+    zone.addEventListener(type, (e) => { e.preventDefault(); zone.classList.add("over"); });
+  }
+  for (const type of ["dragleave", "drop"]) {
+    zone.addEventListener(type, (e) => { e.preventDefault(); zone.classList.remove("over"); });
+  }
+  zone.addEventListener("drop", (e) => uploadFiles([...(e.dataTransfer?.files || [])]));
+}
+
+async function uploadFiles(files) {
+  if (!files.length) return;
+  const list = $("upload-list");
+  const search = $("auto-search").checked;
+  let lastStored = null, failures = 0, uploaded = 0;
+  const skipped = files.filter((f) => f.name.toLowerCase().endsWith(TRUTH_SUFFIX));
+  for (const file of skipped) {
+    list.prepend(el("li", { class: "upload-item skipped", dataset: { file: file.name } },
+      el("div", { class: "name" }, file.name),
+      el("div", { class: "dim" }, "skipped: a simulator's truth file (the answer), not telemetry")));
+  }
+  // One at a time: the server validates and extracts each; the list shows each result next to its file.
+  for (const file of files.filter((f) => !skipped.includes(f))) {
+    const bar = el("progress", { max: 1, value: 0 });
+    const result = el("div", {}, "uploading...");
+    list.prepend(el("li", { class: "upload-item", dataset: { file: file.name } },
+      el("div", { class: "name" }, file.name), bar, result));
+    try {
+      const { status, body } = await api.uploadFile(file, (f) => { bar.value = f; }, { search });
+      bar.value = 1;
+      uploaded++;
+      result.className = "ok";
+      result.textContent = status === 201
+        ? `stored as #${body.id}: ${body.pattern.points.length} pattern points${search ? ", search queued" : ""}`
+        : `already stored as #${body.id}`;
+      lastStored = body.id;
+    } catch (err) {
+      failures++;
+      bar.remove();
+      result.className = "error";
+      result.replaceChildren(el("div", {}, err.detail),
+        err.problems.length ? el("ul", { class: "problems" },
+          err.problems.map((p) => el("li", {}, el("code", {}, p.location), ": ", p.message))) : null);
+    }
+  }
+  const note = skipped.length ? `; ${skipped.length} truth file${skipped.length > 1 ? "s" : ""} skipped` : "";
+  toast(failures ? `${uploaded} of ${uploaded + failures} files uploaded${note}; see the errors next to the files`
+    : `${uploaded} file${uploaded === 1 ? "" : "s"} uploaded${note}`, failures ? "error" : "ok");
+  await Promise.all([loadSequences(), loadSpacecraft()]);
+  if (lastStored !== null) await onSelect(lastStored);
+}
+
+// ---------------------------------------------------------------- sequence list
+
+// periodic: a refresh nobody asked for; it waits while the pointer or the focus is on the list, so a
+// re-ordered queue never moves a row away under the operator's click.
+export async function loadSequences({ periodic = false } = {}) {
+  const list = $("sequence-list");
+  if (periodic && (list.matches(":hover") || list.contains(document.activeElement))) return;
+  const query = new URLSearchParams({ offset: state.seqOffset, limit: PAGE_SIZE, order: $("sort-order").value });
+  const status = $("filter-status").value, spacecraft = $("filter-spacecraft").value, search = $("filter-search").value.trim();
+  if (status) query.set("status", status);
+  if (spacecraft) query.set("spacecraft", spacecraft);
+  if (search) query.set("search", search);
+  let page;
+  try {
+    page = await api.get(`/api/sequences?${query}`);
+  } catch (err) {
+    toast(`Could not list the sequences: ${errorText(err)}`, "error");
+    return;
+  }
+  state.queueIds = page.items.map((s) => s.id);
+  // Redrawn only when something changed, so a periodic refresh never moves a row under the pointer.
+  const key = JSON.stringify([page, state.detail?.id]);
+  if (key === lastQueueKey) return;
+  lastQueueKey = key;
+  list.replaceChildren(...page.items.map((s) => el("li", {
+    class: state.detail && state.detail.id === s.id ? "selected" : "",
+    dataset: { id: s.id, status: s.status }, tabindex: 0,
+    onclick: () => onSelect(s.id),
+    onkeydown: (e) => { if (e.key === "Enter") onSelect(s.id); },
+  }, el("span", { class: "mono seq-name", title: s.filename || "" }, s.sequence_id || `#${s.id}`),
+  el("span", { class: `badge ${s.status}` }, statusText(s.status)),
+  // Minutes are enough to tell passes apart, and keep the line to one line in a narrow sidebar.
+  el("span", { class: "sub", title: fmtTime(s.first_time) },
+    `#${s.id} · ${s.spacecraft || "unknown spacecraft"} · ${fmtTime(s.first_time).slice(0, 16)}`))));
+  if (!page.items.length) list.replaceChildren(el("li", { class: "dim" }, page.total ? "no more" : "no sequences match"));
+  const last = Math.min(page.total, state.seqOffset + page.items.length);
+  $("seq-page-info").textContent = page.total ? `${state.seqOffset + 1}-${last} of ${page.total}` : "0";
+  $("seq-prev-page").disabled = state.seqOffset === 0;
+  $("seq-next-page").disabled = last >= page.total;
+}
+
+export function markSelected(id) {
+  for (const li of $("sequence-list").children) li.classList.toggle("selected", Number(li.dataset.id) === id);
+}
+
+export async function loadSpacecraft() {
+  try {
+    const names = await api.get("/api/spacecraft");
+    for (const select of [$("filter-spacecraft"), $("bulk-spacecraft")]) {
+      const keep = select.value;
+      const first = select.id === "filter-spacecraft" ? [el("option", { value: "" }, "any spacecraft")] : [];
+      select.replaceChildren(...first, ...names.filter((n) => n.name !== null)
+        .map((n) => el("option", { value: n.name }, `${n.name} (${n.sequences})`)));
+      if ([...select.options].some((o) => o.value === keep)) select.value = keep;
+    }
+  } catch (err) {
+    toast(`Could not list the spacecraft: ${errorText(err)}`, "error");
+  }
+}
+
+// ---------------------------------------------------------------- attitudes
+
+export async function loadAttitudes() {
+  try {
+    const page = await api.get(`/api/attitudes?offset=${state.attOffset}&limit=${ATTITUDE_PAGE}`);
+    // Two lines per attitude: the numbers get a column of their own and are never cut.
+    $("attitude-list").replaceChildren(...page.items.map((a) => el("tr", {
+      class: a.current ? "" : "superseded", dataset: { id: a.id },
+      title: `attitude ${a.id}, rank ${a.rank}, confirmed ${fmtTime(a.confirmed_at)}` +
+        `${a.current ? "" : a.withdrawn_by ? " (withdrawn: no valid attitude)" : " (superseded)"}` +
+        `${a.override_reason ? `; override: ${a.override_reason}` : ""}${a.comment ? `; ${a.comment}` : ""}`,
+    },
+    el("td", { class: "who" }, el("div", { class: "seq-name" }, a.sequence_id || `#${a.sequence}`),
+      el("div", { class: "dim" }, a.operator)),
+    el("td", { class: "num" }, el("div", {}, `RA ${fmt(a.ra_deg, 3)}`), el("div", {}, `Dec ${fmt(a.dec_deg, 3)}`),
+      el("div", {}, `roll ${fmt(a.roll_deg, 2)}`)),
+    el("td", { class: "files" }, el("a", { href: a.apm_url, download: "", class: "apm-link" }, "APM"),
+      a.aem_url ? el("a", { href: a.aem_url, download: "", class: "aem-link" }, "AEM") : null))));
+    if (!page.items.length) $("attitude-list").replaceChildren(el("tr", {}, el("td", { colspan: 3, class: "dim" }, "none yet")));
+    const last = Math.min(page.total, state.attOffset + page.items.length);
+    $("att-page-info").textContent = page.total ? `${state.attOffset + 1}-${last} of ${page.total}` : "";
+    $("att-prev-page").disabled = state.attOffset === 0;
+    $("att-next-page").disabled = last >= page.total;
+  } catch (err) {
+    toast(`Could not list the confirmed attitudes: ${errorText(err)}`, "error");
+  }
+}
+
+// ---------------------------------------------------------------- bulk AEM
+
+function bulkExport(e) {
+  e.preventDefault();
+  const spacecraft = $("bulk-spacecraft").value;
+  if (!spacecraft) { toast("Choose a spacecraft to export", "error"); return; }
+  const query = new URLSearchParams({ spacecraft });
+  // datetime-local has no zone; the archive's times are UTC, and so are these.
+  for (const [id, key] of [["bulk-start", "start"], ["bulk-end", "end"]]) {
+    if ($(id).value) query.set(key, `${$(id).value}Z`);
+  }
+  download(`/api/attitudes/aem?${query}`);
+}
+
+// Fetch first, so that an empty range gives the server's sentence instead of a broken download.
+async function download(path) {
+  try {
+    const response = await fetch(path);
+    if (!response.ok) {
+      const body = await response.json().catch(() => ({}));
+      toast(`No AEM: ${body.detail || response.statusText}`, "error");
+      return;
+    }
+    const name = /filename="([^"]+)"/.exec(response.headers.get("Content-Disposition") || "")?.[1] || "attitudes.aem";
+    const url = URL.createObjectURL(await response.blob());
+    const a = el("a", { href: url, download: name, hidden: true });
+    document.body.append(a);
+    a.click();
+    a.remove();
+    setTimeout(() => URL.revokeObjectURL(url), 10000);
+    toast(`Downloaded ${name}`);
+  } catch (err) {
+    toast(`The AEM export failed: ${errorText(err)}`, "error");
+  }
+}

@@ -1,0 +1,460 @@
+"""The operator's console of issue 13 in a real Chromium: own sessions, guard rails, "no valid attitude",
+the work queue, a sky view that explains itself, keyboard, and the layout at 1280 and 1024 px.
+
+The server is shared by every browser test (one archive), so each test uploads copies of the samples
+under sequence ids of its own: new content, new sequences whose state only that test changes.  Facts
+are read back from the server's API, never from the page alone.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import time
+from pathlib import Path
+
+import pytest
+
+SAMPLES = Path(__file__).resolve().parents[2] / "sample_telemetry"
+TIMEOUT_MS = 20_000
+#: The work queue's order: what needs an operator first (README, app/storage.py SEQUENCE_ORDERS).
+QUEUE_ORDER = ["ambiguous", "no_match", "identified", "new", "rejected", "confirmed"]
+
+
+def expect_text(locator, pattern: str, timeout: int = TIMEOUT_MS) -> None:
+    from playwright.sync_api import expect
+
+    expect(locator).to_contain_text(re.compile(pattern), timeout=timeout)
+
+
+def expect_visible(locator, visible: bool = True, timeout: int = TIMEOUT_MS) -> None:
+    from playwright.sync_api import expect
+
+    (expect(locator).to_be_visible if visible else expect(locator).to_be_hidden)(timeout=timeout)
+
+
+def wait_for(read, ok, timeout_s: float = TIMEOUT_MS / 1000, interval_s: float = 0.1):
+    """Poll ``read()`` until ``ok(value)`` or the deadline; the last value read."""
+    deadline = time.monotonic() + timeout_s
+    value = read()
+    while not ok(value) and time.monotonic() < deadline:
+        time.sleep(interval_s)
+        value = read()
+    return value
+
+
+def fresh_copy(sample: str, tag: str, directory: Path) -> Path:
+    """The sample under its own sequence id (new content: a new sequence in the shared archive)."""
+    doc = json.loads((SAMPLES / sample).read_text())
+    doc["sequence_id"] = f"{doc['sequence_id']}-{tag}"
+    path = directory / f"{doc['sequence_id']}.json"
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def upload_and_search(api, path: Path, body: dict | None = None) -> tuple[int, dict]:
+    seq_id = api("/api/sequences", "POST", raw=path.read_bytes())["id"]
+    return seq_id, api(f"/api/sequences/{seq_id}/search", "POST", body=body or {})
+
+
+def make_ambiguous(api, sample: str, tag: str, directory: Path) -> int:
+    """A sequence whose pattern keeps only its three brightest tracks: three stars fit several places."""
+    seq_id = api("/api/sequences", "POST", raw=fresh_copy(sample, tag, directory).read_bytes())["id"]
+    points = api(f"/api/sequences/{seq_id}")["pattern"]["points"]
+    brightest = [p["track"] for p in sorted(points, key=lambda p: -(p["brightness"] or 0))][:3]
+    api(f"/api/sequences/{seq_id}/pattern", "PUT", body={"include_tracks": brightest})
+    status = api(f"/api/sequences/{seq_id}/search", "POST", body={})["status"]
+    assert status == "ambiguous", f"three stars of {sample} were expected to leave the choice to an operator ({status})"
+    return seq_id
+
+
+def console(new_page, server, width: int = 1280, height: int = 800):
+    watched = new_page(width, height)
+    watched.page.goto(server + "/")
+    watched.page.wait_for_selector("body[data-ready='1']")
+    return watched, watched.page.evaluate("document.body.dataset.session")
+
+
+def open_sequence(page, seq_id: int, name: str) -> None:
+    """Open a sequence from the work queue as an operator does: search its id, click it."""
+    page.fill("#filter-search", name)
+    page.locator(f"#sequence-list li[data-id='{seq_id}']").click()
+    expect_text(page.locator("#seq-title"), re.escape(name))
+
+
+def press(page, key: str) -> None:
+    """A key pressed with no text field focused, as an operator's shortcut is."""
+    page.evaluate("document.activeElement && document.activeElement.blur()")
+    page.keyboard.press(key)
+
+
+def boxes_overlap(a: dict, b: dict) -> bool:
+    return a["x"] < b["x"] + b["width"] and b["x"] < a["x"] + a["width"] \
+        and a["y"] < b["y"] + b["height"] and b["y"] < a["y"] + a["height"]
+
+
+# ---------------------------------------------------------------------------------------------------------
+
+def test_two_consoles_keep_their_own_sequences_while_both_click_around(server, api, new_page, tmp_path):
+    x_id, x_search = upload_and_search(api, fresh_copy("01-clean.json", "tab-a", tmp_path))
+    y_id, y_search = upload_and_search(api, fresh_copy("04-big-dipper.json", "tab-b", tmp_path))
+    z_id, _ = upload_and_search(api, fresh_copy("09-wide-30deg.json", "tab-b2", tmp_path))
+    a, a_session = console(new_page, server)
+    b, b_session = console(new_page, server)
+    assert a_session != b_session
+    open_sequence(a.page, x_id, "01-clean-tab-a")
+    open_sequence(b.page, y_id, "04-big-dipper-tab-b")
+    b.page.fill("#filter-search", "tab-b")  # B's queue shows both of its sequences
+    n_x, n_y = len(x_search["candidates"]), len(y_search["candidates"])
+
+    started, k = time.monotonic(), 0
+    while time.monotonic() - started < 10.0:
+        # A steps through its candidates with the table and the keyboard ...
+        rank_a = 1 + k % n_x
+        a.page.locator(f"#candidate-rows tr[data-rank='{rank_a}']").click()
+        expect_text(a.page.locator("#cand-rank"), rf"rank {rank_a} of {n_x}")
+        # ... while B switches between its two sequences and steps with Next.
+        b_seq, b_name = (y_id, "04-big-dipper-tab-b") if k % 2 == 0 else (z_id, "09-wide-30deg-tab-b2")
+        b.page.locator(f"#sequence-list li[data-id='{b_seq}']").click()
+        expect_text(b.page.locator("#seq-title"), re.escape(b_name))
+        b.page.locator("#cand-next").click()
+        expect_text(b.page.locator("#cand-rank"), r"rank 2 of")
+        # Nothing moved under A's hands, on screen or on the server.
+        expect_text(a.page.locator("#seq-title"), "01-clean-tab-a")
+        expect_text(a.page.locator("#cand-rank"), rf"rank {rank_a} of {n_x}")
+        assert a.page.locator("#sequence-list li.selected").get_attribute("data-id") in (str(x_id), None)
+        state_a = api(f"/api/view?session={a_session}")
+        state_b = api(f"/api/view?session={b_session}")
+        assert (state_a["sequence"], state_a["rank"]) == (x_id, rank_a)
+        assert (state_b["sequence"], state_b["rank"]) == (b_seq, 2)
+        k += 1
+    assert k >= 3, "both consoles should have clicked around several times in 10 s"
+    # A reload finds the tab's own selection again (sessionStorage keeps the session id).
+    a.page.reload()
+    expect_text(a.page.locator("#seq-title"), "01-clean-tab-a")
+    assert n_y >= 2 and a.errors == [] and b.errors == []
+
+
+def test_a_non_credible_candidate_is_confirmed_only_after_a_second_step_with_a_reason(server, api, new_page, tmp_path):
+    seq_id, search = upload_and_search(api, fresh_copy("10-narrow-12deg-ghosts.json", "guard", tmp_path))
+    assert search["status"] == "identified" and len(search["candidates"]) >= 2
+    watched, _ = console(new_page, server)
+    page = watched.page
+    page.fill("#operator", "Guard Tester")
+    open_sequence(page, seq_id, "10-narrow-12deg-ghosts-guard")
+    expect_text(page.locator("#cand-verdict"), "Rank 1 is credible")
+    expect_text(page.locator("#confirm"), r"^Confirm rank 1$")
+
+    page.locator("#candidate-rows tr[data-rank='2']").click()
+    expect_text(page.locator("#cand-verdict"), "Rank 2 is not credible")
+    expect_text(page.locator("#cand-verdict"), "not the best candidate")
+    expect_text(page.locator("#confirm"), r"Confirm rank 2…")
+    page.click("#confirm")
+    expect_visible(page.locator("#override-step"))
+    expect_text(page.locator("#override-reasons"), "not the best candidate")
+    # The first step stored nothing; neither does the second without a reason.
+    assert api(f"/api/sequences/{seq_id}/review")["audit"] == []
+    page.click("#confirm-override")
+    expect_text(page.locator("#toast"), "Give the reason")
+    assert api(f"/api/sequences/{seq_id}/review")["audit"] == []
+    watched.screenshot("10-guard-second-step")
+
+    reason = "rank 1 matched a ghost pattern; checked against the star tracker of the other head"
+    page.fill("#override-reason", reason)
+    page.click("#confirm-override")
+    expect_text(page.locator("#confirmed"), r"Confirmed: attitude #\d+")
+    expect_text(page.locator("#confirmed"), "override: rank 1 matched a ghost")
+    review = api(f"/api/sequences/{seq_id}/review")
+    c = review["confirmation"]
+    assert (c["rank"], c["override_reason"], c["operator"]) == (2, reason, "Guard Tester")
+    assert any("not the best candidate" in r for r in c["overridden"])
+    # After confirming, the button says so; confirming again stores nothing new.
+    expect_text(page.locator("#confirm"), rf"Confirmed ✓ \(attitude #{c['id']}\)")
+    assert page.locator("#confirm").is_disabled()
+    press(page, "c")
+    expect_text(page.locator("#toast"), "confirmed already")
+    watched.screenshot("11-guard-confirmed")
+
+    # Rank 1 instead: an explicit supersede (second step), and the audit trail keeps both.
+    page.locator("#candidate-rows tr[data-rank='1']").click()
+    expect_text(page.locator("#confirm"), "Supersede with rank 1…")
+    page.keyboard.press("c")
+    expect_visible(page.locator("#override-step"))
+    expect_text(page.locator("#override-reasons"), f"replaces the current verdict: attitude #{c['id']}")
+    page.click("#confirm-override")
+    expect_text(page.locator("#confirm"), r"Confirmed ✓")
+    audit = wait_for(lambda: api(f"/api/sequences/{seq_id}/review")["audit"], lambda a: len(a) == 2)
+    assert [(e["rank"], e["current"]) for e in audit] == [(2, False), (1, True)]
+    assert api(f"/api/attitudes/{c['id']}")["superseded_by"] == audit[1]["id"]
+    assert watched.errors == []
+
+
+def test_no_valid_attitude_is_recorded_with_its_reason(server, api, new_page, tmp_path):
+    earth = fresh_copy("05-earth.json", "reject", tmp_path)
+    truth = tmp_path / "05-earth-reject.truth.json"
+    truth.write_text((SAMPLES / "05-earth.truth.json").read_text())
+    watched, _ = console(new_page, server)
+    page = watched.page
+    page.fill("#operator", "Reject Tester")
+    assert page.locator("#auto-search").is_checked()  # on by default
+    # The console's upload skips the truth file with a note, and the new upload is searched by itself.
+    page.set_input_files("#file-input", [str(earth), str(truth)])
+    expect_text(page.locator(f".upload-item[data-file='{truth.name}']"), "skipped: a simulator's truth file")
+    expect_text(page.locator(f".upload-item[data-file='{earth.name}']"), r"stored as #\d+")
+    expect_text(page.locator("#seq-title"), "05-earth-reject")
+    expect_text(page.locator("#seq-status"), "no match")  # searched without pressing Search
+    seq_id = int(re.search(r"#(\d+)", page.locator(f".upload-item[data-file='{earth.name}']").inner_text()).group(1))
+    expect_text(page.locator("#cand-verdict"), "not credible")
+    expect_text(page.locator("#cand-verdict"), "no match")
+    expect_text(page.locator("#confirm"), "Confirm rank 1…")
+
+    press(page, "r")
+    expect_visible(page.locator("#reject-step"))
+    page.click("#reject-confirm")
+    expect_text(page.locator("#toast"), "Give the reason")
+    assert api(f"/api/sequences/{seq_id}")["status"] == "no_match"
+    reason = "the Earth fills the field: no star at all"
+    page.fill("#reject-reason", reason)
+    page.click("#reject-confirm")
+    expect_text(page.locator("#confirmed"), "No valid attitude")
+    expect_text(page.locator("#seq-status"), "no valid attitude")
+    review = api(f"/api/sequences/{seq_id}/review")
+    assert review["status"] == "rejected" and review["rejection"]["reason"] == reason
+    assert review["rejection"]["operator"] == "Reject Tester" and review["confirmation"] is None
+    watched.screenshot("12-rejected")
+    assert watched.errors == []
+
+
+def test_the_work_queue_puts_what_needs_an_operator_first(server, api, new_page, tmp_path):
+    ambiguous = make_ambiguous(api, "06-sparse.json", "queue", tmp_path)
+    upload_and_search(api, fresh_copy("05-earth.json", "queue", tmp_path))
+    api("/api/sequences", "POST", raw=fresh_copy("07-single.json", "queue", tmp_path).read_bytes())  # stays new
+    for name in ("01-clean.json", "03-jupiter.json", "08-csv.csv"):
+        api("/api/sequences", "POST", raw=(SAMPLES / name).read_bytes())
+    total = api("/api/sequences?limit=1")["total"]
+    assert total > 8
+    watched, _ = console(new_page, server)
+    page = watched.page
+    assert page.locator("#sort-order").input_value() == "queue"
+    items = page.locator("#sequence-list li[data-status]")
+    expect_text(page.locator("#seq-page-info"), rf"of {total}")
+    statuses = [items.nth(k).get_attribute("data-status") for k in range(items.count())]
+    assert items.count() == min(total, 20) > 8  # more than 8 per page
+    assert statuses[0] == "ambiguous" and "no_match" in statuses
+    ranks = [QUEUE_ORDER.index(s) for s in statuses]
+    assert ranks == sorted(ranks), statuses
+    assert page.locator("#sequence-list li").first.get_attribute("data-id") == str(ambiguous)
+    # The server's order agrees with the page.
+    assert [s["id"] for s in api("/api/sequences?order=queue&limit=20")["items"]] == \
+        [int(items.nth(k).get_attribute("data-id")) for k in range(items.count())]
+    # Filter by status and search by sequence id.
+    page.select_option("#filter-status", "no_match")
+    expect_text(page.locator("#seq-page-info"), r"\d")
+    page.wait_for_function("[...document.querySelectorAll('#sequence-list li[data-status]')]"
+                           ".every((li) => li.dataset.status === 'no_match')")
+    page.select_option("#filter-status", "")
+    page.fill("#filter-search", "06-sparse-queue")
+    page.wait_for_function(f"document.querySelectorAll('#sequence-list li[data-id]').length === 1 && "
+                           f"document.querySelector('#sequence-list li[data-id]').dataset.id === '{ambiguous}'")
+    watched.screenshot("13-queue")
+    assert watched.errors == []
+
+
+def test_the_sky_view_explains_itself(server, api, new_page, tmp_path):
+    seq_id, search = upload_and_search(api, fresh_copy("04-big-dipper.json", "sky", tmp_path))
+    watched, _ = console(new_page, server)
+    page = watched.page
+    open_sequence(page, seq_id, "04-big-dipper-sky")
+    canvas = page.locator("#sky-canvas")
+    page.wait_for_function("document.getElementById('sky-canvas').dataset.points")
+    expect_visible(page.locator("#sky-legend"))
+    expect_text(page.locator("#sky-legend"), "generating edge")
+
+    # Labels: the track names of the matched points are drawn, and no two labels overlap.
+    labels = json.loads(canvas.get_attribute("data-labels"))
+    best = search["candidates"][0]
+    tracks = {f"T{m['track']}" for m in best["matches"] if m["track"] is not None}
+    assert tracks and tracks <= {lab["text"] for lab in labels if lab["kind"] == "track"}
+    assert any(lab["text"] == "Dubhe" for lab in labels)
+    boxes = [{"x": lab["x"], "y": lab["y"], "width": lab["w"], "height": lab["h"]} for lab in labels]
+    assert not any(boxes_overlap(p, q) for i, p in enumerate(boxes) for q in boxes[i + 1:])
+
+    # North and east: the README's roll is the position angle of the image's up (-y) from north through
+    # east, so the arrows drawn must give back the candidate's roll.
+    compass = page.evaluate("async (R) => (await import('/js/sky.js')).northEast(R)", best["rotation_matrix"])
+    north, east = compass["north"], compass["east"]
+    roll = math.degrees(math.atan2(-east[1], -north[1])) % 360
+    assert abs((roll - best["roll_deg"] + 180) % 360 - 180) < 0.5
+    assert abs(north[0] * east[0] + north[1] * east[1]) < 0.05  # at right angles on a 20 deg field
+
+    # A tooltip names the point's track and star; a click rings the track in the snapshot player.
+    points = json.loads(canvas.get_attribute("data-points"))
+    point = next(p for p in points if p["track"] is not None and f"T{p['track']}" in tracks)
+    canvas.scroll_into_view_if_needed()
+    box = canvas.bounding_box()
+    scale = box["width"] / page.evaluate("document.getElementById('sky-canvas').width")
+    page.mouse.move(box["x"] + point["x"] * scale, box["y"] + point["y"] * scale)
+    expect_visible(page.locator("#sky-tip"))
+    expect_text(page.locator("#sky-tip"), rf"T{point['track']} → ")
+    watched.screenshot("14-sky-tooltip")
+    page.mouse.click(box["x"] + point["x"] * scale, box["y"] + point["y"] * scale)
+    expect_text(page.locator("#toast"), rf"T{point['track']} is ringed in the snapshots")
+    # What deviation and false-match probability mean is one hover away.
+    assert "nearest catalogue star" in page.locator("#candidates-table th").nth(1).get_attribute("title")
+    assert "chance alignment" in page.locator("#candidates-table th").nth(4).get_attribute("title")
+    assert "chance alignment" in page.locator("#cand-facts dt", has_text="false match").get_attribute("title")
+    assert watched.errors == []
+
+
+def test_keyboard_search_methods_and_the_remembered_operator(server, api, new_page, tmp_path):
+    seq_id, search = upload_and_search(api, fresh_copy("01-clean.json", "keys", tmp_path))
+    n = len(search["candidates"])
+    watched, session = console(new_page, server)
+    page = watched.page
+    open_sequence(page, seq_id, "01-clean-keys")
+    expect_text(page.locator("#cand-rank"), rf"rank 1 of {n}")
+    press(page, "?")
+    expect_visible(page.locator("#help"))
+    expect_text(page.locator("#help"), "confirm the candidate shown")
+    watched.screenshot("15-help")
+    page.keyboard.press("Escape")
+    expect_visible(page.locator("#help"), False)
+    page.keyboard.press("2")
+    expect_text(page.locator("#cand-rank"), rf"rank 2 of {n}")
+    page.keyboard.press("ArrowLeft")
+    expect_text(page.locator("#cand-rank"), rf"rank 1 of {n}")
+    page.keyboard.press(" ")
+    expect_text(page.locator("#play"), "Pause")
+    page.keyboard.press(" ")
+    expect_text(page.locator("#play"), "Play")
+    # j and k walk the work queue: the next sequence opens, and this console's view follows.
+    ids = [int(page.locator("#sequence-list li[data-id]").nth(k).get_attribute("data-id"))
+           for k in range(page.locator("#sequence-list li[data-id]").count())]
+    page.fill("#filter-search", "")
+    page.wait_for_function(f"document.querySelectorAll('#sequence-list li[data-id]').length > {len(ids)}")
+    queue = [int(page.locator("#sequence-list li[data-id]").nth(k).get_attribute("data-id"))
+             for k in range(page.locator("#sequence-list li[data-id]").count())]
+    at = queue.index(seq_id)
+    step = "j" if at + 1 < len(queue) else "k"
+    other = queue[at + 1] if step == "j" else queue[at - 1]
+    press(page, step)
+    page.wait_for_function(f"document.querySelector('#sequence-list li.selected')?.dataset.id === '{other}'")
+    assert wait_for(lambda: api(f"/api/view?session={session}")["sequence"], lambda v: v == other) == other
+    press(page, "k" if step == "j" else "j")
+    expect_text(page.locator("#seq-title"), "01-clean-keys")
+
+    # Triangle features with the key s: a search of its own, by that method.
+    page.select_option("#search-method", "tf")
+    press(page, "s")
+    detail = wait_for(lambda: api(f"/api/sequences/{seq_id}"), lambda d: d["search"]["method"] == "tf")
+    assert detail["search"]["method"] == "tf"
+    expect_text(page.locator("#search-summary"), "by tf")
+
+    # Tracking from a prior taken from the candidate shown and edited: it finds the same attitude.
+    page.select_option("#search-method", "tracking")
+    expect_visible(page.locator("#prior-box"))
+    page.click("#prior-from-candidate")
+    assert page.locator("#prior-given").is_checked()
+    ra = float(page.input_value("#prior-ra"))
+    page.fill("#prior-ra", f"{ra + 0.3:.4f}")  # 0.3 deg off, within the prior's 1 deg
+    page.click("#search")
+    detail = wait_for(lambda: api(f"/api/sequences/{seq_id}"), lambda d: d["search"]["method"] == "tracking")
+    found = detail["search"]["candidates"][0]
+    best = search["candidates"][0]
+    assert detail["search"]["status"] == "identified"
+    assert abs(found["ra_deg"] - best["ra_deg"]) < 0.05 and abs(found["dec_deg"] - best["dec_deg"]) < 0.05
+    # ... and from the spacecraft's last confirmed attitude (no prior sent).
+    api(f"/api/sequences/{seq_id}/confirm", "POST", body={"rank": 1, "operator": "keys", "supersede": True})
+    page.check("#prior-last")
+    search_id = detail["search"]["search_id"]
+    page.click("#search")
+    detail = wait_for(lambda: api(f"/api/sequences/{seq_id}"), lambda d: d["search"]["search_id"] != search_id)
+    assert detail["search"]["method"] == "tracking" and detail["search"]["candidates"]
+
+    # The operator's name is remembered by the browser.
+    page.fill("#operator", "Kay Board")
+    page.locator("#operator").dispatch_event("change")
+    page.reload()
+    page.wait_for_selector("body[data-ready='1']")
+    assert page.input_value("#operator") == "Kay Board"
+    assert watched.errors == []
+
+
+@pytest.mark.parametrize("width", [1280, 1024])
+def test_every_screen_is_usable_and_nothing_is_cut_or_covered(server, api, new_page, tmp_path, width):
+    seq_id, _ = upload_and_search(api, fresh_copy("02-ghosts-hot-pixels.json", f"layout{width}", tmp_path))
+    # A confirmed attitude with long numbers (negative Dec) for the attitude table.
+    api(f"/api/sequences/{seq_id}/confirm", "POST", body={"rank": 1, "operator": "Layout Operator"})
+    watched, _ = console(new_page, server, width=width, height=800)
+    page = watched.page
+    watched.screenshot(f"20-start-{width}")
+    page.fill("#operator", "Layout Operator")
+    open_sequence(page, seq_id, f"02-ghosts-hot-pixels-layout{width}")
+    page.wait_for_function("document.getElementById('sky-canvas').dataset.points")
+    page.evaluate("window.scrollTo(0, 0)")
+    # No horizontal scrolling of the page at this width.
+    assert page.evaluate("document.documentElement.scrollWidth") <= width
+    # The confirmed attitudes' numbers are never cut.
+    cut = page.evaluate("""[...document.querySelectorAll('#attitude-list td.num div')]
+        .filter((d) => d.scrollWidth > d.clientWidth + 0.5 || d.closest('td').scrollWidth > d.closest('td').clientWidth + 0.5)
+        .map((d) => d.textContent)""")
+    assert page.locator("#attitude-list td.num").count() >= 1 and cut == []
+    # Nor are the candidates side by side (the table fits its box).
+    assert page.evaluate("(() => { const w = document.querySelector('.candidates-wrap'); "
+                         "return w.scrollWidth <= w.clientWidth + 1; })()")
+    # A message shows in the header's status line and covers no list and no link.
+    page.locator("#candidate-rows tr[data-rank='2']").click()
+    press(page, "ArrowLeft")
+    page.keyboard.press("ArrowLeft")
+    expect_visible(page.locator("#toast"))
+    toast = page.locator("#toast").bounding_box()
+    covered = []
+    for selector in ("#sequence-list", "#attitude-list", "#upload-list", "#candidate-rows", "a", "button"):
+        for k in range(page.locator(selector).count()):
+            item = page.locator(selector).nth(k)
+            box = item.bounding_box()
+            if box and box["width"] and item.is_visible() and boxes_overlap(toast, box):
+                covered.append(selector)
+    assert covered == []
+    watched.screenshot(f"21-candidates-{width}")
+    page.locator("#candidate-card").scroll_into_view_if_needed()
+    watched.screenshot(f"22-candidate-card-{width}")
+    page.locator("#candidate-rows tr[data-rank='2']").click()
+    page.click("#confirm")
+    expect_visible(page.locator("#override-step"))
+    page.locator("#decision").scroll_into_view_if_needed()
+    watched.screenshot(f"23-second-step-{width}")
+    page.keyboard.press("Escape")
+    press(page, "?")
+    expect_visible(page.locator("#help"))
+    watched.screenshot(f"24-help-{width}")
+    page.keyboard.press("Escape")
+    page.click("#tab-3d")
+    expect_text(page.locator("#viewer-note"), "this console's selection")
+    expect_text(page.frame_locator("#viewer-frame").locator("body"), r"Candidate \d+ of", timeout=40_000)
+    page.wait_for_timeout(1500)  # let the software renderer draw the sphere before the screenshot
+    watched.screenshot(f"25-3d-tab-{width}")
+    assert watched.errors == []
+
+
+def test_bulk_aem_export_from_the_console(server, api, new_page, tmp_path):
+    seq_id, _ = upload_and_search(api, fresh_copy("03-jupiter.json", "bulk", tmp_path))
+    api(f"/api/sequences/{seq_id}/confirm", "POST", body={"rank": 1, "operator": "bulk"})
+    current = [a for a in api("/api/attitudes?limit=1000")["items"] if a["current"] and a["spacecraft"] == "SIM-TUBSAT"]
+    watched, _ = console(new_page, server)
+    page = watched.page
+    page.click("#bulk-export summary")
+    page.select_option("#bulk-spacecraft", "SIM-TUBSAT")
+    with page.expect_download() as info:
+        page.click("#bulk-go")
+    text = open(info.value.path(), encoding="utf-8").read()
+    assert info.value.suggested_filename.endswith(".aem")
+    assert text.startswith("CCSDS_AEM_VERS") and text.count("META_START") == len(current) >= 1
+    assert f"archive id {seq_id})" in text
+    # A range with nothing in it says so instead of downloading an empty file.
+    page.fill("#bulk-start", "1990-01-01T00:00:00")
+    page.fill("#bulk-end", "1990-01-02T00:00:00")
+    page.click("#bulk-go")
+    expect_text(page.locator("#toast"), "No AEM: no confirmed attitude of spacecraft 'SIM-TUBSAT'")
+    assert watched.errors == [] or all("404" in e for e in watched.errors)
