@@ -709,3 +709,302 @@ def write_simulation(outdir: Path, n: int, seed: int, camera_name: str | None, s
         truth_path.write_text(to_json_text(truth), encoding="utf-8")
         paths += [data_path, truth_path]
     return paths
+
+
+# --- full frames (issue 15) ---------------------------------------------------
+#
+# A star camera's whole picture instead of its spot list: every catalogue star in view drawn with a
+# Gaussian point-spread function integrated over the pixels, its flux from its magnitude, on a sky
+# background, with photon (shot) noise, read noise, a bias, fixed hot pixels and an optional
+# satellite trail, quantised to 8 or 16 bits.  The pointing, times and body rate are those of
+# simulate_sequence (same rng, so a seed fixes everything); the truth lists every rendered source
+# with its exact position.  Nothing here changes what the functions above produce.
+
+#: The Hipparcos-2 catalogue bundled here ends at Hp 7.0: fainter stars cannot be drawn.
+CATALOGUE_FAINT_LIMIT = 7.0
+
+
+@dataclass(frozen=True)
+class FrameModel:
+    """How a frame is exposed and read out (defaults: a 16-bit CMOS star camera, slightly defocused).
+
+    Fluxes are in electrons; ``detection_limit_mag`` (None: the camera's limiting magnitude + 0.5,
+    at most 6.5) is where a star's signal-to-noise ratio is :data:`DETECTION_SNR` in the PSF's
+    noise-equivalent area ``4 pi sigma^2``; the zero point follows from it (:meth:`zero_point_e`).
+    """
+
+    psf_sigma_px: float = 1.2
+    sky_e: float = 200.0              # sky (and dark) background per pixel per exposure
+    read_noise_e: float = 10.0
+    gain_e_per_adu: float = 2.0
+    bias_adu: float = 100.0
+    bits: int = 16
+    detection_limit_mag: float | None = None
+    #: Stars drawn down to this far below the detection limit (they are part of the noise floor).
+    render_below_limit_mag: float = 1.0
+    #: Hot pixels of this camera: how many, and their excess level in ADU (uniform range).
+    n_hot_pixels: int = 6
+    hot_pixel_adu: tuple[float, float] = (1500.0, 20000.0)
+    #: Seed of the hot pixels' places: one camera keeps its hot pixels from pass to pass.
+    hot_pixel_seed: int = 15
+    #: Exposure time written to FITS headers (seconds); the times given are mid-exposure.
+    exposure_s: float = 0.2
+
+    def noise_area_px(self) -> float:
+        return 4.0 * math.pi * self.psf_sigma_px ** 2
+
+    def background_variance_e(self) -> float:
+        """Per pixel: sky shot noise + read noise (+ quantisation, small at gain 2)."""
+        return self.sky_e + self.read_noise_e ** 2 + self.gain_e_per_adu ** 2 / 12.0
+
+    def snr(self, flux_e) -> np.ndarray:
+        """Signal-to-noise ratio of a star of ``flux_e`` electrons (CCD equation, PSF noise area)."""
+        flux = np.asarray(flux_e, dtype=float)
+        return flux / np.sqrt(flux + self.noise_area_px() * self.background_variance_e())
+
+    def flux_for_snr(self, snr: float) -> float:
+        """The flux (electrons) whose :meth:`snr` is ``snr``: F^2 = s^2 (F + A v)."""
+        a = self.noise_area_px() * self.background_variance_e()
+        s2 = snr * snr
+        return float((s2 + math.sqrt(s2 * s2 + 4.0 * s2 * a)) / 2.0)
+
+    def limit_mag(self, camera: Camera) -> float:
+        if self.detection_limit_mag is not None:
+            return float(self.detection_limit_mag)
+        return min(6.5, camera.limiting_magnitude + 0.5)
+
+    def zero_point_e(self, camera: Camera) -> float:
+        """Electrons from a star of magnitude 0: ``flux(m) = zero_point * 10**(-0.4 m)``."""
+        return self.flux_for_snr(DETECTION_SNR) * 10.0 ** (0.4 * self.limit_mag(camera))
+
+    def flux_e(self, mag, camera: Camera) -> np.ndarray:
+        return self.zero_point_e(camera) * 10.0 ** (-0.4 * np.asarray(mag, dtype=float))
+
+    def saturation_adu(self) -> int:
+        return 2 ** self.bits - 1
+
+
+#: Signal-to-noise ratio that defines the detection limit of :class:`FrameModel`.
+DETECTION_SNR = 5.0
+
+
+def _pixel_fractions(centre: float, sigma: float, first: int, n: int) -> np.ndarray:
+    """Fraction of a 1-D Gaussian (centre, sigma) falling in pixels first..first+n-1 (pixel k spans k-0.5..k+0.5)."""
+    from scipy.special import erf
+
+    edges = np.arange(first, first + n + 1, dtype=float) - 0.5
+    cdf = 0.5 * (1.0 + erf((edges - centre) / (sigma * math.sqrt(2.0))))
+    return np.diff(cdf)
+
+
+def add_point_sources(image: np.ndarray, xy: np.ndarray, flux: np.ndarray, sigma: float) -> None:
+    """Add Gaussian point sources (pixel-integrated, in the project's pixel convention) to ``image`` in place."""
+    height, width = image.shape
+    half = int(math.ceil(5.0 * sigma)) + 1
+    for (x, y), f in zip(np.asarray(xy, dtype=float).reshape(-1, 2), np.asarray(flux, dtype=float)):
+        x0, y0 = int(math.floor(x)) - half, int(math.floor(y)) - half
+        n = 2 * half + 2
+        xa, ya = max(0, x0), max(0, y0)
+        xb, yb = min(width, x0 + n), min(height, y0 + n)
+        if xa >= xb or ya >= yb:
+            continue
+        fx = _pixel_fractions(x, sigma, xa, xb - xa)
+        fy = _pixel_fractions(y, sigma, ya, yb - ya)
+        image[ya:yb, xa:xb] += f * np.outer(fy, fx)
+
+
+def add_trail(image: np.ndarray, start: np.ndarray, end: np.ndarray, flux: float, sigma: float) -> None:
+    """A satellite trail: ``flux`` electrons spread evenly along the segment start-end, blurred by the PSF."""
+    length = float(np.linalg.norm(np.asarray(end, float) - np.asarray(start, float)))
+    n = max(2, int(length * 4))
+    t = np.linspace(0.0, 1.0, n)[:, None]
+    points = np.asarray(start, float) * (1 - t) + np.asarray(end, float) * t
+    add_point_sources(image, points, np.full(n, flux / n), sigma)
+
+
+def camera_hot_pixels(camera: Camera, model: FrameModel) -> list[tuple[int, int, float]]:
+    """The camera's hot pixels (x, y, excess ADU): fixed by ``model.hot_pixel_seed`` and the sensor size."""
+    rng = np.random.default_rng([model.hot_pixel_seed, camera.width, camera.height])
+    out = []
+    for _ in range(model.n_hot_pixels):
+        x, y = int(rng.integers(2, camera.width - 2)), int(rng.integers(2, camera.height - 2))
+        out.append((x, y, float(rng.uniform(*model.hot_pixel_adu))))
+    return out
+
+
+def render_frame(rng: np.random.Generator, camera: Camera, xy: np.ndarray, flux_e: np.ndarray,
+                 model: FrameModel = FrameModel(), *, hot_pixels: list[tuple[int, int, float]] | None = None,
+                 trail: tuple[np.ndarray, np.ndarray, float] | None = None) -> np.ndarray:
+    """One exposure as unsigned integers (``model.bits``): sources at ``xy`` (pixels) with ``flux_e``
+    electrons, sky, shot and read noise, bias, hot pixels (x, y, ADU), an optional trail
+    (start, end, electrons), clipped at the saturation level."""
+    electrons = np.full((camera.height, camera.width), model.sky_e, dtype=float)
+    add_point_sources(electrons, xy, flux_e, model.psf_sigma_px)
+    if trail is not None:
+        add_trail(electrons, trail[0], trail[1], trail[2], model.psf_sigma_px)
+    counts = rng.poisson(electrons).astype(float) + rng.normal(0.0, model.read_noise_e, electrons.shape)
+    adu = model.bias_adu + counts / model.gain_e_per_adu
+    for x, y, level in hot_pixels or ():
+        adu[y, x] += level
+    return np.clip(np.round(adu), 0, model.saturation_adu()).astype(np.uint16 if model.bits > 8 else np.uint8)
+
+
+def simulate_frames(rng: np.random.Generator, camera: Camera, *, n_frames: int = 4,
+                    pointing: tuple[float, float, float] | None = None, start_time: datetime | None = None,
+                    sequence_id: str | None = None, true_camera: Camera | None = None,
+                    model: FrameModel = FrameModel(), trail: bool = False,
+                    hot_pixels: bool = True) -> tuple[list[np.ndarray], list[datetime], dict]:
+    """Rendered frames of one pass, their (mid-exposure) times and the truth.
+
+    The attitudes, times and body rate are drawn by :func:`simulate_sequence` (scenario "clean",
+    ``n_frames`` snapshots, the same ``pointing``/``start_time``/``true_camera``); its spot lists
+    are not used.  Every star to ``model.limit_mag + model.render_below_limit_mag`` (at most the
+    catalogue's Hp 7.0) is drawn where the true optics put it.  ``trail``: a satellite crosses
+    one frame.  The truth is simulate_sequence's (times, rotations, body rate, true camera) plus,
+    per frame, ``frame_sources``: every drawn star (hip, mag, x, y, flux_e, snr), the hot pixels
+    (x, y, adu) and the trail (start, end); plus ``frame_model`` and ``detection_limit_mag``.
+    """
+    from dataclasses import asdict
+
+    if not 1 <= int(n_frames) <= 64:
+        raise ValueError("n_frames must be between 1 and 64")
+    _, truth = simulate_sequence(rng, camera, "clean", n_snapshots=n_frames, pointing=pointing,
+                                 start_time=start_time, sequence_id=sequence_id, true_camera=true_camera)
+    optics = camera if true_camera is None else true_camera
+    times = [datetime.fromisoformat(t.replace("Z", "+00:00")) for t in truth["times"]]
+    rotations = [np.array(R) for R in truth["rotation_matrices"]]
+    limit = model.limit_mag(camera)
+    stars = load_catalogue().brighter_than(min(CATALOGUE_FAINT_LIMIT, limit + model.render_below_limit_mag))
+    sightings = _star_sightings(optics, stars, rotations, times)
+    hot = camera_hot_pixels(camera, model) if hot_pixels else []
+    trail_frame = int(rng.integers(n_frames)) if trail else -1
+    frames, per_frame = [], []
+    for i, (idx, xy) in enumerate(sightings):
+        flux = model.flux_e(stars.mag[idx], camera)
+        streak = None
+        if i == trail_frame:
+            # Across most of the sensor at a random angle, as bright as a 3rd-magnitude star per 10 px.
+            centre = np.array([camera.width, camera.height]) * rng.uniform(0.3, 0.7, 2)
+            angle = rng.uniform(0, math.pi)
+            half = 0.4 * min(camera.width, camera.height)
+            step = np.array([math.cos(angle), math.sin(angle)]) * half
+            streak = (centre - step, centre + step, float(model.flux_e(3.0, camera)) * 2 * half / 10.0)
+        frames.append(render_frame(rng, camera, xy, flux, model, hot_pixels=hot, trail=streak))
+        sources = [{"kind": "star", "hip": int(stars.hip[k]), "mag": round(float(stars.mag[k]), 3),
+                    "x": float(p[0]), "y": float(p[1]), "flux_e": float(f), "snr": float(model.snr(f))}
+                   for k, p, f in zip(idx, xy, flux)]
+        sources += [{"kind": "hot_pixel", "x": float(x), "y": float(y), "adu": level} for x, y, level in hot]
+        if streak is not None:
+            sources.append({"kind": "trail", "start": streak[0].tolist(), "end": streak[1].tolist(),
+                            "flux_e": streak[2]})
+        per_frame.append(sources)
+    truth = {**truth, "frame_sources": per_frame, "detection_limit_mag": limit,
+             "frame_model": {key: (list(value) if isinstance(value, tuple) else value)
+                             for key, value in asdict(model).items()}}
+    truth.pop("sources", None)  # the spot lists' labels: not what the frames show
+    return frames, times, truth
+
+
+def frames_fits_bytes(frames: list[np.ndarray], times: list[datetime], *, camera: Camera | None = None,
+                      sequence_id: str | None = None, spacecraft: str | None = None,
+                      exposure_s: float = 0.2, pixel_size_um: float = 4.8) -> bytes:
+    """A multi-extension FITS file: an empty primary HDU (``SEQID``, ``SPACECRA``; with ``camera`` its
+    focal length as ``FOCALLEN`` in mm for pixels of ``XPIXSZ`` = ``pixel_size_um``) and one image
+    extension per frame, the first stored row being the sensor's top row (``ROWORDER =
+    'TOP-DOWN'``), ``DATE-OBS`` the start of the exposure and ``EXPTIME`` its length."""
+    import io
+
+    from astropy.io import fits
+
+    primary = fits.PrimaryHDU()
+    if sequence_id:
+        primary.header["SEQID"] = (sequence_id, "tubsat sequence id")
+    if spacecraft:
+        primary.header["SPACECRA"] = (spacecraft, "spacecraft")
+    if camera is not None:
+        primary.header["FOCALLEN"] = (float(camera.focal_length_px) * pixel_size_um / 1000.0, "focal length, mm")
+        primary.header["XPIXSZ"] = (pixel_size_um, "pixel width, um")
+        primary.header["YPIXSZ"] = (pixel_size_um, "pixel height, um")
+    hdus = [primary]
+    for i, (frame, t) in enumerate(zip(frames, times)):
+        hdu = fits.ImageHDU(frame, name=f"FRAME{i}")
+        start = t - timedelta(seconds=exposure_s / 2)
+        hdu.header["DATE-OBS"] = (start.strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3], "UTC start of exposure")
+        hdu.header["EXPTIME"] = (exposure_s, "exposure, s")
+        hdu.header["ROWORDER"] = ("TOP-DOWN", "first stored row is the sensor's top row")
+        hdus.append(hdu)
+    stream = io.BytesIO()
+    fits.HDUList(hdus).writeto(stream)
+    return stream.getvalue()
+
+
+def frame_png_bytes(frame: np.ndarray) -> bytes:
+    """One frame as a PNG (16-bit greyscale for 16-bit frames, 8-bit otherwise); row 0 on top."""
+    import io
+
+    from PIL import Image
+
+    stream = io.BytesIO()
+    array = np.ascontiguousarray(frame)
+    image = Image.fromarray(array.astype(np.uint16) if array.dtype != np.uint8 else array)
+    image.save(stream, format="PNG")
+    return stream.getvalue()
+
+
+def frames_sidecar(files: list[str], times: list[datetime], camera: Camera, *, sequence_id: str | None = None,
+                   spacecraft: str | None = None) -> dict:
+    """The ``tubsat-frames/1`` sidecar (docs/formats.md) naming each file with its time and the camera."""
+    doc: dict = {"format": "tubsat-frames/1"}
+    if sequence_id:
+        doc["sequence_id"] = sequence_id
+    if spacecraft:
+        doc["spacecraft"] = spacecraft
+    doc["camera"] = camera.to_dict()
+    doc["frames"] = [{"file": name, "time": utc_text(t)} for name, t in zip(files, times)]
+    return doc
+
+
+def write_frames(outdir: Path, n: int, seed: int, camera_name: str | None, *, form: str = "fits",
+                 n_frames: int = 4, name: str | None = None, start_time: datetime | None = None,
+                 trail: bool = False, focal_error: float = 0.0, k1: float | None = None) -> list[Path]:
+    """Write ``n`` rendered passes: ``<id>.fits`` (one extension per frame, times and optics in its
+    headers) or ``<id>/frame-NN.png`` plus
+    ``<id>/frames.json`` (the sidecar), and ``<id>.truth.json``.  Pass ``i`` draws from
+    ``default_rng([seed, i, 15])``.  Returns the paths written."""
+    if form not in ("fits", "png"):
+        raise ValueError("form must be 'fits' or 'png'")
+    if n < 1:
+        raise ValueError("n must be at least 1")
+    if name is not None and (not name or Path(name).name != name or name.startswith(".")):
+        raise ValueError(f"name {name!r} must be a plain file name (no directory, not hidden)")
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for i in range(n):
+        camera = camera_cycle(camera_name, i)
+        true_camera = true_optics(camera, focal_error=focal_error, k1=k1)
+        sequence_id = (name if n == 1 else f"{name}-{i:04d}") if name else f"frames-{seed}-{i:04d}"
+        frames, times, truth = simulate_frames(np.random.default_rng([seed, i, 15]), camera, n_frames=n_frames,
+                                               sequence_id=sequence_id, start_time=start_time,
+                                               true_camera=true_camera, trail=trail)
+        if form == "fits":
+            data_path = outdir / f"{sequence_id}.fits"
+            # Self-contained: times, optics, sequence id and spacecraft in the headers.
+            data_path.write_bytes(frames_fits_bytes(frames, times, camera=camera, sequence_id=sequence_id,
+                                                    spacecraft="SIM-TUBSAT"))
+            paths.append(data_path)
+        else:
+            folder = outdir / sequence_id
+            folder.mkdir(exist_ok=True)
+            files = [f"frame-{k:02d}.png" for k in range(len(frames))]
+            for file, frame in zip(files, frames):
+                (folder / file).write_bytes(frame_png_bytes(frame))
+                paths.append(folder / file)
+            sidecar_path = folder / "frames.json"
+            sidecar_path.write_text(to_json_text(frames_sidecar(files, times, camera, sequence_id=sequence_id,
+                                                                spacecraft="SIM-TUBSAT")), encoding="utf-8")
+            paths.append(sidecar_path)
+        truth_path = outdir / f"{sequence_id}.truth.json"
+        truth_path.write_text(to_json_text(truth), encoding="utf-8")
+        paths.append(truth_path)
+    return paths

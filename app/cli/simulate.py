@@ -4,6 +4,12 @@ Writes ``<id>.json`` (tubsat-snapshots/1) or, with ``--csv``, ``<id>.csv``,
 and ``<id>.truth.json`` for each sequence; prints the paths written.
 The same arguments give the same files byte for byte.
 
+``--frames fits|png`` (issue 15) renders whole frames instead of spot lists: ``<id>.fits``
+(one image extension per frame; times and optics in the headers) or a folder ``<id>/`` of
+16-bit PNGs with its ``frames.json`` sidecar, plus ``<id>.truth.json`` (every drawn star's exact
+position, flux and SNR, the hot pixels, the trail).  ``--frames-per-pass`` frames each
+(default 4), ``--trail`` puts a satellite trail in one of them.
+
 ``--focal-error``, ``--k1``, ``--k2``, ``--corner-distortion``, ``--cx-offset``,
 ``--cy-offset``: the true optics differ from the camera the files declare
 (the truth file says how, under ``true_camera``).
@@ -74,6 +80,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--name", default=None,
                         help="sequence id and file name (NAME.json, or NAME-0000.json ... when --n > 1)")
     parser.add_argument("--csv", action="store_true", help="write the CSV form instead of JSON")
+    frames = parser.add_argument_group("full frames (issue 15)", "rendered images instead of spot lists")
+    frames.add_argument("--frames", choices=("fits", "png"), default=None,
+                        help="render frames: one multi-extension FITS per pass, or a folder of PNGs + frames.json")
+    frames.add_argument("--frames-per-pass", type=_int_at_least(1), default=4, metavar="N",
+                        help="frames per pass, 1 to 64 (default 4)")
+    frames.add_argument("--trail", action="store_true", help="a satellite trail crosses one frame of each pass")
     optics = parser.add_argument_group(
         "true optics", "the sky is projected with these while the files declare the nominal camera")
     optics.add_argument("--focal-error", type=_finite_float, default=0.0, metavar="F",
@@ -95,6 +107,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from app.simulate import write_simulation
 
+    if args.frames:
+        return _run_frames(args)
+
     try:
         paths = write_simulation(args.outdir, args.n, args.seed, args.camera, args.scenario,
                                  name=args.name, csv=args.csv, planet=args.planet,
@@ -104,6 +119,26 @@ def run(args: argparse.Namespace) -> int:
     except ImportError:
         print("error: the CSV writer (app.telemetry.formats.dump_csv) is not available", file=sys.stderr)
         return 2
+    except (OSError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for path in paths:
+        print(path)
+    return 0
+
+
+def _run_frames(args: argparse.Namespace) -> int:
+    """``--frames``: rendered passes (scenario, planet, CSV and k2/offsets do not apply to frames)."""
+    from app.simulate import write_frames
+
+    if args.csv or args.k2 is not None or args.cx_offset or args.cy_offset or args.corner_distortion is not None:
+        print("error: --frames takes --focal-error and --k1 for the true optics; not --csv, --k2, "
+              "--corner-distortion or the principal point offsets", file=sys.stderr)
+        return 2
+    try:
+        paths = write_frames(args.outdir, args.n, args.seed, args.camera, form=args.frames,
+                             n_frames=args.frames_per_pass, name=args.name, start_time=args.start_time,
+                             trail=args.trail, focal_error=args.focal_error, k1=args.k1)
     except (OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

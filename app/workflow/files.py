@@ -23,13 +23,33 @@ from app.workflow.documents import CandidateDocument, ExtractDocument, Extractio
 AGREE_DEG = 0.1
 
 
-def telemetry_files(paths: list[str]) -> Iterator[tuple[str, Sequence | None, TelemetryError | None]]:
-    """``(path, sequence, None)`` for each file that parses, ``(path, None, error)`` for each that does not."""
+def telemetry_files(paths: list[str], *, fov_deg: float | None = None
+                    ) -> Iterator[tuple[str, Sequence | None, TelemetryError | None]]:
+    """``(path, sequence, None)`` for each file that parses, ``(path, None, error)`` for each that does not.
+
+    An image file or a folder of frames is one pass (see :func:`_load`); ``fov_deg`` gives its optics.
+    """
     for path in paths:
         try:
-            yield path, load_telemetry_file(path), None
+            yield path, _load(path, fov_deg), None
         except TelemetryError as exc:
             yield path, None, exc
+
+
+# --- image files and folders of frames (issue 15) ------------------------------------------------
+
+def _load(path: str, fov_deg: float | None) -> Sequence:
+    """Spot-list telemetry, or (an image file, a folder of images) the pass of frames it holds."""
+    from app.workflow.frames import frames_sequence_from_path, is_frames_path
+
+    if not is_frames_path(path):
+        return load_telemetry_file(path)
+    try:
+        return frames_sequence_from_path(path, fov_deg=fov_deg)
+    except TelemetryError as exc:
+        if exc.filename is not None:
+            raise
+        raise TelemetryError(exc.problems, filename=path, truncated=exc.truncated) from None
 
 
 def extract_document(path: str, sequence: Sequence) -> ExtractDocument:

@@ -1,0 +1,389 @@
+"""Frames of one pass -> one :class:`app.telemetry.Sequence` (the same downstream as spot lists).
+
+:func:`frames_to_sequence` reads every file (:mod:`app.frames.images`), detects and centroids
+each frame (:mod:`app.frames.detect`), counts hot-pixel candidates into the camera's map
+(:mod:`app.frames.hotpixels`), drops detections on hot pixels, keeps the ``max_sources``
+brightest stars of each frame, orders the frames by time and writes the result as a
+`tubsat-snapshots/1` document, which :func:`app.telemetry.parse_telemetry` validates like any
+upload.  The document carries a top-level ``frames`` block (kept by the format as an unknown
+top-level key): the frames' content hash, the detector and its options, and per frame its file,
+hash, size, noise, what was detected and what was rejected and why.
+
+Times come from the sidecar (``tubsat-frames/1``, docs/formats.md) or the FITS headers
+(DATE-AVG, DATE-OBS + EXPTIME/2, MJD-OBS); optics from the sidecar's camera block, a field of
+view (sidecar ``fov_deg`` or the caller's ``fov_deg``) or the FITS header (FOCALLEN + XPIXSZ, or
+a WCS scale).  A field of view gives a camera with ``focal_length_tolerance`` 0.05: the
+identification searches focal lengths within +-5 % (:mod:`app.identification.optics`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import re
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+
+import numpy as np
+
+from app.frames.detect import DetectionError, DetectionOptions, Detections, detect
+from app.frames.hotpixels import HotPixelMap, near_hot_pixel, stationary_candidates
+from app.frames.images import Frame, FrameLimits, file_sha256, read_frames
+from app.telemetry.errors import Problem, ProblemCollector, TelemetryError
+from app.telemetry.formats import dump_json, parse_telemetry
+from app.telemetry.model import FORMAT_NAME, Sequence
+from app.timefmt import utc_text
+
+SIDECAR_FORMAT = "tubsat-frames/1"
+#: Focal length tolerance declared for optics given only as a field of view or a header focal length.
+FOV_FOCAL_TOLERANCE = 0.05
+#: Rejected blobs listed per frame in the ``frames`` block (the brightest).
+MAX_REJECTED_LISTED = 32
+_SIDECAR_KEYS = ("format", "sequence_id", "spacecraft", "camera", "fov_deg", "frames", "max_sources",
+                 "threshold_sigma", "velocity_km_s")
+_SIDECAR_FRAME_KEYS = ("file", "time", "part")
+_ID_RE = re.compile(r"[^A-Za-z0-9._+-]+")
+
+
+class FramesTimeout(Exception):
+    """Reading and detecting the pass took longer than its budget."""
+
+
+@dataclass(frozen=True)
+class Sidecar:
+    """A validated ``tubsat-frames/1`` sidecar."""
+
+    sequence_id: str | None = None
+    spacecraft: str | None = None
+    camera: dict | str | None = None
+    fov_deg: float | None = None
+    #: (file, part) -> time; part None: every image of the file (a FITS file's HDUs need their own).
+    times: dict[tuple[str, int | None], datetime] = field(default_factory=dict)
+    max_sources: int | None = None
+    threshold_sigma: float | None = None
+    velocity_km_s: list | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class FramePass:
+    """The result: the sequence, its document text, the camera's updated hot-pixel map, per-frame detections."""
+
+    sequence: Sequence
+    raw_text: str
+    hot_map: HotPixelMap
+    detections: list[Detections]
+    frames_sha256: str
+    #: Per frame (time order), the hot-pixel candidates counted into ``hot_map``.
+    candidates: list[list[tuple[int, int]]] = field(default_factory=list)
+
+
+def _sidecar_time(value, loc: str, problems: ProblemCollector) -> datetime | None:
+    if not isinstance(value, str):
+        problems.add(loc, "must be an ISO 8601 time string such as 2024-03-12T21:04:10.000Z")
+        return None
+    try:
+        t = datetime.fromisoformat(value.strip().removesuffix("Z").removesuffix("z"))
+    except ValueError:
+        problems.add(loc, f"not an ISO 8601 time: {value[:40]!r}")
+        return None
+    t = t.replace(tzinfo=timezone.utc) if t.tzinfo is None else t.astimezone(timezone.utc)
+    if not 1900 <= t.year <= 2099:
+        problems.add(loc, "outside the supported years 1900 to 2099")
+        return None
+    return t
+
+
+def parse_sidecar(data: bytes | str, name: str = "sidecar") -> Sidecar:
+    """Validate a sidecar; TelemetryError with problems located as ``sidecar.frames[2].time``."""
+    try:
+        text = data.decode("utf-8") if isinstance(data, (bytes, bytearray)) else data
+        doc = json.loads(text)
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise TelemetryError.at(name, f"not valid JSON ({str(exc)[:120]})") from None
+    if not isinstance(doc, dict):
+        raise TelemetryError.at(name, "must be a JSON object")
+    problems = ProblemCollector()
+    for key in doc:
+        if key not in _SIDECAR_KEYS:
+            problems.add(f"{name}.{key}", "unknown key; expected " + ", ".join(_SIDECAR_KEYS))
+    if doc.get("format", SIDECAR_FORMAT) != SIDECAR_FORMAT:
+        problems.add(f"{name}.format", f"must be {SIDECAR_FORMAT!r}")
+    texts = {}
+    for key in ("sequence_id", "spacecraft"):
+        value = doc.get(key)
+        if value is not None and (not isinstance(value, str) or not value.strip() or len(value) > 128):
+            problems.add(f"{name}.{key}", "must be a non-empty string of at most 128 characters")
+        else:
+            texts[key] = value.strip() if isinstance(value, str) else None
+    camera = doc.get("camera")
+    if camera is not None and not isinstance(camera, (dict, str)):
+        problems.add(f"{name}.camera", "must be a camera object or a camera name")
+    fov = _bounded_number(doc, "fov_deg", name, problems, 0.1, 120.0)
+    max_sources = doc.get("max_sources")
+    if max_sources is not None and (isinstance(max_sources, bool) or not isinstance(max_sources, int)
+                                    or not 3 <= max_sources <= 64):
+        problems.add(f"{name}.max_sources", "must be an integer from 3 to 64")
+        max_sources = None
+    threshold = _bounded_number(doc, "threshold_sigma", name, problems, 2.0, 100.0)
+    times: dict[tuple[str, int | None], datetime] = {}
+    frames = doc.get("frames", [])
+    if not isinstance(frames, list):
+        problems.add(f"{name}.frames", "must be an array of {\"file\", \"time\"} objects")
+        frames = []
+    for i, entry in enumerate(frames):
+        loc = f"{name}.frames[{i}]"
+        if not isinstance(entry, dict):
+            problems.add(loc, "must be an object {\"file\", \"time\"}")
+            continue
+        for key in entry:
+            if key not in _SIDECAR_FRAME_KEYS:
+                problems.add(f"{loc}.{key}", "unknown key; expected file, time, part")
+        file = entry.get("file")
+        if not isinstance(file, str) or not file.strip():
+            problems.add(f"{loc}.file", "must be the image's file name")
+            continue
+        part = entry.get("part")
+        if part is not None and (isinstance(part, bool) or not isinstance(part, int) or part < 0):
+            problems.add(f"{loc}.part", "must be the HDU (FITS) or page (TIFF) number, >= 0")
+            continue
+        t = _sidecar_time(entry.get("time"), f"{loc}.time", problems)
+        key = (_base_name(file), part)
+        if key in times:
+            problems.add(f"{loc}.file", f"{file!r} is listed twice")
+        elif t is not None:
+            times[key] = t
+    problems.raise_if_any()
+    return Sidecar(sequence_id=texts.get("sequence_id"), spacecraft=texts.get("spacecraft"), camera=camera,
+                   fov_deg=fov, times=times, max_sources=max_sources, threshold_sigma=threshold,
+                   velocity_km_s=doc.get("velocity_km_s"))
+
+
+def _bounded_number(doc: dict, key: str, name: str, problems: ProblemCollector, low: float, high: float):
+    value = doc.get(key)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+            or not low <= value <= high:
+        problems.add(f"{name}.{key}", f"must be a number from {low:g} to {high:g}")
+        return None
+    return float(value)
+
+
+def _base_name(name: str) -> str:
+    return re.split(r"[\\/]", name)[-1]
+
+
+def frames_content_sha256(file_hashes: list[str]) -> str:
+    """The frames' content hash: SHA-256 of their files' SHA-256s, sorted (names and order do not count)."""
+    return hashlib.sha256("\n".join(sorted(file_hashes)).encode()).hexdigest()
+
+
+@dataclass
+class _Measured:
+    frame_location: str
+    file: str
+    part: int | None
+    time: datetime
+    width: int
+    height: int
+    bits: int
+    detections: Detections
+    sha256: str
+
+
+def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | None = None,
+                       sequence_id: str | None = None, spacecraft: str | None = None,
+                       fov_deg: float | None = None, default_id: str | None = None,
+                       options: DetectionOptions | None = None, hot_map: HotPixelMap | None = None,
+                       limits: FrameLimits | None = None, deadline: float | None = None,
+                       decoded: list[Frame] | None = None) -> FramePass:
+    """One pass of frames -> its Sequence (see the module).  ``files``: (name, bytes), any order.
+
+    ``sequence_id``, ``spacecraft``, ``fov_deg`` given here win over the sidecar's, which win over
+    the FITS headers'; the id falls back to ``default_id``, then the first file's stem.
+    ``hot_map``: the camera's stored map (applied before detection when its sensor size matches).
+    ``deadline``: a ``time.monotonic()`` value; past it :class:`FramesTimeout` is raised between frames.
+    ``decoded``: frames already read (``files`` then empty; their hash is their pixels'), for benchmarks.
+    Raises TelemetryError (located) for anything invalid.
+    """
+    limits = limits or FrameLimits()
+    sidecar = sidecar or Sidecar()
+    base = options or DetectionOptions()
+    options = DetectionOptions(**{**base.to_dict(),
+                                  **({"max_sources": sidecar.max_sources} if sidecar.max_sources else {}),
+                                  **({"threshold_sigma": sidecar.threshold_sigma} if sidecar.threshold_sigma else {})})
+    if decoded is not None:  # no file, no hash: the location stands for both
+        files = [(frame.location, frame.location.encode()) for frame in decoded]
+    if not files:
+        raise TelemetryError.at("files", "no image file given")
+    if len(files) > limits.max_frames:
+        raise TelemetryError.at("files", f"{len(files)} files; at most {limits.max_frames} frames per pass")
+    total = sum(len(data) for _, data in files)
+    if total > limits.max_bytes:
+        raise TelemetryError.at("files", f"{total} bytes; at most {limits.max_bytes} per pass (STARID_FRAMES_MAX_BYTES)")
+    names = [_base_name(name) for name, _ in files]
+    if len(set(names)) != len(names):
+        raise TelemetryError.at("files", "two files have the same name: " +
+                                next(n for n in names if names.count(n) > 1))
+    listed = {file for file, _ in sidecar.times}
+    unknown = sorted(listed - set(names))
+    if unknown:
+        raise TelemetryError.at("sidecar.frames", f"names file(s) not given: {', '.join(unknown[:5])}")
+    measured: list[_Measured] = []
+    first_meta: dict = {}
+    size: tuple[int, int] | None = None
+    pixels_total = 0
+    prior_hot = hot_map.hot if hot_map is not None else []
+    def frames_of(index: int, data: bytes, short: str):
+        return iter([decoded[index]]) if decoded is not None else read_frames(data, short, limits)
+
+    for index, ((name, data), short) in enumerate(zip(files, names)):
+        digest = file_sha256(data)
+        for frame in frames_of(index, data, short):
+            if deadline is not None and time.monotonic() > deadline:
+                raise FramesTimeout(f"reading and detecting the frames took longer than {limits.timeout_s:g} s")
+            if size is None:
+                size = (frame.width, frame.height)
+                first_meta = frame.meta
+                if hot_map is not None and (hot_map.width, hot_map.height) != size:
+                    prior_hot = []
+            elif (frame.width, frame.height) != size:
+                raise TelemetryError.at(frame.location, f"{frame.width} x {frame.height} pixels, but the first frame "
+                                                        f"is {size[0]} x {size[1]}: one pass, one camera")
+            if len(measured) >= limits.max_frames:
+                raise TelemetryError.at(frame.location, f"more than {limits.max_frames} frames in the pass")
+            pixels_total += frame.width * frame.height
+            if pixels_total > limits.max_total_pixels:
+                raise TelemetryError.at(frame.location, f"the frames hold more than {limits.max_total_pixels} pixels "
+                                                        "in all (STARID_FRAMES_MAX_TOTAL_PIXELS)")
+            when = sidecar.times.get((short, frame.part), sidecar.times.get((short, None)))
+            if when is None:
+                when = frame.time
+            if when is None:
+                raise TelemetryError.at(f"{frame.location}.time",
+                                        "no time: give DATE-OBS (FITS) or list the file with its time in the sidecar")
+            try:
+                found = detect(frame.pixels, options, saturation=frame.saturation, hot_pixels=prior_hot)
+            except DetectionError as exc:
+                raise TelemetryError.at(frame.location, str(exc)) from None
+            measured.append(_Measured(frame.location, short, frame.part, when, frame.width, frame.height,
+                                      frame.bits, found, digest))
+    if deadline is not None and time.monotonic() > deadline:
+        raise FramesTimeout(f"reading and detecting the frames took longer than {limits.timeout_s:g} s")
+    measured.sort(key=lambda m: m.time)
+    for earlier, later in zip(measured, measured[1:]):
+        if later.time == earlier.time:
+            raise TelemetryError.at(f"{later.frame_location}.time",
+                                    f"the same time as {earlier.frame_location} ({utc_text(later.time)}): "
+                                    "each frame needs its own time")
+    width, height = size
+    start_map = hot_map if hot_map is not None and (hot_map.width, hot_map.height) == size \
+        else HotPixelMap.empty(width, height)
+    stars = [np.flatnonzero(m.detections.is_star) for m in measured]
+    stationary = stationary_candidates([[tuple(int(v) for v in m.detections.peak_pixel[k]) for k in ks]
+                                        for m, ks in zip(measured, stars)],
+                                       [m.detections.xy[ks] for m, ks in zip(measured, stars)])
+    candidates = [m.detections.hot_pixel_candidates() + still for m, still in zip(measured, stationary)]
+    updated = start_map.with_frames(candidates)
+    hot = updated.hot
+    camera, optics_from = _camera_block(sidecar, fov_deg, first_meta, width, height)
+    snapshots, reports = [], []
+    for i, m in enumerate(measured):
+        d = m.detections
+        on_hot = near_hot_pixel(d.peak_pixel, hot, radius_px=1.0) if len(d) else np.zeros(0, bool)
+        usable = d.is_star & ~on_hot
+        kept = np.flatnonzero(usable)[:options.max_sources]
+        snapshots.append({"index": i, "time": utc_text(m.time),
+                          "sources": [{"x": round(float(d.xy[k, 0]), 3), "y": round(float(d.xy[k, 1]), 3),
+                                       "brightness": round(float(d.flux[k]), 2)} for k in kept]})
+        rejected = []
+        for k in range(len(d)):
+            reasons = [f for f in d.flags[k] if f in ("hot_pixel", "elongated", "extended")]
+            if on_hot[k] and "hot_pixel" not in reasons:
+                reasons.append("mapped_hot_pixel")
+            if reasons and len(rejected) < MAX_REJECTED_LISTED:
+                rejected.append([round(float(d.xy[k, 0]), 2), round(float(d.xy[k, 1]), 2), "+".join(reasons)])
+        reports.append({"file": m.file, "part": m.part, "sha256": m.sha256, "width": m.width, "height": m.height,
+                        "bits": m.bits, "background": round(d.background, 3), "noise": round(d.noise, 4),
+                        "detected": len(d), "kept": len(kept),
+                        "saturated_kept": int(sum("saturated" in d.flags[k] for k in kept)),
+                        "rejected": rejected})
+    frames_sha = frames_content_sha256(sorted({m.sha256 for m in measured}))
+    import sep
+
+    doc = {
+        "format": FORMAT_NAME,
+        "sequence_id": _sequence_id(sequence_id or sidecar.sequence_id or first_meta.get("sequence_id")
+                                    or default_id or names[0]),
+        "spacecraft": spacecraft or sidecar.spacecraft or first_meta.get("spacecraft"),
+        "camera": camera,
+        "snapshots": snapshots,
+        "frames": {"format": SIDECAR_FORMAT, "content_sha256": frames_sha, "detector": f"sep {sep.__version__}",
+                   "options": options.to_dict(), "optics_from": optics_from,
+                   "hot_pixel_map": {"version": start_map.version, "hot_pixels": len(hot),
+                                     "frames_counted": updated.frames},
+                   "frames": reports},
+    }
+    if doc["spacecraft"] is None:
+        del doc["spacecraft"]
+    if sidecar.velocity_km_s is not None:
+        doc["velocity_km_s"] = sidecar.velocity_km_s
+    text = json.dumps(doc)
+    try:
+        sequence = parse_telemetry(text, max_bytes=len(text.encode()) + 1)
+    except TelemetryError as exc:
+        raise _relocated(exc, camera_from_sidecar=isinstance(sidecar.camera, (dict, str))) from None
+    return FramePass(sequence=sequence, raw_text=dump_json(sequence), hot_map=updated,
+                     detections=[m.detections for m in measured], frames_sha256=frames_sha, candidates=candidates)
+
+
+def _sequence_id(text: str) -> str:
+    """A file stem or name reduced to an id: extension dropped, odd characters as '-'."""
+    stem = re.sub(r"\.(fits|fit|fts|png|jpe?g|tiff?)$", "", text.strip(), flags=re.IGNORECASE)
+    return (_ID_RE.sub("-", stem).strip("-") or "frames")[:128]
+
+
+def camera_for_fov(width: int, height: int, fov_deg: float) -> dict:
+    """A camera block for a horizontal field of view across ``width`` (centred principal point, +-5 %)."""
+    focal = (width / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
+    return {"width": width, "height": height, "focal_length_px": round(focal, 3), "cx": (width - 1) / 2.0,
+            "cy": (height - 1) / 2.0, "focal_length_tolerance": FOV_FOCAL_TOLERANCE}
+
+
+def _camera_block(sidecar: Sidecar, fov_deg: float | None, meta: dict, width: int, height: int):
+    """(camera block or name, where the optics came from)."""
+    if fov_deg is not None:
+        if not (isinstance(fov_deg, (int, float)) and math.isfinite(fov_deg) and 0.1 <= fov_deg <= 120.0):
+            raise TelemetryError.at("fov_deg", f"must be a number from 0.1 to 120 degrees, got {fov_deg!r}")
+        return camera_for_fov(width, height, float(fov_deg)), f"fov_deg {float(fov_deg):g}"
+    if isinstance(sidecar.camera, dict):
+        problems = ProblemCollector()
+        for key, size in (("width", width), ("height", height)):
+            if key in sidecar.camera and sidecar.camera[key] != size:
+                problems.add(f"sidecar.camera.{key}", f"{sidecar.camera[key]!r}, but the frames are {width} x {height}")
+        problems.raise_if_any()
+        return {"width": width, "height": height, **sidecar.camera}, "sidecar camera"
+    if isinstance(sidecar.camera, str):
+        return sidecar.camera, f"camera {sidecar.camera}"
+    if sidecar.fov_deg is not None:
+        return camera_for_fov(width, height, sidecar.fov_deg), f"sidecar fov_deg {sidecar.fov_deg:g}"
+    if meta.get("focal_length_px"):
+        focal = float(meta["focal_length_px"])
+        return ({"width": width, "height": height, "focal_length_px": round(focal, 3), "cx": (width - 1) / 2.0,
+                 "cy": (height - 1) / 2.0, "focal_length_tolerance": FOV_FOCAL_TOLERANCE}, meta["optics_from"])
+    raise TelemetryError.at("camera", "the optics are unknown: give a camera block or fov_deg in the sidecar "
+                                      "(or the fov_deg field / --fov-deg), or FOCALLEN and XPIXSZ or a WCS "
+                                      "scale in the FITS header")
+
+
+def _relocated(exc: TelemetryError, camera_from_sidecar: bool) -> TelemetryError:
+    """Problems of the generated document located where the user can fix them (the sidecar's camera)."""
+    problems = []
+    for p in exc.problems:
+        location = p.location
+        if camera_from_sidecar and location.startswith("camera"):
+            location = "sidecar." + location
+        problems.append(Problem(location, p.message))
+    return TelemetryError(problems, truncated=exc.truncated)

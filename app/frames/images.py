@@ -1,0 +1,414 @@
+"""Reading star-camera frames: FITS (astropy) and PNG/JPEG/TIFF, 8 and 16 bit (Pillow).
+
+:func:`read_frames` turns one file's bytes into :class:`Frame` objects, one per
+image: a FITS file gives one frame per image HDU (a multi-extension FITS is a
+whole pass), a multi-page TIFF one per page, anything else one.  Frames are
+produced lazily, one at a time, so a pass of many large frames never sits in
+memory decoded all at once.
+
+Bad input never escapes as a library exception: every problem becomes a
+:class:`~app.telemetry.errors.TelemetryError` located at the file (and HDU
+or page), e.g. ``frames/b.png: not a readable image (cannot identify image
+file)`` or ``pass.fits[3]: 3-D image (NAXIS = 3); a frame is 2-D``.
+
+Pixel convention (README "Conventions"): the returned ``pixels[row, col]``
+has row 0 at the top of the sensor, so pixel (x=col, y=row) has its centre at
+(x, y) and (0, 0) is the centre of the top-left pixel.  PNG, JPEG and TIFF
+store the top row first.  FITS images are stored bottom row first *by display
+convention*, but cameras write their first read-out (top) row first and say
+so with ``ROWORDER = 'TOP-DOWN'``; a frame with ``ROWORDER = 'BOTTOM-UP'`` is
+flipped.  A missing ROWORDER is taken as TOP-DOWN (what star-camera capture
+software writes).  A mirrored frame is not a rotated sky: identification
+would fail, so this matters.
+
+Why Pillow (not imageio): it is the library imageio itself uses for these
+formats, already installed with this project (viser -> imageio -> Pillow),
+reads 16-bit greyscale PNG and TIFF natively (modes ``I;16``), and gives the
+image size from the header before decoding, so oversized frames are refused
+before any pixel is decoded (its own decompression-bomb guard stays on).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import math
+import os
+import re
+import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from datetime import datetime, timedelta, timezone
+
+import numpy as np
+
+from app.config import MAX_SNAPSHOTS
+from app.telemetry.errors import TelemetryError
+
+#: File name endings read as images (lower case).
+FITS_SUFFIXES = (".fits", ".fit", ".fts", ".fits.gz", ".fit.gz")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+ALL_SUFFIXES = FITS_SUFFIXES + IMAGE_SUFFIXES
+_FITS_MAGIC = b"SIMPLE  ="
+_GZIP_MAGIC = b"\x1f\x8b"
+
+
+def _env_int(name: str, default: int) -> int:
+    try:
+        return int(os.environ.get(name, default))
+    except ValueError:
+        return default
+
+
+def _env_float(name: str, default: float) -> float:
+    try:
+        return float(os.environ.get(name, default))
+    except ValueError:
+        return default
+
+
+@dataclass(frozen=True)
+class FrameLimits:
+    """Bounds on the work one pass of frames may cause (environment variables in brackets)."""
+
+    #: Pixels of one frame (STARID_FRAMES_MAX_PIXELS; 16 Mpx: a 4k x 4k sensor).
+    max_pixels_per_frame: int = field(default_factory=lambda: _env_int("STARID_FRAMES_MAX_PIXELS", 16_000_000))
+    #: Frames of one pass: a sequence holds at most as many snapshots.
+    max_frames: int = MAX_SNAPSHOTS
+    #: Pixels of all frames of one pass (STARID_FRAMES_MAX_TOTAL_PIXELS).
+    max_total_pixels: int = field(
+        default_factory=lambda: _env_int("STARID_FRAMES_MAX_TOTAL_PIXELS", 128_000_000))
+    #: Bytes of all files of one upload (STARID_FRAMES_MAX_BYTES; 128 MiB).
+    max_bytes: int = field(default_factory=lambda: _env_int("STARID_FRAMES_MAX_BYTES", 128 * 1024 * 1024))
+    #: Wall-clock budget of reading and detecting one pass, seconds (STARID_FRAMES_TIMEOUT_S).
+    timeout_s: float = field(default_factory=lambda: _env_float("STARID_FRAMES_TIMEOUT_S", 60.0))
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One image: pixels (float32, row 0 on top) and what its file says about it."""
+
+    pixels: np.ndarray
+    #: Where it came from, for messages: ``a.png``, ``pass.fits[2]``, ``scan.tiff[page 1]``.
+    location: str
+    #: The file name alone (the sidecar names files, not HDUs).
+    file: str
+    #: HDU number (FITS) or page (TIFF) within the file, None for single-image files.
+    part: int | None
+    #: Mid-exposure time from the file's own metadata (FITS), None when it has none.
+    time: datetime | None
+    #: Pixel value at and above which a pixel is saturated (None: unknown, e.g. float images).
+    saturation: float | None
+    #: Bits per pixel of the stored data (8, 16, 32, -32 for float...).
+    bits: int
+    #: What the header says about the optics and the pass (focal_length_px, spacecraft, sequence_id...).
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def width(self) -> int:
+        return int(self.pixels.shape[1])
+
+    @property
+    def height(self) -> int:
+        return int(self.pixels.shape[0])
+
+
+def looks_like_image(name: str, head: bytes = b"") -> bool:
+    """True for a file name ending like an image, or bytes starting like FITS, PNG, JPEG or TIFF."""
+    lower = name.lower()
+    if lower.endswith(ALL_SUFFIXES):
+        return True
+    return head.startswith((_FITS_MAGIC, b"\x89PNG", b"\xff\xd8\xff", b"II*\x00", b"MM\x00*"))
+
+
+def file_sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def read_frames(data: bytes, name: str, limits: FrameLimits | None = None) -> Iterator[Frame]:
+    """The frames of one file, lazily.  Raises TelemetryError (located at ``name``) for anything unreadable."""
+    limits = limits or FrameLimits()
+    raw = bytes(data)
+    if not raw:
+        raise TelemetryError.at(name, "the file is empty")
+    lower = name.lower()
+    if raw.startswith(_FITS_MAGIC) or (lower.endswith(FITS_SUFFIXES) and not raw.startswith(_GZIP_MAGIC)):
+        yield from _fits_frames(raw, name, limits)
+    elif raw.startswith(_GZIP_MAGIC) and lower.endswith(FITS_SUFFIXES):
+        raise TelemetryError.at(name, "compressed (.gz) FITS files are not accepted: send the .fits itself")
+    else:
+        yield from _pillow_frames(raw, name, limits)
+
+
+# ---------------------------------------------------------------------------
+# FITS
+# ---------------------------------------------------------------------------
+
+def _fits_frames(raw: bytes, name: str, limits: FrameLimits) -> Iterator[Frame]:
+    from astropy.io import fits
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            hdul = fits.open(io.BytesIO(raw), memmap=False, lazy_load_hdus=True)
+    except Exception as exc:  # noqa: BLE001 - astropy raises OSError, ValueError, TypeError... for bad files
+        raise TelemetryError.at(name, f"not a readable FITS file ({_reason(exc)})") from None
+    found = 0
+    try:
+        primary: dict = {}
+        index = 0
+        while True:
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    hdu = hdul[index]
+            except IndexError:
+                break
+            except Exception as exc:  # noqa: BLE001 - a truncated or corrupt HDU
+                raise TelemetryError.at(f"{name}[{index}]", f"unreadable HDU ({_reason(exc)})") from None
+            header = hdu.header
+            if index == 0:
+                primary = {key: header[key] for key in header if key}
+            location = f"{name}[{index}]"
+            naxis = int(header.get("NAXIS", 0) or 0)
+            is_image = hdu.is_image if hasattr(hdu, "is_image") else False
+            if is_image and naxis > 0:
+                shape = [int(header.get(f"NAXIS{k}", 0) or 0) for k in range(1, naxis + 1)]
+                extra_axes = [n for n in shape[2:] if n != 1]
+                if naxis < 2 or extra_axes:
+                    raise TelemetryError.at(location, f"{naxis}-D image (NAXIS = {naxis}, sizes {shape}); "
+                                                      "a frame is 2-D")
+                width, height = shape[0], shape[1]
+                _check_size(width, height, location, limits)
+                found += 1
+                if found > limits.max_frames:
+                    raise TelemetryError.at(name, f"more than {limits.max_frames} frames in one file")
+                try:
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore")
+                        pixels = np.asarray(hdu.data, dtype=np.float32).reshape(height, width)
+                except Exception as exc:  # noqa: BLE001 - truncated data, bad BSCALE...
+                    raise TelemetryError.at(location, f"the image data cannot be read ({_reason(exc)})") from None
+                merged = {**primary, **{key: header[key] for key in header if key}}
+                order = str(merged.get("ROWORDER", "TOP-DOWN")).strip().upper()
+                if order == "BOTTOM-UP":
+                    pixels = np.ascontiguousarray(pixels[::-1])
+                elif order != "TOP-DOWN":
+                    raise TelemetryError.at(location, f"ROWORDER = {order!r}; expected 'TOP-DOWN' or 'BOTTOM-UP'")
+                pixels = _finite(pixels, location)
+                bits = int(header.get("BITPIX", -32))
+                yield Frame(pixels=pixels, location=location, file=name, part=index,
+                            time=_fits_time(merged, location), saturation=_fits_saturation(merged, bits),
+                            bits=bits, meta=_fits_meta(merged, location))
+                hdu.data = None  # free the decoded pixels before the next HDU
+            index += 1
+    finally:
+        hdul.close()
+    if not found:
+        raise TelemetryError.at(name, "the FITS file holds no 2-D image")
+
+
+def _fits_time(header: dict, location: str) -> datetime | None:
+    """Mid-exposure UTC time: DATE-AVG, else DATE-OBS (+ TIME-OBS) + EXPTIME/2, else MJD-AVG, MJD-OBS + EXPTIME/2."""
+    exptime = header.get("EXPTIME", header.get("EXPOSURE"))
+    half = 0.0
+    if isinstance(exptime, (int, float)) and not isinstance(exptime, bool) and math.isfinite(exptime):
+        if not 0 <= exptime <= 86400:
+            raise TelemetryError.at(f"{location}.EXPTIME", f"must be 0 to 86400 s, got {exptime:g}")
+        half = exptime / 2.0
+    if "DATE-AVG" in header:
+        return _header_time(header["DATE-AVG"], f"{location}.DATE-AVG")
+    if "DATE-OBS" in header:
+        text = str(header["DATE-OBS"]).strip()
+        if "T" not in text and "TIME-OBS" in header:
+            text = f"{text}T{str(header['TIME-OBS']).strip()}"
+        return _header_time(text, f"{location}.DATE-OBS") + timedelta(seconds=half)
+    for key, offset in (("MJD-AVG", 0.0), ("MJD-OBS", half)):
+        value = header.get(key)
+        if value is not None:
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 15020 <= value < 88069:
+                raise TelemetryError.at(f"{location}.{key}", f"must be a modified Julian date in 1900-2099, got {value!r}")
+            return datetime(1858, 11, 17, tzinfo=timezone.utc) + timedelta(days=float(value), seconds=offset)
+    return None
+
+
+def _header_time(value, location: str) -> datetime:
+    text = str(value).strip().removesuffix("Z")
+    try:
+        t = datetime.fromisoformat(text)
+    except ValueError:
+        raise TelemetryError.at(location, f"not an ISO 8601 time: {text[:40]!r}") from None
+    t = t.replace(tzinfo=timezone.utc) if t.tzinfo is None else t.astimezone(timezone.utc)
+    if not 1900 <= t.year <= 2099:
+        raise TelemetryError.at(location, f"time {text} is outside the supported years 1900 to 2099")
+    return t
+
+
+def _fits_saturation(header: dict, bits: int) -> float | None:
+    value = header.get("SATURATE")
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0:
+        return float(value)
+    if bits == 8:
+        return 255.0
+    if bits == 16:  # BZERO 32768 is the usual way of storing unsigned 16-bit data
+        return 65535.0 if float(header.get("BZERO", 0) or 0) == 32768.0 else 32767.0
+    return None
+
+
+def _fits_meta(header: dict, location: str) -> dict:
+    """Optics and naming the header gives: focal length in pixels (FOCALLEN + XPIXSZ, or the WCS scale)."""
+    meta: dict = {}
+    focal_mm = header.get("FOCALLEN")
+    pixel_um = header.get("XPIXSZ", header.get("PIXSIZE1"))
+    if _positive(focal_mm) and _positive(pixel_um):
+        meta["focal_length_px"] = float(focal_mm) * 1000.0 / float(pixel_um)
+        meta["optics_from"] = f"{location}: FOCALLEN {float(focal_mm):g} mm / XPIXSZ {float(pixel_um):g} um"
+    else:
+        scale = None
+        if all(_number(header.get(k)) for k in ("CD1_1", "CD1_2", "CD2_1", "CD2_2")):
+            det = header["CD1_1"] * header["CD2_2"] - header["CD1_2"] * header["CD2_1"]
+            scale = math.sqrt(abs(det)) if det else None
+        elif _number(header.get("CDELT1")) and _number(header.get("CDELT2")):
+            scale = math.sqrt(abs(header["CDELT1"] * header["CDELT2"])) or None
+        unit = str(header.get("CUNIT1", "deg")).strip().lower()
+        if scale and unit in ("deg", "") and 1e-6 < scale < 1.0:
+            meta["focal_length_px"] = 1.0 / math.tan(math.radians(scale))
+            meta["optics_from"] = f"{location}: WCS scale {scale * 3600:.3f} arcsec/px"
+    for key, meta_key in (("SPACECRA", "spacecraft"), ("SEQID", "sequence_id")):
+        value = header.get(key)
+        if isinstance(value, str) and value.strip():
+            meta[meta_key] = value.strip()
+    return meta
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _positive(value) -> bool:
+    return _number(value) and value > 0
+
+
+# ---------------------------------------------------------------------------
+# PNG, JPEG, TIFF
+# ---------------------------------------------------------------------------
+
+def _pillow_frames(raw: bytes, name: str, limits: FrameLimits) -> Iterator[Frame]:
+    from PIL import Image
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # DecompressionBombWarning: our own size check follows
+            image = Image.open(io.BytesIO(raw))
+    except Exception as exc:  # noqa: BLE001 - UnidentifiedImageError, DecompressionBombError, OSError...
+        raise TelemetryError.at(name, f"not a readable image: FITS, PNG, JPEG or TIFF expected "
+                                      f"({_reason(exc)})") from None
+    with image:
+        if image.format not in ("PNG", "JPEG", "TIFF", "MPO"):
+            raise TelemetryError.at(name, f"{image.format} images are not accepted: FITS, PNG, JPEG or TIFF")
+        pages = int(getattr(image, "n_frames", 1) or 1)
+        if image.format != "TIFF":
+            pages = 1  # animated PNGs and MPO pairs: the first image only
+        if pages > limits.max_frames:
+            raise TelemetryError.at(name, f"{pages} pages; at most {limits.max_frames} frames per file")
+        for page in range(pages):
+            location = name if pages == 1 else f"{name}[page {page}]"
+            try:
+                image.seek(page)
+            except Exception as exc:  # noqa: BLE001
+                raise TelemetryError.at(location, f"cannot read this page ({_reason(exc)})") from None
+            width, height = image.size
+            _check_size(width, height, location, limits)
+            pixels, bits, saturation = _pillow_pixels(image, location)
+            pixels = _finite(pixels, location)
+            yield Frame(pixels=pixels, location=location, file=name, part=page if pages > 1 else None,
+                        time=None, saturation=saturation, bits=bits)
+
+
+def _pillow_pixels(image, location: str) -> tuple[np.ndarray, int, float | None]:
+    """Greyscale float32 pixels, the stored bit depth and the saturation level."""
+    mode = image.mode
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            image.load()
+            if mode in ("I;16", "I;16L", "I;16B", "I;16N"):
+                return np.asarray(image, dtype=np.float32), 16, 65535.0
+            if mode == "I":
+                array = np.asarray(image, dtype=np.float64)
+                top = float(array.max()) if array.size else 0.0
+                return array.astype(np.float32), 32, 65535.0 if 0 <= top <= 65535 else None
+            if mode == "F":
+                return np.asarray(image, dtype=np.float32), -32, None
+            if mode in ("L", "1", "P", "LA", "PA", "RGB", "RGBA", "RGBX", "CMYK", "YCbCr", "LAB", "HSV"):
+                grey = image if mode == "L" else image.convert("L")  # luminance (ITU-R 601)
+                return np.asarray(grey, dtype=np.float32), 8, 255.0
+    except Exception as exc:  # noqa: BLE001 - truncated files, broken compression
+        raise TelemetryError.at(location, f"the image data cannot be decoded ({_reason(exc)})") from None
+    raise TelemetryError.at(location, f"pixel mode {mode!r} is not supported: greyscale or RGB, 8 or 16 bit")
+
+
+# ---------------------------------------------------------------------------
+# shared checks
+# ---------------------------------------------------------------------------
+
+def _check_size(width: int, height: int, location: str, limits: FrameLimits) -> None:
+    if width < 16 or height < 16:
+        raise TelemetryError.at(location, f"{width} x {height} pixels is too small for a star camera frame "
+                                          "(at least 16 x 16)")
+    if width * height > limits.max_pixels_per_frame:
+        raise TelemetryError.at(location, f"{width} x {height} = {width * height} pixels; at most "
+                                          f"{limits.max_pixels_per_frame} per frame (STARID_FRAMES_MAX_PIXELS)")
+
+
+def _finite(pixels: np.ndarray, location: str) -> np.ndarray:
+    """NaN or infinite pixels (blanked in float FITS) become the frame's median; mostly blank is refused."""
+    bad = ~np.isfinite(pixels)
+    n_bad = int(np.count_nonzero(bad))
+    if not n_bad:
+        return pixels
+    if n_bad > pixels.size // 2:
+        raise TelemetryError.at(location, f"{n_bad} of {pixels.size} pixels are NaN or infinite")
+    pixels = pixels.copy()
+    pixels[bad] = np.median(pixels[~bad])
+    return pixels
+
+
+def _reason(exc: Exception) -> str:
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    text = re.sub(r"\s*<_io\.BytesIO object at 0x[0-9a-f]+>", "", text)  # Pillow names our in-memory stream
+    return text[:160]
+
+
+def peek_frame(data: bytes, name: str) -> tuple[int, int, dict] | None:
+    """(width, height, header meta) of a file's first image from its header alone, or None when that
+    cannot be told cheaply (the full read reports the problem)."""
+    raw = bytes(data)
+    try:
+        if raw.startswith(_FITS_MAGIC):
+            from astropy.io import fits
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                with fits.open(io.BytesIO(raw), memmap=False, lazy_load_hdus=True) as hdul:
+                    primary = {key: hdul[0].header[key] for key in hdul[0].header if key}
+                    index = 0
+                    while True:
+                        try:
+                            hdu = hdul[index]
+                        except IndexError:
+                            return None
+                        header = hdu.header
+                        if getattr(hdu, "is_image", False) and int(header.get("NAXIS", 0) or 0) >= 2:
+                            merged = {**primary, **{key: header[key] for key in header if key}}
+                            return (int(header["NAXIS1"]), int(header["NAXIS2"]),
+                                    _fits_meta(merged, f"{name}[{index}]"))
+                        index += 1
+        from PIL import Image
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with Image.open(io.BytesIO(raw)) as image:
+                return int(image.size[0]), int(image.size[1]), {}
+    except Exception:  # noqa: BLE001 - a peek only; read_frames says what is wrong
+        return None

@@ -1,0 +1,315 @@
+"""Full-frame images in the workflow (issue 15): uploads of a pass of frames, hot-pixel maps, image files
+on the command line.
+
+An upload of frames ends as an ordinary archived sequence: the frames are detected
+(:func:`app.frames.frames_to_sequence`), extracted, and stored with
+:func:`app.workflow.archive.store_upload` under the `tubsat-snapshots/1` text of the detected
+sources (with the frames' content hash and detection report in its ``frames`` block), so the
+archive stays text and everything downstream is unchanged.  The images themselves are not kept.
+
+Steps of ``POST /api/frames``: :func:`prepare_frames` (in a thread: the sidecar, the upload's
+hash and whether the same frames were stored before, the spacecraft's hot-pixel map),
+:func:`frames_job` (in the compute pool: reading, detection, extraction; errors come back as
+values because a TelemetryError does not survive pickling), :func:`store_frames` (in a thread:
+the upload, then the spacecraft's hot-pixel map as a new version).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from app.extraction import extract
+from app.frames import (FrameLimits, FramePass, FramesTimeout, HotPixelMap, Sidecar, drop_hot_pixel_sources,
+                        frames_content_sha256, frames_to_sequence, looks_like_image, parse_sidecar, peek_frame)
+from app.frames.detect import DetectionOptions
+from app.frames.images import ALL_SUFFIXES, file_sha256
+from app.storage import StaleHotPixelMap
+from app.telemetry import Sequence
+from app.telemetry.errors import Problem, TelemetryError
+from app.workflow import archive
+from app.workflow.context import AppContext
+from app.workflow.documents import Document, ExtractionDocument, SequenceSummary, UploadDocument
+from app.workflow.errors import Busy, NotFound
+
+log = logging.getLogger(__name__)
+
+#: The sidecar's name inside a folder of frames; beside a single file it is ``<stem>.frames.json``.
+FOLDER_SIDECAR = "frames.json"
+SIDECAR_SUFFIX = ".frames.json"
+#: Tries at storing a hot-pixel map when other uploads of the same camera store theirs at once.
+MAP_STORE_TRIES = 5
+
+
+# ---------------------------------------------------------------------------
+# Documents
+# ---------------------------------------------------------------------------
+
+class HotPixelMapVersion(Document):
+    version: int
+    frames: int
+    hot_pixels: int
+    seq_id: int | None = None
+    created_at: str
+
+
+class HotPixelMapDocument(Document):
+    """A camera's current hot-pixel map and its history (``GET /api/frames/hot-pixels``)."""
+
+    spacecraft: str
+    sensor: str
+    version: int
+    frames: int
+    hot_pixels: list[tuple[int, int]]
+    history: list[HotPixelMapVersion]
+
+
+# ---------------------------------------------------------------------------
+# Uploads
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class FramesRequest:
+    """A checked upload of frames, ready for the compute pool."""
+
+    files: list[tuple[str, bytes]]
+    sidecar: Sidecar | None
+    sequence_id: str | None
+    spacecraft: str | None
+    fov_deg: float | None
+    upload_sha256: str
+    #: The spacecraft and sensor whose hot-pixel map applies (spacecraft None: no map kept).
+    map_spacecraft: str | None
+    hot_map: HotPixelMap | None
+    limits: FrameLimits
+
+
+@dataclass(frozen=True, eq=False)
+class FramesResult:
+    """What :func:`frames_job` hands back: the pass and its extraction, or the problems."""
+
+    frame_pass: FramePass | None = None
+    extraction: object = None
+    problems: list[dict] | None = None
+    timeout: str | None = None
+
+
+def upload_sha256(files: list[tuple[str, bytes]], sidecar: bytes | None, sequence_id: str | None,
+                  spacecraft: str | None, fov_deg: float | None) -> str:
+    """The hash that makes an upload of frames "the same": the frames' content, the sidecar, the fields
+    and the detector's defaults (file names and order do not count)."""
+    key = {"frames": frames_content_sha256([file_sha256(data) for _, data in files]),
+           "sidecar": None if sidecar is None else hashlib.sha256(sidecar).hexdigest(),
+           "names": sorted(archive.clean_filename(name) or "" for name, _ in files),
+           "sequence_id": sequence_id, "spacecraft": spacecraft, "fov_deg": fov_deg,
+           "detector": DetectionOptions().to_dict()}
+    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()
+
+
+def prepare_frames(ctx: AppContext, files: list[tuple[str, bytes]], sidecar: bytes | None,
+                   sequence_id: str | None, spacecraft: str | None,
+                   fov_deg: float | None) -> FramesRequest | UploadDocument:
+    """Check an upload of frames; the stored sequence's document when the same upload was stored before.
+
+    Raises TelemetryError (located problems) for a bad sidecar or too many files or bytes.
+    """
+    limits = FrameLimits()
+    files = [(archive.clean_filename(name) or f"frame-{i}", bytes(data)) for i, (name, data) in enumerate(files)]
+    if not files:
+        raise TelemetryError.at("body.files", "no image: send the frames as 'files' fields")
+    if len(files) > limits.max_frames:
+        raise TelemetryError.at("body.files", f"{len(files)} files; at most {limits.max_frames} frames per pass")
+    parsed_sidecar = parse_sidecar(sidecar) if sidecar is not None else None
+    key = upload_sha256(files, sidecar, sequence_id, spacecraft, fov_deg)
+    seq_id = ctx.storage.find_frame_upload(key)
+    if seq_id is not None:
+        return _stored_document(ctx, seq_id)
+    peek = peek_frame(files[0][1], files[0][0])
+    map_spacecraft = spacecraft or (parsed_sidecar.spacecraft if parsed_sidecar else None) \
+        or (peek[2].get("spacecraft") if peek else None)
+    hot_map = None
+    if map_spacecraft and peek:
+        hot_map = current_hot_pixel_map(ctx, map_spacecraft, peek[0], peek[1])
+    return FramesRequest(files=files, sidecar=parsed_sidecar, sequence_id=sequence_id, spacecraft=spacecraft,
+                         fov_deg=fov_deg, upload_sha256=key, map_spacecraft=map_spacecraft, hot_map=hot_map,
+                         limits=limits)
+
+
+def frames_job(request: FramesRequest, *, sky=None) -> FramesResult:
+    """Read, detect and extract one pass (a compute-pool job; needs no catalogue)."""
+    deadline = time.monotonic() + request.limits.timeout_s
+    try:
+        frame_pass = frames_to_sequence(request.files, sidecar=request.sidecar, sequence_id=request.sequence_id,
+                                        spacecraft=request.spacecraft, fov_deg=request.fov_deg,
+                                        hot_map=request.hot_map, limits=request.limits, deadline=deadline)
+    except TelemetryError as exc:
+        return FramesResult(problems=[p.to_dict() for p in exc.problems])
+    except FramesTimeout as exc:
+        return FramesResult(timeout=str(exc))
+    except Exception as exc:  # noqa: BLE001 - an image library failing on odd input: the upload's fault, said so
+        log.warning("frames could not be processed", exc_info=True)
+        return FramesResult(problems=[{"location": "files", "message": "the images could not be processed "
+                                       f"({type(exc).__name__}: {str(exc)[:160]})"}])
+    return FramesResult(frame_pass=frame_pass, extraction=extract(frame_pass.sequence))
+
+
+def store_frames(ctx: AppContext, request: FramesRequest, result: FramesResult) -> UploadDocument:
+    """Store the pass as an ordinary upload, record its upload hash, and add its frames to the camera's
+    hot-pixel map (a new version; only for a new upload of a named spacecraft)."""
+    if result.timeout is not None:
+        raise Busy(result.timeout)
+    if result.problems is not None:
+        raise TelemetryError([Problem(p["location"], p["message"]) for p in result.problems])
+    frame_pass = result.frame_pass
+    names = [name for name, _ in request.files]
+    label = names[0] if len(names) == 1 else f"{names[0]} (+{len(names) - 1} frames)"
+    upload = archive.ParsedUpload(sequence=frame_pass.sequence, raw_text=frame_pass.raw_text, filename=label[:200])
+    doc = archive.store_upload(ctx, upload, result.extraction)
+    recorded = ctx.storage.add_frame_upload(request.upload_sha256, doc.id)
+    if recorded != doc.id:
+        return _stored_document(ctx, recorded)
+    spacecraft = frame_pass.sequence.spacecraft or request.map_spacecraft
+    if doc.created and spacecraft:
+        add_frames_to_map(ctx, spacecraft, frame_pass, doc.id)
+    return doc
+
+
+def add_frames_to_map(ctx: AppContext, spacecraft: str, frame_pass: FramePass, seq_id: int | None) -> HotPixelMap:
+    """The pass's hot-pixel candidates added to the spacecraft's stored map, as a new version."""
+    camera = frame_pass.sequence.camera
+    candidates = frame_pass.candidates
+    for _ in range(MAP_STORE_TRIES):
+        current = current_hot_pixel_map(ctx, spacecraft, camera.width, camera.height)
+        base = current or HotPixelMap.empty(camera.width, camera.height)
+        merged = base.with_frames(candidates)
+        try:
+            row = ctx.storage.add_hot_pixel_map(spacecraft, merged.sensor, map_doc=merged.to_json(),
+                                                frames=merged.frames, hot_pixels=len(merged.hot),
+                                                based_on=None if current is None else current.version, seq_id=seq_id)
+        except StaleHotPixelMap:
+            continue  # another upload of this camera stored its map meanwhile: merge again
+        return HotPixelMap.from_json(row.map, version=row.version)
+    raise Busy(f"the hot-pixel map of {spacecraft} changed {MAP_STORE_TRIES} times while this upload was "
+               "stored; the upload itself is stored")
+
+
+def current_hot_pixel_map(ctx: AppContext, spacecraft: str | None, width: int, height: int) -> HotPixelMap | None:
+    """The stored map of this spacecraft's camera of this sensor size, if any."""
+    row = ctx.storage.current_hot_pixel_map(spacecraft, f"{width}x{height}")
+    return None if row is None else HotPixelMap.from_json(row.map, version=row.version)
+
+
+def hot_pixel_map_document(ctx: AppContext, spacecraft: str, sensor: str) -> HotPixelMapDocument:
+    rows = ctx.storage.hot_pixel_map_history(spacecraft, sensor)
+    if not rows:
+        raise NotFound(f"no hot-pixel map of {spacecraft}'s {sensor} camera")
+    last = rows[-1]
+    current = HotPixelMap.from_json(last.map, version=last.version)
+    return HotPixelMapDocument(spacecraft=spacecraft, sensor=sensor, version=last.version, frames=last.frames,
+                               hot_pixels=current.hot,
+                               history=[HotPixelMapVersion(version=r.version, frames=r.frames,
+                                                           hot_pixels=r.hot_pixels, seq_id=r.seq_id,
+                                                           created_at=r.created_at.isoformat()) for r in rows])
+
+
+def without_hot_pixels(ctx: AppContext, sequence: Sequence) -> tuple[Sequence, list[list[int]]]:
+    """Spot-list telemetry without its sources on the spacecraft's mapped hot pixels (same sensor size).
+
+    ``(sequence, dropped)``: ``dropped[i]`` are the file-order positions removed from snapshot i.
+    The one call an upload path needs (see the README section "Full-frame images").
+    """
+    hot_map = current_hot_pixel_map(ctx, sequence.spacecraft, sequence.camera.width, sequence.camera.height)
+    if hot_map is None:
+        return sequence, [[] for _ in sequence.snapshots]
+    return drop_hot_pixel_sources(sequence, hot_map.hot)
+
+
+def _stored_document(ctx: AppContext, seq_id: int) -> UploadDocument:
+    row = archive.require_sequence(ctx, seq_id)
+    item = archive.loaded(ctx, row)
+    return UploadDocument(id=row.id, created=False, sequence=SequenceSummary.of(row),
+                          extraction=ExtractionDocument.model_validate(row.extraction),
+                          pattern=archive.pattern_document(item, ctx.storage.current_pattern(row.id)))
+
+
+# ---------------------------------------------------------------------------
+# Command line: image files and folders of frames
+# ---------------------------------------------------------------------------
+
+def is_frames_path(path: str) -> bool:
+    """True for an image file, or a folder holding image files (what ``extract``/``solve`` read as frames)."""
+    if os.path.isdir(path):
+        try:
+            return any(name.lower().endswith(ALL_SUFFIXES) for name in os.listdir(path))
+        except OSError:
+            return False
+    if path.lower().endswith(ALL_SUFFIXES):
+        return True
+    try:
+        with open(path, "rb") as stream:
+            return looks_like_image(path, stream.read(16))
+    except OSError:
+        return False
+
+
+def frames_sequence_from_path(path: str, *, fov_deg: float | None = None) -> Sequence:
+    """One pass from an image file (with ``<stem>.frames.json`` beside it, if any) or a folder of frames
+    (every image in it, with its ``frames.json``, if any; the folder's name is the default id).
+
+    No archive here: the hot-pixel map is the pass's own.  Raises TelemetryError (located) for
+    anything invalid, at ``file`` for files that cannot be read.
+    """
+    limits = FrameLimits()
+    folder = Path(path)
+    try:
+        if folder.is_dir():
+            images = sorted(p for p in folder.iterdir() if p.is_file() and p.name.lower().endswith(ALL_SUFFIXES))
+            if not images:
+                raise TelemetryError.at("file", "the folder holds no FITS, PNG, JPEG or TIFF file")
+            sidecar_path = folder / FOLDER_SIDECAR
+            default_id = folder.resolve().name
+        else:
+            images = [folder]
+            base = folder.name
+            for suffix in sorted(ALL_SUFFIXES, key=len, reverse=True):
+                if base.lower().endswith(suffix):
+                    base = base[: -len(suffix)]
+                    break
+            sidecar_path = folder.with_name(base + SIDECAR_SUFFIX)
+            default_id = base
+        if len(images) > limits.max_frames:
+            raise TelemetryError.at("file", f"{len(images)} images; at most {limits.max_frames} frames per pass")
+        total = 0
+        files = []
+        for image in images:
+            size = image.stat().st_size
+            total += size
+            if total > limits.max_bytes:
+                raise TelemetryError.at(image.name, f"the frames exceed {limits.max_bytes} bytes in all "
+                                                    "(STARID_FRAMES_MAX_BYTES)")
+            files.append((image.name, image.read_bytes()))
+        sidecar = None
+        only = None
+        if not sidecar_path.is_file() and not folder.is_dir():
+            # A single frame of a folder: the folder's sidecar, for this file's entries.
+            sidecar_path, only = folder.with_name(FOLDER_SIDECAR), folder.name
+        if sidecar_path.is_file():
+            if sidecar_path.stat().st_size > 1024 * 1024:
+                raise TelemetryError.at("sidecar", "the sidecar is larger than 1 MiB")
+            sidecar = parse_sidecar(sidecar_path.read_bytes())
+            if only is not None:
+                sidecar = dataclasses.replace(sidecar, sequence_id=None,
+                                              times={k: t for k, t in sidecar.times.items() if k[0] == only})
+    except OSError as exc:
+        raise TelemetryError.at("file", f"cannot read the file: {exc.strerror or type(exc).__name__}") from None
+    try:
+        return frames_to_sequence(files, sidecar=sidecar, fov_deg=fov_deg, default_id=default_id, limits=limits,
+                                  deadline=time.monotonic() + limits.timeout_s).sequence
+    except FramesTimeout as exc:
+        raise TelemetryError.at("file", str(exc)) from None
