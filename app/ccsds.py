@@ -1,11 +1,15 @@
 """CCSDS Attitude Data Messages, ADM 2.0 (CCSDS 504.0-B-2, January 2024), KVN form.
 
-Two writers (a reader for the tests is in tests/kvn_reader.py):
+Three writers (a reader for the tests is in tests/kvn_reader.py, and the
+tests also read every message with the independent ``ccsds-ndm-py``):
 
 * :func:`apm_kvn` - an Attitude Parameter Message: one attitude at one epoch.
 * :func:`aem_kvn` - an Attitude Ephemeris Message: one attitude per epoch
   (here: one per snapshot of a confirmed sequence).
-  to check structure, keyword order and values.
+* :func:`acm_kvn` - an Attitude Comprehensive Message (section 5): the
+  attitude states of every snapshot with the body rate, the covariance of the
+  determined attitude, and how it was determined (method, sensors): the
+  standard slots for what the APM can only carry in comments.
 
 Keywords, their order and the blocks follow the standard's tables 3-1..3-3
 (APM) and 4-2..4-4 (AEM); only version 2.0 keywords are written.  In 2.0 the
@@ -44,6 +48,7 @@ import math
 import re
 import unicodedata
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 from datetime import datetime, timedelta, timezone
 
 import numpy as np
@@ -59,6 +64,9 @@ MAX_LINE_LENGTH = 254
 
 _APM_VERSION_KEYWORD = "CCSDS_APM_VERS"
 _AEM_VERSION_KEYWORD = "CCSDS_AEM_VERS"
+_ACM_VERSION_KEYWORD = "CCSDS_ACM_VERS"
+#: AD_METHOD values of the ACM's attitude determination block.
+AD_METHODS = ("EKF", "TRIAD", "QUEST", "BATCH", "Q_METHOD", "FILTER_SMOOTHER")
 _VERSION = "2.0"
 
 
@@ -320,4 +328,167 @@ def aem_kvn(*, epochs: Sequence[datetime], quaternions_xyzw: Sequence[Sequence[f
     for stamp, q in zip(stamps, rows):
         lines.append(" ".join([stamp, *(format_quaternion_component(v) for v in q)]))
     lines.append("DATA_STOP")
+    return _finish(lines)
+
+
+@dataclass(frozen=True)
+class AcmSensor:
+    """One sensor of an ACM's attitude determination block (SENSOR_START ... SENSOR_STOP)."""
+
+    number: int
+    used: str  # SENSOR_USED, e.g. STAR_TRACKER
+    noise_stddev_deg: tuple[float, ...] = ()  # SENSOR_NOISE_STDDEV, deg
+    frequency_hz: float | None = None  # SENSOR_FREQUENCY
+    comments: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class AcmDetermination:
+    """An ACM's attitude determination block (AD_START ... AD_STOP)."""
+
+    ad_id: str
+    method: str  # one of AD_METHODS
+    sensors: tuple[AcmSensor, ...]
+    source: str | None = None  # ATTITUDE_SOURCE (free text)
+    number_states: int | None = None
+    attitude_states: str = "QUATERNION"
+    cov_type: str | None = None  # "ANGLE" when the message has its covariance
+    rate_states: str | None = None  # "ANGVEL" when the rate was estimated too
+    comments: tuple[str, ...] = ()
+
+
+def _real(value: float) -> str:
+    """A real number as 6.8.4 allows (no "-0"), ten significant digits."""
+    text = f"{float(value):.10g}"
+    return text[1:] if text.startswith("-") and float(text) == 0.0 else text
+
+
+def _seconds(t: datetime, t0: datetime) -> str:
+    """``t`` as seconds after ``t0`` (the ACM's EPOCH_TZERO), to the microsecond."""
+    delta = t - t0
+    micro = (delta.days * 86400 + delta.seconds) * 1_000_000 + delta.microseconds
+    return f"{micro // 1_000_000}.{micro % 1_000_000:06d}"
+
+
+def acm_kvn(*, epochs: Sequence[datetime], quaternions_xyzw: Sequence[Sequence[float]], originator: str,
+            object_name: str, rate_deg_s: Sequence[float] | None = None,
+            covariance: tuple[datetime, Sequence[float]] | None = None,
+            determination: AcmDetermination | None = None, ref_frame_a: str = ICRF,
+            ref_frame_b: str = CAMERA_FRAME, center_name: str | None = "EARTH", att_id: str = "ATT_1",
+            att_basis: str = "DETERMINED_GND", comments: Iterable[str] = (), header_comments: Iterable[str] = (),
+            att_comments: Iterable[str] = (), cov_comments: Iterable[str] = (), message_id: str | None = None,
+            creation_date: datetime | None = None) -> str:
+    """An ACM 2.0 in KVN (CCSDS 504.0-B-2 section 5): one attitude state history, its covariance and
+    its attitude determination.
+
+    * Metadata (META_START ... META_STOP): OBJECT_NAME, CENTER_NAME,
+      TIME_SYSTEM, EPOCH_TZERO (the first epoch; every time in the data is in
+      seconds after it), ACM_DATA_ELEMENTS, START_TIME, STOP_TIME.
+    * Attitude states (ATT_START ... ATT_STOP): ATT_ID, ATT_BASIS, ATT_BASIS_ID
+      (the determination's AD_ID), REF_FRAME_A/B, NUMBER_STATES, ATT_TYPE =
+      QUATERNION and, with ``rate_deg_s``, RATE_TYPE = ANGVEL; one line per
+      epoch ``t Q1 Q2 Q3 QC [WX WY WZ]``.  The quaternions are the project's
+      scalar-last quaternions of R converted as in :func:`apm_kvn`; the rate
+      (deg/s) is the angular velocity of REF_FRAME_B relative to REF_FRAME_A in
+      REF_FRAME_B's axes (this project's body rate in camera axes).
+    * Covariance (COV_START ... COV_STOP), with ``covariance = (epoch,
+      variances)``: COV_BASIS, COV_REF_FRAME = REF_FRAME_B, COV_TYPE = ANGLE,
+      one line ``t VAR_X VAR_Y VAR_Z`` (deg**2, the attitude error about each
+      axis of REF_FRAME_B).
+    * Attitude determination (AD_START ... AD_STOP) from ``determination``.
+
+    Epochs must be strictly increasing.  Output is deterministic for equal
+    inputs when ``creation_date`` is given.  Raises :class:`KvnError`.
+    """
+    epochs = list(epochs)
+    quats = list(quaternions_xyzw)
+    if not epochs:
+        raise KvnError("an ACM needs at least one attitude state")
+    if len(epochs) != len(quats):
+        raise KvnError(f"{len(epochs)} epochs but {len(quats)} quaternions")
+    for earlier, later in zip(epochs, epochs[1:]):
+        if later - earlier <= timedelta(0):
+            raise KvnError("ACM epochs must be strictly increasing")
+    rows = [ccsds_quaternion_from_project(q) for q in quats]
+    rate = None if rate_deg_s is None else [float(w) for w in rate_deg_s]
+    if rate is not None and (len(rate) != 3 or not all(map(math.isfinite, rate))):
+        raise KvnError("the body rate needs three finite numbers (deg/s)")
+    if determination is not None and determination.method not in AD_METHODS:
+        raise KvnError(f"AD_METHOD must be one of {', '.join(AD_METHODS)}")
+    t0 = epochs[0]
+    frame_a, frame_b = text_value(ref_frame_a, "REF_FRAME_A"), text_value(ref_frame_b, "REF_FRAME_B")
+    elements = ["ATT", *(["COV"] if covariance is not None else []), *(["AD"] if determination is not None else [])]
+
+    lines = _header(_ACM_VERSION_KEYWORD, originator=originator, creation_date=creation_date,
+                    message_id=message_id, header_comments=header_comments)
+    lines += ["", "META_START"]
+    lines += comment_lines(comments)
+    lines.append(_kv("OBJECT_NAME", text_value(object_name, "OBJECT_NAME")))
+    if center_name is not None:
+        lines.append(_kv("CENTER_NAME", text_value(center_name, "CENTER_NAME")))
+    lines.append(_kv("TIME_SYSTEM", TIME_SYSTEM))
+    lines.append(_kv("EPOCH_TZERO", format_epoch(t0)))
+    lines.append(_kv("ACM_DATA_ELEMENTS", " ".join(elements)))
+    lines.append(_kv("START_TIME", format_epoch(epochs[0])))
+    lines.append(_kv("STOP_TIME", format_epoch(epochs[-1])))
+    lines.append("META_STOP")
+
+    lines += ["", "ATT_START"]
+    lines += comment_lines(att_comments)
+    lines.append(_kv("ATT_ID", text_value(att_id, "ATT_ID")))
+    lines.append(_kv("ATT_BASIS", text_value(att_basis, "ATT_BASIS")))
+    if determination is not None:
+        lines.append(_kv("ATT_BASIS_ID", text_value(determination.ad_id, "ATT_BASIS_ID")))
+    lines.append(_kv("REF_FRAME_A", frame_a))
+    lines.append(_kv("REF_FRAME_B", frame_b))
+    lines.append(_kv("NUMBER_STATES", "4" if rate is None else "7"))
+    lines.append(_kv("ATT_TYPE", "QUATERNION"))
+    if rate is not None:
+        lines.append(_kv("RATE_TYPE", "ANGVEL"))
+    for t, q in zip(epochs, rows):
+        values = [format_quaternion_component(v) for v in q] + ([_real(w) for w in rate] if rate is not None else [])
+        lines.append(" ".join([_seconds(t, t0), *values]))
+    lines.append("ATT_STOP")
+
+    if covariance is not None:
+        at, variances = covariance
+        variances = [float(v) for v in variances]
+        if len(variances) != 3 or not all(math.isfinite(v) and v >= 0 for v in variances):
+            raise KvnError("an ANGLE covariance needs three finite variances (deg**2)")
+        lines += ["", "COV_START"]
+        lines += comment_lines(cov_comments)
+        lines.append(_kv("COV_BASIS", text_value(att_basis, "COV_BASIS")))
+        lines.append(_kv("COV_REF_FRAME", frame_b))
+        lines.append(_kv("COV_TYPE", "ANGLE"))
+        lines.append(" ".join([_seconds(at, t0), *(_real(v) for v in variances)]))
+        lines.append("COV_STOP")
+
+    if determination is not None:
+        d = determination
+        lines += ["", "AD_START"]
+        lines += comment_lines(d.comments)
+        lines.append(_kv("AD_ID", text_value(d.ad_id, "AD_ID")))
+        lines.append(_kv("AD_METHOD", d.method))
+        if d.source is not None:
+            lines.append(_kv("ATTITUDE_SOURCE", text_value(d.source, "ATTITUDE_SOURCE")))
+        if d.number_states is not None:
+            lines.append(_kv("NUMBER_STATES", str(int(d.number_states))))
+        lines.append(_kv("ATTITUDE_STATES", text_value(d.attitude_states, "ATTITUDE_STATES")))
+        if d.cov_type is not None:
+            lines.append(_kv("COV_TYPE", text_value(d.cov_type, "COV_TYPE")))
+        lines.append(_kv("REF_FRAME_A", frame_a))
+        lines.append(_kv("REF_FRAME_B", frame_b))
+        if d.rate_states is not None:
+            lines.append(_kv("RATE_STATES", text_value(d.rate_states, "RATE_STATES")))
+        for sensor in d.sensors:
+            lines.append("SENSOR_START")
+            lines += comment_lines(sensor.comments)
+            lines.append(_kv("SENSOR_NUMBER", str(int(sensor.number))))
+            lines.append(_kv("SENSOR_USED", text_value(sensor.used, "SENSOR_USED")))
+            if sensor.noise_stddev_deg:
+                lines.append(_kv("SENSOR_NOISE_STDDEV", " ".join(_real(v) for v in sensor.noise_stddev_deg)))
+            if sensor.frequency_hz is not None:
+                lines.append(_kv("SENSOR_FREQUENCY", _real(sensor.frequency_hz)))
+            lines.append("SENSOR_STOP")
+        lines.append("AD_STOP")
     return _finish(lines)

@@ -1,4 +1,10 @@
-"""Storage: round trips, append-only audit trail, threads, and durability across SIGKILL."""
+"""Storage: round trips, append-only audit trail, threads, and durability across SIGKILL.
+
+Every test that is not about one backend's own mechanics runs on both backends
+(``archive_url``: a SQLite file, and a fresh database on the session's real
+PostgreSQL server, tests/pg_server.py); the guards are checked through a
+separate raw connection of each backend, since they live in the database.
+"""
 
 from __future__ import annotations
 
@@ -16,18 +22,27 @@ import pytest
 
 from app.storage import (
     MIGRATIONS,
+    StaleHotPixelMap,
     Storage,
     StorageError,
     UnknownSequence,
+    VerdictExists,
     content_sha256,
 )
+from app.storage import postgres as pg_backend
 
 ROOT = Path(__file__).resolve().parents[1]
 T0 = datetime(2024, 5, 1, 10, 0, 0, tzinfo=timezone.utc)
 
 
 @pytest.fixture
-def db_path(tmp_path):
+def db_path(archive_url):
+    """The archive of the test: a SQLite file's path or a PostgreSQL database's URL (both backends)."""
+    return archive_url
+
+
+@pytest.fixture
+def sqlite_path(tmp_path):
     return tmp_path / "archive.sqlite3"
 
 
@@ -35,6 +50,34 @@ def db_path(tmp_path):
 def store(db_path):
     with Storage.open(db_path) as storage:
         yield storage
+
+
+class RawConnection:
+    """A connection of the backend's own driver, beside the archive's: the guards live in the database.
+
+    Takes SQL with ``?`` placeholders on both backends; ``errors`` is what the driver raises.
+    """
+
+    def __init__(self, target) -> None:
+        self.postgres = str(target).startswith("postgresql://")
+        if self.postgres:
+            import psycopg
+
+            self.errors = psycopg.Error
+            self.conn = psycopg.connect(str(target), autocommit=True)
+        else:
+            self.errors = sqlite3.DatabaseError
+            self.conn = sqlite3.connect(target)
+
+    def execute(self, sql: str, params=()):
+        return self.conn.execute(pg_backend.translate(sql) if self.postgres else sql, params)
+
+    def commit(self) -> None:
+        if not self.postgres:
+            self.conn.commit()
+
+    def close(self) -> None:
+        self.conn.close()
 
 
 def _upload(store, n, **overrides):
@@ -181,7 +224,7 @@ def test_the_schema_refuses_edits_and_deletes_of_the_audit_trail(store, db_path)
     store.add_search(row.id, pattern_version=1, method="m", options={}, result=[], status="no_match")
     first = _confirm(store, row.id)
     second = _confirm(store, row.id)
-    raw = sqlite3.connect(db_path)  # a separate connection: the guard lives in the database
+    raw = RawConnection(db_path)  # a separate connection: the guard lives in the database
     forbidden = [
         ("UPDATE confirmations SET apm_text = 'forged' WHERE id = ?", (first.id,)),
         ("UPDATE confirmations SET operator = 'mallory' WHERE id = ?", (second.id,)),
@@ -196,8 +239,11 @@ def test_the_schema_refuses_edits_and_deletes_of_the_audit_trail(store, db_path)
         ("UPDATE sequences SET raw_text = 'changed' WHERE id = ?", (row.id,)),
         ("DELETE FROM sequences WHERE id = ?", (row.id,)),
     ]
+    if raw.postgres:  # PostgreSQL's TRUNCATE skips row triggers: statement triggers refuse it
+        forbidden += [(f"TRUNCATE {table} CASCADE", ()) for table in
+                      ("confirmations", "searches", "pattern_versions", "sequences", "calibrations", "rejections")]
     for sql, params in forbidden:
-        with pytest.raises(sqlite3.DatabaseError):
+        with pytest.raises(raw.errors, match="append-only|never"):
             raw.execute(sql, params)
     raw.execute("UPDATE sequences SET status = 'identified' WHERE id = ?", (row.id,))  # allowed
     raw.commit()
@@ -208,7 +254,9 @@ def test_the_schema_refuses_edits_and_deletes_of_the_audit_trail(store, db_path)
 
 # -- opening, schema versions, health --------------------------------------------------------
 
-def test_open_sets_wal_full_sync_foreign_keys_and_schema_version(store, db_path):
+def test_open_sets_wal_full_sync_foreign_keys_and_schema_version(sqlite_path):
+    store = Storage.open(sqlite_path)
+    db_path = sqlite_path
     health = store.health()
     assert health["ok"] and health["journal_mode"] == "wal"
     assert health["schema_version"] == len(MIGRATIONS)
@@ -221,16 +269,17 @@ def test_open_sets_wal_full_sync_foreign_keys_and_schema_version(store, db_path)
     assert raw.execute("PRAGMA journal_mode").fetchone()[0] == "wal"  # persistent in the file
     assert raw.execute("SELECT version FROM schema_version").fetchall() == [(v,) for v in range(1, len(MIGRATIONS) + 1)]
     raw.close()
+    store.close()
 
 
 def test_reopening_does_not_migrate_twice_and_a_newer_schema_is_refused(db_path):
-    with Storage.open(f"sqlite:///{db_path}") as storage:
+    with Storage.open(db_path if str(db_path).startswith("postgresql://") else f"sqlite:///{db_path}") as storage:
         _upload(storage, 1)
     with Storage.open(db_path) as storage:
         assert storage.health()["counts"]["sequences"] == 1
-    raw = sqlite3.connect(db_path)
+    raw = RawConnection(db_path)
     assert raw.execute("SELECT COUNT(*) FROM schema_version").fetchone()[0] == len(MIGRATIONS)
-    raw.execute("INSERT INTO schema_version VALUES (?, '2099-01-01')", (len(MIGRATIONS) + 1,))
+    raw.execute("INSERT INTO schema_version VALUES (?, '2099-01-01T00:00:00+00:00')", (len(MIGRATIONS) + 1,))
     raw.commit()
     raw.close()
     with pytest.raises(StorageError, match="newer"):
@@ -244,10 +293,23 @@ def test_database_url_from_environment(tmp_path, monkeypatch):
     assert (tmp_path / "env.sqlite3").exists()
 
 
-@pytest.mark.parametrize("target", ["postgresql://user@host/db", "mysql://x", ":memory:", ""])
+def test_postgres_url_from_environment_selects_the_postgres_backend(postgres_url, monkeypatch):
+    monkeypatch.setenv("DATABASE_URL", postgres_url)
+    with Storage.open() as storage:
+        assert storage.backend == "postgresql" and storage.path == postgres_url
+        health = storage.health()
+    assert health["ok"] and health["backend"] == "postgresql" and health["schema_version"] == len(MIGRATIONS)
+    assert health["synchronous_commit"] == "on" and health["database"] == postgres_url.rsplit("/", 1)[1]
+    assert len(pg_backend.MIGRATIONS) == len(MIGRATIONS)  # the same versions on both backends
+
+
+# Port 1 on loopback: nothing listens there, the connection is refused at once.
+@pytest.mark.parametrize("target", ["postgresql://user@127.0.0.1:1/db", "postgresql://user:secret@127.0.0.1:1/db",
+                                    "mysql://x", ":memory:", ""])
 def test_unsupported_targets_are_refused(target):
-    with pytest.raises(StorageError):
+    with pytest.raises(StorageError) as refused:
         Storage.open(target)
+    assert "secret" not in str(refused.value)  # a password never reaches a message or a log
 
 
 def test_a_file_that_is_not_a_database_is_refused(tmp_path):
@@ -352,9 +414,10 @@ def test_acknowledged_rows_survive_sigkill(db_path):
             conf = reopened.get_confirmation(conf_id)
             assert conf is not None and conf.apm_text == f"APM {i}\n" and conf.candidate == {"i": i}
         assert reopened.health()["ok"]
-    raw = sqlite3.connect(db_path)
-    assert raw.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
-    raw.close()
+    if not str(db_path).startswith("postgresql://"):
+        raw = sqlite3.connect(db_path)
+        assert raw.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+        raw.close()
 
 
 def test_calibrations_are_versioned_per_spacecraft_append_only_and_survive_a_reopen(db_path):
@@ -369,8 +432,71 @@ def test_calibrations_are_versioned_per_spacecraft_append_only_and_survive_a_reo
         assert [c.version for c in store.calibration_history("SAT-A")] == [1, 2]
         assert store.calibration_history("SAT-A")[0].operator == "ana"
         assert store.current_calibration("SAT-C") is None and store.current_calibration(None) is None
-    raw = sqlite3.connect(db_path)
+    raw = RawConnection(db_path)
     for statement in ("UPDATE calibrations SET camera_json = '{}'", "DELETE FROM calibrations"):
-        with pytest.raises(sqlite3.DatabaseError, match="append-only"):
+        with pytest.raises(raw.errors, match="append-only"):
             raw.execute(statement)
     raw.close()
+
+
+# -- the rest of the interface, on both backends ---------------------------------------------------
+
+def test_verdicts_rejections_and_confirmations_replace_each_other_in_one_chain(store):
+    row, _ = _upload(store, 1)
+    first = _confirm(store, row.id, acm_text="CCSDS_ACM_VERS = 2.0\n")
+    assert first.acm_text == "CCSDS_ACM_VERS = 2.0\n" and store.current_verdict(row.id) == first
+    with pytest.raises(VerdictExists) as exists:
+        store.add_rejection(row.id, operator="bob", reason="ghosts")
+    assert exists.value.current == first
+    rejection = store.add_rejection(row.id, operator="bob", reason="ghosts", supersede=True)
+    assert rejection.replaces_confirmation == first.id and store.get_sequence(row.id).status == "rejected"
+    assert store.current_confirmation(row.id) is None and store.get_confirmation(first.id).withdrawn_by == rejection.id
+    second = _confirm(store, row.id, operator="carol", supersede=True)
+    assert second.replaces_rejection == rejection.id and store.current_verdict(row.id) == second
+    assert store.get_rejection(rejection.id).replaced_by_confirmation == second.id
+    # The withdrawn confirmation is not superseded by the new one: it stays as the rejection left it.
+    assert store.get_confirmation(first.id).superseded_by is None
+    assert [r.id for r in store.rejection_history(row.id)] == [rejection.id]
+    for operator, reason in (("", "why"), ("ann", " ")):
+        with pytest.raises(ValueError):
+            store.add_rejection(row.id, operator=operator, reason=reason, supersede=True)
+
+
+def test_search_orders_spacecraft_and_time_ranges(store):
+    made = []
+    for n, (spacecraft, sequence_id) in enumerate([("SAT-B", "Alpha-1"), (None, "beta_2"), ("SAT-A", "ALPHA-3"),
+                                                   ("SAT-B", "gamma%4")]):
+        made.append(_upload(store, n, spacecraft=spacecraft, sequence_id=sequence_id)[0])
+    found = lambda text: [r.id for r in store.list_sequences(0, 10, search=text)[0]]  # noqa: E731
+    assert found("alpha") == [made[2].id, made[0].id]  # case-insensitive, newest first
+    assert found("%") == [made[3].id] and found("_") == [made[1].id]  # LIKE wildcards are literal
+    assert found(f"#{made[1].id}") == [made[1].id]
+    oldest = [r.id for r in store.list_sequences(0, 10, order="oldest")[0]]
+    assert oldest == [r.id for r in made]
+    assert [r.id for r in store.list_sequences(0, 10, order="time_asc")[0]] == oldest  # first_time grows with n
+    assert store.spacecraft_names() == [("SAT-A", 1), ("SAT-B", 2), (None, 1)]
+    for row in made:
+        _confirm(store, row.id, epoch=T0 + timedelta(hours=row.id), rate_deg_s=[0.1, 0.2, 0.3])
+    assert store.latest_confirmation_of_spacecraft(None).seq_id == made[1].id  # the unnamed spacecraft's
+    assert store.latest_confirmation_of_spacecraft("SAT-B").seq_id == made[3].id
+    in_range = store.current_confirmations("SAT-B", T0 + timedelta(hours=made[0].id),
+                                           T0 + timedelta(hours=made[3].id))
+    assert [c.seq_id for c in in_range] == [made[0].id]  # [start, end)
+    assert [c.seq_id for c in store.current_confirmations("SAT-B")] == [made[0].id, made[3].id]
+    assert store.get_confirmation(in_range[0].id).rate_deg_s == [0.1, 0.2, 0.3]
+
+
+def test_hot_pixel_maps_and_frame_uploads(store):
+    row, _ = _upload(store, 1)
+    first = store.add_hot_pixel_map("SAT", "752x582", map_doc={"pixels": [[1, 2]]}, frames=4, hot_pixels=1,
+                                    based_on=None, seq_id=row.id)
+    with pytest.raises(StaleHotPixelMap):  # computed from nothing, but version 1 exists meanwhile
+        store.add_hot_pixel_map("SAT", "752x582", map_doc={}, frames=1, hot_pixels=0, based_on=None)
+    second = store.add_hot_pixel_map("SAT", "752x582", map_doc={"pixels": []}, frames=8, hot_pixels=0, based_on=1)
+    assert (first.version, second.version) == (1, 2) and store.current_hot_pixel_map("SAT", "752x582") == second
+    assert store.hot_pixel_map_history("SAT", "752x582") == [first, second]
+    assert store.current_hot_pixel_map(None, "752x582") is None
+    assert store.add_frame_upload("abc", row.id) == row.id
+    other, _ = _upload(store, 2)
+    assert store.add_frame_upload("abc", other.id) == row.id  # the first recorded stays
+    assert store.find_frame_upload("abc") == row.id and store.find_frame_upload("nope") is None
