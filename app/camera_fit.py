@@ -237,13 +237,20 @@ def project_with_jacobians(v_cam: np.ndarray, camera: Camera, names: tuple[str, 
     f, k1, k2 = camera.focal_length_px, camera.k1, camera.k2
     d = 1.0 + k1 * r2 + k2 * r2 * r2
     d_prime = k1 + 2.0 * k2 * r2  # d d / d (r^2)
-    xy = np.column_stack([camera.cx + f * a * d, camera.cy + f * b * d])
+    n = len(a)
+    # The same elements as np.column_stack / np.stack would assemble, written in place (this runs once
+    # per Gauss-Newton step of every candidate's optics fit).
+    xy = np.empty((n, 2))
+    xy[:, 0], xy[:, 1] = camera.cx + f * a * d, camera.cy + f * b * d
 
     # d(a, b)/d theta, then the chain through the distortion.
-    ab_theta = np.stack([np.column_stack([-a * b, 1.0 + a * a, -b]),
-                         np.column_stack([-(1.0 + b * b), a * b, a])], axis=1)
-    h_ab = f * np.stack([np.column_stack([d + 2 * a * a * d_prime, 2 * a * b * d_prime]),
-                         np.column_stack([2 * a * b * d_prime, d + 2 * b * b * d_prime])], axis=1)
+    ab_theta = np.empty((n, 2, 3))
+    ab_theta[:, 0, 0], ab_theta[:, 0, 1], ab_theta[:, 0, 2] = -a * b, 1.0 + a * a, -b
+    ab_theta[:, 1, 0], ab_theta[:, 1, 1], ab_theta[:, 1, 2] = -(1.0 + b * b), a * b, a
+    h = np.empty((n, 2, 2))
+    h[:, 0, 0], h[:, 0, 1] = d + 2 * a * a * d_prime, 2 * a * b * d_prime
+    h[:, 1, 0], h[:, 1, 1] = 2 * a * b * d_prime, d + 2 * b * b * d_prime
+    h_ab = f * h
     j_theta = h_ab @ ab_theta
 
     ones, zeros = np.ones_like(a), np.zeros_like(a)
@@ -278,7 +285,10 @@ def _solve_spd(matrix: np.ndarray, rhs: np.ndarray, what: str) -> tuple[np.ndarr
     if not np.all(scale > 0):
         raise ValueError(f"{what}: a parameter has no influence on the residuals")
     unit = matrix / np.outer(scale, scale)
-    if np.linalg.cond(unit) > _MAX_CONDITION:
+    singular = np.linalg.svd(unit, compute_uv=False)  # np.linalg.cond(unit), without its wrapper
+    with np.errstate(divide="ignore", invalid="ignore"):
+        condition = singular[0] / singular[-1]
+    if condition > _MAX_CONDITION:
         raise ValueError(f"{what}: the parameters are not separately determined by these stars "
                          "(fit fewer parameters or add priors)")
     inverse_unit = np.linalg.inv(unit)
@@ -408,7 +418,13 @@ def _attitude_inverses(V: np.ndarray, active: np.ndarray) -> np.ndarray:
     does not couple to the camera either, so the camera's system is unharmed.
     """
     blocks = np.where(active[:, None, None], V, np.eye(3))
-    inverse = np.linalg.pinv(blocks, rcond=1e-12, hermitian=True)
+    # np.linalg.pinv(blocks, rcond=1e-12, hermitian=True), step by step: the same numbers without the
+    # wrapper's checks, which cost more than the 3x3 decompositions.
+    u, s, vt = np.linalg.svd(blocks, full_matrices=False, hermitian=True)
+    large = s > 1e-12 * np.amax(s, axis=-1, keepdims=True)
+    s = np.divide(1, s, where=large, out=s)
+    s[~large] = 0
+    inverse = np.matmul(np.swapaxes(vt, -1, -2), np.multiply(s[..., None], np.swapaxes(u, -1, -2)))
     return np.where(active[:, None, None], inverse, 0.0)
 
 

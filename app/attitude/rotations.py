@@ -122,14 +122,22 @@ def rotation_from_pair(b1: np.ndarray, b2: np.ndarray, r1: np.ndarray, r2: np.nd
     Works on stacks: b1, b2, r1, r2 may be (N, 3), giving (N, 3, 3).
     """
     def triad(u, v):
-        n = np.cross(u, v)
+        n = _cross(u, v)
         n = n / np.linalg.norm(n, axis=-1, keepdims=True)
-        w = np.cross(n, u)
+        w = _cross(n, u)
         return np.stack([u, n, w], axis=-1)  # columns u, n, w
 
     Tb = triad(np.asarray(b1, float), np.asarray(b2, float))
     Tr = triad(np.asarray(r1, float), np.asarray(r2, float))
     return Tb @ np.swapaxes(Tr, -1, -2)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` of (..., 3) arrays, the same products and differences without its axis juggling
+    (a third of the time on the thousands of pairs of a hypothesis batch)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
 def propagate(rotation: np.ndarray, rate_rad_s, dt_s: float) -> np.ndarray:

@@ -31,6 +31,8 @@ def wahba_covariance(body: np.ndarray, sigma_rad: np.ndarray) -> np.ndarray:
     if body.ndim == 1:
         body, w = body.reshape(-1, 3), w.reshape(-1)
     info = w.sum(axis=-1)[..., None, None] * np.eye(3) - np.einsum("...n,...ni,...nj->...ij", w, body, body)
+    if info.ndim == 2:
+        return _inverse_3x3(info.tolist())
     # The inverse by cofactors, stack-wide (numpy's inverse raises for the whole stack on one
     # singular matrix; a 3x3 adjugate is also cheaper than its call overhead).
     a, b, c = info[..., 0, 0], info[..., 0, 1], info[..., 0, 2]
@@ -52,3 +54,23 @@ def wahba_covariance(body: np.ndarray, sigma_rad: np.ndarray) -> np.ndarray:
 def cross_boresight_and_roll_sigma(cov: np.ndarray) -> tuple[float, float]:
     """(per-axis cross-boresight 1-sigma, roll 1-sigma), radians, from a camera-frame covariance."""
     return float(np.sqrt((cov[0, 0] + cov[1, 1]) / 2)), float(np.sqrt(cov[2, 2]))
+
+
+def _inverse_3x3(m: list[list[float]]) -> np.ndarray:
+    """:func:`wahba_covariance`'s inverse of one information matrix, in Python floats.
+
+    The same IEEE operations in the same order as the stack-wide code (so
+    the same bits), without a dozen numpy calls on nine numbers: a candidate
+    asks for one covariance at a time.
+    """
+    (a, b, c), (d, e, f), (g, h, i) = m
+    adjugate = [[e * i - f * h, c * h - b * i, b * f - c * e],
+                [f * g - d * i, a * i - c * g, c * d - a * f],
+                [d * h - e * g, b * g - a * h, a * e - b * d]]
+    det = a * adjugate[0][0] + b * adjugate[1][0] + c * adjugate[2][0]
+    if not abs(det) > 1e-12 * abs(a + e + i) ** 3:
+        return np.full((3, 3), np.inf)
+    cov = np.array(adjugate) / det
+    if not np.isfinite(cov).all() or (np.diagonal(cov) < 0).any():
+        return np.full((3, 3), np.inf)
+    return cov

@@ -25,7 +25,7 @@ from app.identification.optics import focal_lengths_to_try, prepared_with_camera
 from app.identification.options import SearchOptions
 from app.identification.result import AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, Solution
 from app.identification.sky import Sky
-from app.identification.verify import check_hypotheses, refine
+from app.identification.verify import check_hypotheses, refine, refine_many
 
 
 def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=None,
@@ -63,13 +63,30 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     # The declared camera's first features, then the first feature at each other focal length (nearest
     # first), then a few more at each, then the rest of the declared camera's: an exact camera settles in
     # the first phase as it always did, and a wrong one costs a few features per focal length instead of
-    # a full search at each.
-    searched = [prepared_with_camera(declared, camera.with_optics(focal_length_px=f)) for f in focal_lengths[1:]]
-    phases = [(declared, options.declared_features_first if searched else None)]
-    phases += [(p, 1) for p in searched] + [(p, options.focal_search_features) for p in searched]
-    phases += [(declared, None)] * bool(searched)
+    # a full search at each.  (The pattern seen at another focal length is prepared when its phase comes:
+    # an exact camera never needs it.)
+    searched = focal_lengths[1:]
+    prepared = {}
+
+    def at(f):
+        if f is None:
+            return declared
+        if f not in prepared:
+            prepared[f] = prepared_with_camera(declared, camera.with_optics(focal_length_px=f))
+        return prepared[f]
+
+    phases = [(None, options.declared_features_first if searched else None)]
+    phases += [(f, 1) for f in searched] + [(f, options.focal_search_features) for f in searched]
+    phases += [(None, None)] * bool(searched)
     settled_at = None
-    for p, max_features in phases:
+    focal_search_started = None
+    for f, max_features in phases:
+        if f is not None:
+            # A pattern that matches nowhere (the Earth, noise) must not pay a dozen searches.
+            focal_search_started = focal_search_started or _time.perf_counter()
+            if _time.perf_counter() - focal_search_started > options.focal_search_budget_s:
+                continue
+        p = at(f)
         if search.run(p, max_features):
             settled_at = p
             break
@@ -113,6 +130,9 @@ class _Search:
         self.found: list[dict] = []
         self.parts: dict[int, list[tuple]] = {}  # by id of the prepared pattern: its checked hypotheses
         self.batches: dict[int, object] = {}  # by id of the prepared pattern: its hypothesis batches
+        self.refined: dict[tuple, object] = {}  # by (id of the prepared pattern, hypothesis key): its Refined
+        self._version = 0  # counts the changes of ``found``
+        self._stacks: dict[tuple, tuple] = {}
         self.n_tried = 0
         self.n_refined = 0
         self.n_scales = 0
@@ -121,17 +141,48 @@ class _Search:
     def timed_out(self) -> bool:
         return _time.perf_counter() - self.started > self.options.timeout_s
 
+    def _rotations(self, key: str, p=None) -> tuple[list[dict], np.ndarray | None]:
+        """The found candidates (refined with ``p``, when given) and their rotations ``key`` stacked
+        (kept until ``found`` changes: every hypothesis considered asks for them)."""
+        cache_key = (key, None if p is None else id(p))
+        cached = self._stacks.get(cache_key)
+        if cached is None or cached[0] != self._version:
+            found = [c for c in self.found if p is None or c["searched"] is p]
+            cached = (self._version, found, np.stack([c[key] for c in found]) if found else None)
+            self._stacks[cache_key] = cached
+        return cached[1], cached[2]
+
     def _nearest(self, R: np.ndarray, key: str, p=None) -> tuple[dict | None, float]:
         """The found candidate (refined with ``p``, when given) whose rotation ``key`` is closest to R,
         and that angle."""
-        found = [c for c in self.found if p is None or c["searched"] is p]
+        found, stack = self._rotations(key, p)
         if not found:
             return None, np.inf
-        angles = rotation_angles_between(np.stack([c[key] for c in found]), R)
+        angles = rotation_angles_between(stack, R)
         k = int(np.argmin(angles))
         return found[k], float(angles[k])
 
-    def consider(self, p, R0, edge, pair, tol) -> None:
+    def prefetch(self, p, keys, R0s: np.ndarray, tols: np.ndarray) -> None:
+        """Refine these hypotheses of ``p`` (keys: their positions among all of ``p``'s) in one batch, for
+        :meth:`consider`.
+
+        A refinement depends only on its hypothesis, so refining the next few
+        at once (:func:`app.identification.verify.refine_many`, a third of
+        the cost of one at a time) changes nothing but the time: a hypothesis
+        :meth:`consider` then merges without refining only wastes its share.
+        """
+        todo = [k for k, key in enumerate(keys) if (id(p), key) not in self.refined]
+        if not todo:
+            return
+        refined = refine_many(R0s[todo], p.vectors, p.weights, p.field, p.match_tol, tols[todo])
+        for k, r in zip(todo, refined):
+            self.refined[(id(p), keys[k])] = r
+
+    def _refine(self, p, key, R0, tol):
+        r = self.refined.get((id(p), key)) if key is not None else None
+        return r if r is not None else refine(R0, p.vectors, p.weights, p.field, p.match_tol, tol)
+
+    def consider(self, p, R0, edge, pair, tol, key: int | None = None) -> None:
         """Refine one hypothesis unless it repeats a distinct one already found.
 
         A hypothesis repeats a candidate when it starts within ``merge_angle``
@@ -148,7 +199,7 @@ class _Search:
         same, angle = self._nearest(R0, "R0", p)
         if angle >= merge_angle:
             self.n_refined += 1
-            r = refine(R0, p.vectors, p.weights, p.field, p.match_tol, tol)
+            r = self._refine(p, key, R0, tol)
             fitted = p
             if p.camera is not self.declared and r.n_matched >= 3 and self.options.fit_optics:
                 # A searched focal length is only near the truth: the optics fitted on the stars this
@@ -160,11 +211,13 @@ class _Search:
             if angle >= merge_angle:
                 self.found.append({"R0": R0, "rotation": r.rotation, "refined": r, "edge": edge, "pair": pair,
                                    "merged": 1, "tol": tol, "p": fitted, "searched": p})
+                self._version += 1
                 return
             old = same["refined"]
             if (r.n_matched, -float(np.sum(r.nearest_rad))) > (old.n_matched, -float(np.sum(old.nearest_rad))):
                 same.update(R0=R0, rotation=r.rotation, refined=r, edge=edge, pair=pair, tol=tol, p=fitted,
                             searched=p)
+                self._version += 1
         same["merged"] += 1
 
     def run(self, p, max_features: int | None = None) -> bool:
@@ -182,13 +235,22 @@ class _Search:
         for hyp, tol, used in self.batches[id(p)]:
             self.used = max(self.used, used)
             if len(hyp):
-                n_match, dev = check_hypotheses(hyp.rotations, p.vectors, p.field, tol)
+                n_match, dev = check_hypotheses(hyp.rotations, p.vectors, p.field, tol, hyp.pattern_edge,
+                                                hyp.catalogue_pair)
+                offset = sum(len(part[0]) for part in parts)  # keys: positions among all of p's hypotheses
+                first = not parts
                 parts.append((hyp.rotations, hyp.pattern_edge, hyp.catalogue_pair, n_match, dev, tol))
                 self.n_tried += len(hyp)
-                for h in np.lexsort((dev, -n_match))[:options.refine_per_batch]:
-                    if n_match[h] >= 3:
-                        self.consider(p, hyp.rotations[h], hyp.pattern_edge[h], hyp.catalogue_pair[h],
-                                      float(tol[h]))
+                order = np.lexsort((dev, -n_match))
+                top = [h for h in order[:options.refine_per_batch] if n_match[h] >= 3]
+                # The declared camera's first batch usually settles the answer, and then the alternatives
+                # are its next hypotheses in this order: refine those in the same batch.
+                ahead = order[:options.max_refinements] if first and p.camera is self.declared else top
+                ahead = [h for h in ahead if n_match[h] >= max(3, options.min_matches) or h in top]
+                self.prefetch(p, [offset + h for h in ahead], hyp.rotations[ahead], tol[ahead])
+                for h in top:
+                    self.consider(p, hyp.rotations[h], hyp.pattern_edge[h], hyp.catalogue_pair[h],
+                                  float(tol[h]), key=offset + h)
             best = max((c["refined"].n_matched for c in self.found if c["searched"] is p), default=0)
             if (best >= min(p.m, options.early_stop_matches) and best >= options.early_stop_fraction * p.m
                     and used >= options.early_stop_edges):
@@ -198,18 +260,35 @@ class _Search:
         return False
 
     def alternatives(self, p) -> None:
-        """More distinct alternatives for the operator's Next/Prev, in order of promise, from ``p``'s hypotheses."""
+        """More distinct alternatives for the operator's Next/Prev, in order of promise, from ``p``'s hypotheses.
+
+        The hypotheses that will need refining are refined a batch at a time
+        (:meth:`prefetch`): the next ones in order, as many as the refinement
+        budget has left, leaving out those that start where a found one did.
+        """
         options = self.options
         parts = self.parts.get(id(p))
         if not parts:
             return
         rot, pe, cp, n_match, dev, hyp_tol = (np.concatenate(x) for x in zip(*parts))
-        for h in np.lexsort((dev, -n_match)):
+        order = np.lexsort((dev, -n_match))
+        order = order[n_match[order] >= max(3, options.min_matches)]  # the rest never make a candidate
+        merge_angle = 20 * p.scale
+        for i, h in enumerate(order.tolist()):
             credible = sum(c["refined"].n_matched >= max(3, options.min_matches) for c in self.found)
-            if (n_match[h] < max(3, options.min_matches) or credible >= options.max_candidates
-                    or self.n_refined >= options.max_refinements or self.timed_out()):
+            if (credible >= options.max_candidates or self.n_refined >= options.max_refinements
+                    or self.timed_out()):
                 break
-            self.consider(p, rot[h], pe[h], cp[h], float(hyp_tol[h]))
+            if (id(p), h) not in self.refined and self._nearest(rot[h], "R0", p)[1] >= merge_angle:
+                budget = options.max_refinements - self.n_refined
+                ahead = order[i:i + 4 * budget]
+                _, starts = self._rotations("R0", p)
+                if starts is not None:
+                    first = np.min([rotation_angles_between(rot[ahead], R) for R in starts], axis=0)
+                    ahead = ahead[first >= merge_angle]
+                ahead = ahead[:budget]
+                self.prefetch(p, ahead.tolist(), rot[ahead], hyp_tol[ahead])
+            self.consider(p, rot[h], pe[h], cp[h], float(hyp_tol[h]), key=h)
 
 
 def _candidate(c: dict, declared: Camera, sky: Sky, n_tried: int, options: SearchOptions, planets) -> Candidate:

@@ -125,9 +125,8 @@ def bright_pair_hypotheses(pattern_vectors: np.ndarray, edges: list[tuple[int, i
         # Both orientations: (a -> i, b -> j) and (b -> i, a -> j).
         r1 = np.concatenate([a, b])
         r2 = np.concatenate([b, a])
-        R = rotation_from_pair(np.broadcast_to(pattern_vectors[i], (len(r1), 3)),
-                               np.broadcast_to(pattern_vectors[j], (len(r1), 3)),
-                               index.vectors[r1], index.vectors[r2])
+        # One pattern triad for all the catalogue pairs of this edge (the same numbers as one per pair).
+        R = rotation_from_pair(pattern_vectors[i], pattern_vectors[j], index.vectors[r1], index.vectors[r2])
         rot.append(R)
         pe.append(np.broadcast_to([i, j], (len(r1), 2)))
         cp.append(np.column_stack([r1, r2]))

@@ -13,7 +13,14 @@ from dataclasses import dataclass
 from typing import Callable
 
 from app.identification.hypotheses import bright_pair_batches
-from app.identification.triangle_features import tf_batches
+
+
+def tf_batches(p, sky, options):
+    """:func:`app.identification.triangle_features.tf_batches`, imported when first used: most
+    processes never search by triangle features, and a start-up is measured in milliseconds."""
+    from app.identification.triangle_features import tf_batches as batches
+
+    return batches(p, sky, options)
 
 
 @dataclass(frozen=True)

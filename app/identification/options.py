@@ -73,6 +73,10 @@ class SearchOptions:
     #: ... trying this many pattern features (edges) at each searched focal length: at the right one
     #: the first sure edges settle the answer, and a full search at every step would cost a dozen searches.
     focal_search_features: int = 3
+    #: ... and spending at most this long on the other focal lengths (seconds): a wrong focal length is
+    #: usually found within a few steps (~0.1-0.4 s for single snapshots), while a pattern that fits
+    #: nowhere would otherwise try every step.
+    focal_search_budget_s: float = 1.0
     #: The declared camera tries this many features before the other focal lengths are searched (and
     #: the rest after them): 7 is the first three batches (1 + 2 + 4 edges), past which an exact camera
     #: rarely needs to go.

@@ -2,14 +2,26 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
+import logging
+import math
+import os
+import zipfile
 from collections import OrderedDict
 from datetime import datetime
+from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
-from app.catalogue import Catalogue, load_catalogue, star_names
-from app.identification.verify import StarField
+from app.attitude import angle_between
+from app.catalogue import Catalogue, julian_year, load_catalogue, star_names
+from app.identification.cells import MAX_SPACECRAFT_SPEED_KM_S, MAX_YEARS, NearStarCells, motion_margin_rad
+from app.identification.verify import StarField, chord
 from app.index import BrightPairIndex, load_index
+
+log = logging.getLogger(__name__)
 
 
 class Sky:
@@ -29,6 +41,10 @@ class Sky:
         self._fields: OrderedDict[tuple, StarField] = OrderedDict()
         self._apparent: OrderedDict[tuple, np.ndarray] = OrderedDict()
         self._row_of_hip = self.catalogue.index_of_hip()
+        self._cells: dict[tuple[int, int], NearStarCells] = {}
+        self._motion_margins = None
+        self._alone_within = None
+        self._digest = None
 
     def star_mask(self, mag_limit: float) -> np.ndarray:
         return self.index.mag <= mag_limit
@@ -50,10 +66,107 @@ class Sky:
                None if velocity_km_s is None else tuple(np.round(velocity_km_s, 3)))
         if key not in self._fields:
             vectors = self.apparent_vectors(t, velocity_km_s)[:n]
-            self._fields[key] = StarField.from_vectors(vectors, np.arange(n))
+            static = (abs(julian_year(t) - self.index.epoch_jyear) <= MAX_YEARS
+                      and (velocity_km_s is None or float(np.linalg.norm(velocity_km_s)) <= MAX_SPACECRAFT_SPEED_KM_S))
+            cells = (lambda radius: self.near_star_cells(n, radius)) if static else None
+            self._fields[key] = StarField.from_vectors(vectors, np.arange(n), cells=cells,
+                                                       alone_within=self.alone_within()[:n] if static else None)
             while len(self._fields) > 32:
                 self._fields.popitem(last=False)
         return self._fields[key]
+
+    def near_star_cells(self, n: int, radius_rad: float) -> NearStarCells | None:
+        """A cell map of the ``n`` brightest stars for a radius of at least ``radius_rad`` (cached).
+
+        One map serves every observation time within :data:`MAX_YEARS` of
+        the index epoch (see :mod:`app.identification.cells`).  A map made
+        for up to twice the radius asked is used as it is (a larger radius
+        only marks more cells, whose stars are then measured and found too
+        far: the answer is the same); a new one is made for 1.2 to 1.7 times
+        the radius (1e-4 rad times a power of sqrt 2), so that a camera's
+        check tolerances, most of them near its 10 pixels, share one or two
+        maps.  A map takes ~30-50 ms to make, so it is kept on disk beside
+        the index (1-4 MB, a few ms to load).
+        """
+        if not 0 < radius_rad <= 0.1:  # wider than any check tolerance: the tree alone
+            return None
+        fitting = [m for (k, _), m in self._cells.items() if k == n and radius_rad <= m.radius_rad <= 2 * radius_rad]
+        if fitting:
+            return min(fitting, key=lambda m: m.radius_rad)
+        step = math.ceil(2 * math.log2(1.2 * radius_rad / 1e-4) - 1e-9)
+        cells = self._load_or_build_cells(n, 1e-4 * 2 ** (step / 2))
+        self._cells[(n, step)] = cells
+        return cells
+
+    def _load_or_build_cells(self, n: int, radius_rad: float) -> NearStarCells:
+        params = {"format": NearStarCells.FORMAT, "n": n, "radius": radius_rad, "years": MAX_YEARS,
+                  "speed": MAX_SPACECRAFT_SPEED_KM_S, "stars": self._stars_digest()}
+        arrays = self._cached("near-star-cells", params, lambda: NearStarCells.build(
+            self.index.vectors[:n], radius_rad, self.motion_margins()[:n]).arrays())
+        return NearStarCells.from_arrays(arrays)
+
+    def _cached(self, name: str, params: dict, make) -> dict[str, np.ndarray]:
+        """Arrays derived from the stars alone, from the disk cache beside the index, else ``make()``
+        (then written there).  A file that cannot be read is made again, never trusted."""
+        from app.config import settings
+
+        digest = hashlib.sha256(json.dumps(params, sort_keys=True).encode()).hexdigest()[:16]
+        path = Path(settings().cache_dir) / f"{name}-{digest}.npz"
+        try:
+            with np.load(path) as z:
+                return {k: z[k] for k in z.files}
+        except FileNotFoundError:
+            pass
+        except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
+            log.warning("cache %s unreadable (%s); making it again", path, exc)
+        arrays = make()
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
+            np.savez(tmp, **arrays)
+            tmp.replace(path)  # atomic: a concurrent reader never sees half a file
+        except OSError as exc:
+            log.info("cache %s not written (%s)", path, exc)
+        return arrays
+
+    def _stars_digest(self) -> str:
+        """What the cell maps are made from: the index's stars and their proper motions."""
+        if self._digest is None:
+            h = hashlib.sha256()
+            for a in (self.index.hip, self.index.vectors, self.catalogue.pm_ra_cosdec_mas_yr,
+                      self.catalogue.pm_dec_mas_yr):
+                h.update(np.ascontiguousarray(a).tobytes())
+            self._digest = h.hexdigest()[:16]
+        return self._digest
+
+    def alone_within(self) -> np.ndarray:
+        """(n_stars,) chord within which a point's nearest star is certainly that star, at any epoch within
+        :data:`MAX_YEARS` of the index's: half the angle to its nearest neighbour, less both stars' motion
+        margins (:func:`app.identification.cells.motion_margin_rad`).  Made once (~10 ms), kept on disk."""
+        if self._alone_within is None:
+            params = {"format": 1, "years": MAX_YEARS, "speed": MAX_SPACECRAFT_SPEED_KM_S,
+                      "stars": self._stars_digest()}
+            self._alone_within = self._cached("alone-within", params, lambda: {"chord": self._make_alone_within()})["chord"]
+        return self._alone_within
+
+    def _make_alone_within(self) -> np.ndarray:
+        margin = self.motion_margins()
+        vectors = self.index.vectors
+        reach = np.radians(1.0)
+        # Beyond `reach` at the index epoch, a neighbour can come at most its margin closer.
+        nearest = np.full(len(vectors), reach) - margin - margin.max()
+        i, j = cKDTree(vectors).query_pairs(float(chord(reach)), output_type="ndarray").T
+        if len(i):
+            gap = angle_between(vectors[i], vectors[j]) - margin[i] - margin[j]
+            np.minimum.at(nearest, i, gap)
+            np.minimum.at(nearest, j, gap)
+        return chord(np.maximum(nearest, 0.0) / 2) * (1 - 1e-9)
+
+    def motion_margins(self) -> np.ndarray:
+        if self._motion_margins is None:
+            self._motion_margins = motion_margin_rad(self.catalogue.pm_ra_cosdec_mas_yr,
+                                                     self.catalogue.pm_dec_mas_yr)
+        return self._motion_margins
 
     def apparent_vectors_of(self, hips, t: datetime, velocity_km_s=None) -> np.ndarray:
         """Apparent places (unit vectors) of the stars with these HIP numbers at ``t``."""

@@ -1,0 +1,233 @@
+"""Which stars lie near which parts of the sky: a cube-map grid for checking thousands of hypotheses.
+
+Why.  Checking a batch of hypotheses maps every pattern point of every
+hypothesis onto the sky (2,600 hypotheses x 10 points from a first edge on
+the 20 deg camera) and asks for its nearest star within the check tolerance.
+About 96 % of those points have no star that close, and a KD-tree spends
+~0.4 microseconds on each to find that out, 10 ms a batch.  Here each point
+is put in its cell of a grid over the sky (a dozen array operations for all
+of them); a bitmap says whether any star lies within ``radius`` of some point
+of that cell, and for the few cells that have one, the list of those stars
+gives the nearest.  The answer is the KD-tree's, bit for bit: the same
+distances (the same sum of squares), and every star within the radius of a
+point is on its cell's list, by construction.
+
+The grid.  The six faces of the cube around the sphere, each divided into
+``G x G`` cells in the gnomonic coordinates ``(u, v) = (x_b / |x_a|,
+x_c / |x_a|)`` of the face whose axis ``a`` dominates the point.  A star
+marks, on every face it can reach, the cells of the square ``(u_s, v_s) +/-
+r sec^2(theta + r)``, ``theta`` its angle from the face's centre: the
+gnomonic projection stretches no length by more than ``sec^2`` of the angle
+from its centre, so that square holds the projection of every point within
+``r`` of the star.
+
+Static.  A map is made from the stars' mean places at the index epoch, each
+star's radius grown by how far its apparent place can be from there: its
+proper motion over :data:`MAX_YEARS` years plus aberration (the Earth's
+orbital speed and up to :data:`MAX_SPACECRAFT_SPEED_KM_S` of the
+spacecraft's).  So one map serves every observation time (a new hour costs
+nothing here), and :class:`app.identification.sky.Sky` keeps it on disk.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: The map holds for observation times within this many years of the stars' epoch ...
+MAX_YEARS = 100.0
+#: ... and spacecraft speeds up to this (escape velocity is 11.2 km/s).
+MAX_SPACECRAFT_SPEED_KM_S = 12.0
+#: The Earth's orbital speed never exceeds 30.3 km/s.
+MAX_EARTH_SPEED_KM_S = 30.4
+SPEED_OF_LIGHT_KM_S = 299792.458
+#: Most cells per face edge (6 x 1024^2 bits = 768 kB).
+MAX_CELLS_PER_EDGE = 1024
+#: Cells per radius: a star marks a square of about (2 x this + 1)^2 cells, ~1.9 times its disc.
+CELLS_PER_RADIUS = 3.0
+#: The angle of a cube face's corner from its centre, arctan(sqrt 2).
+_CORNER = math.atan(math.sqrt(2.0))
+
+
+def _ragged(counts: np.ndarray) -> np.ndarray:
+    """``i`` repeated ``counts[i]`` times, for every i."""
+    return np.repeat(np.arange(len(counts)), counts)
+
+
+def _ragged_offsets(counts: np.ndarray) -> np.ndarray:
+    """0, 1, ..., counts[i] - 1 for every i, concatenated."""
+    total = int(counts.sum())
+    return np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
+
+
+def _popcount(words: np.ndarray) -> np.ndarray:
+    """Set bits of each uint64 (numpy >= 2 counts them natively; before, byte by byte)."""
+    if hasattr(np, "bitwise_count"):
+        return np.bitwise_count(words).astype(np.int64)
+    as_bytes = words.view(np.uint8).reshape(*words.shape, 8)
+    return np.unpackbits(as_bytes, axis=-1).sum(axis=-1, dtype=np.int64)
+
+
+def motion_margin_rad(pm_ra_cosdec_mas_yr: np.ndarray, pm_dec_mas_yr: np.ndarray) -> np.ndarray:
+    """How far each star's apparent place can be from its mean place at the index epoch (radians)."""
+    pm = np.hypot(pm_ra_cosdec_mas_yr, pm_dec_mas_yr) * (math.pi / (180 * 3600 * 1000))
+    aberration = (MAX_EARTH_SPEED_KM_S + MAX_SPACECRAFT_SPEED_KM_S) / SPEED_OF_LIGHT_KM_S
+    # A little more for the second-order terms of both (below 1e-8 rad) and rounding.
+    return pm * MAX_YEARS * 1.001 + aberration * 1.01 + 1e-9
+
+
+def cells_of(points: np.ndarray, cells_per_edge: int) -> np.ndarray:
+    """The cube-map cell of each unit vector (N, 3): ``(face G + i_u) G + i_v``, face = 2 axis + (negative).
+
+    The face is that of the largest coordinate (the first on a tie), ``i_u`` and ``i_v`` the cells of
+    the other two coordinates divided by it.  Written with masks and products rather than fancy
+    indexing or ``np.where`` (several times slower on 30,000 points), and int32 casts (the int64 one is
+    not vectorised).
+    """
+    G = cells_per_edge
+    x, y, z = np.ascontiguousarray(points.T)
+    ax, ay, az = np.abs(x), np.abs(y), np.abs(z)
+    on_x = (ax >= ay) & (ax >= az)
+    on_y = ~on_x & (ay >= az)
+    on_z = ~(on_x | on_y)
+    inv = 1.0 / np.maximum(np.maximum(ax, ay), az)
+    half = G / 2
+    # One of the three products is the coordinate, the other two are zero.
+    u = ((on_x * y + on_y * z + on_z * x) * inv + 1.0) * half
+    v = ((on_x * z + on_y * x + on_z * y) * inv + 1.0) * half
+    face = on_y * 2 + on_z * 4 + ((on_x * x + on_y * y + on_z * z) < 0)
+    iu = np.minimum(u.astype(np.int32), G - 1)
+    iv = np.minimum(v.astype(np.int32), G - 1)
+    return (face * G + iu) * G + iv
+
+
+class NearStarCells:
+    """The cube-map cells that have a star within ``radius_rad`` of some point in them, with those stars.
+
+    ``maybe_near`` is the bitmap's answer (one look-up per point);
+    ``nearest_within`` the nearest star's chord for each point, exactly as a
+    KD-tree query bounded at the radius would give it (the same sum of
+    squares), from the few stars listed for its cell.
+    """
+
+    #: Bump when what a map holds changes (its disk cache, :meth:`arrays`, is then made again).
+    FORMAT = 1
+
+    def __init__(self, radius_rad: float, cells_per_edge: int, words: np.ndarray, first: np.ndarray,
+                 stars: np.ndarray) -> None:
+        self.radius_rad = float(radius_rad)
+        self.cells_per_edge = int(cells_per_edge)
+        # Bit i of word w: cell 64 w + i.  A marked cell's rank (how many marked cells come before it) is
+        # its word's rank plus the marked bits below it in the word: its row in ``first``.
+        self._words = words
+        self._word_rank = np.cumsum(_popcount(words)) - _popcount(words)
+        # The stars of the marked cell of rank k: stars[first[k]:first[k + 1]].
+        self._first = first
+        self._stars = stars
+
+    @property
+    def fraction_marked(self) -> float:
+        return float(self._word_rank[-1] + _popcount(self._words[-1:])[0]) / (6 * self.cells_per_edge ** 2)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """What :meth:`from_arrays` needs, for a disk cache."""
+        return {"format": np.array(self.FORMAT), "radius_rad": np.array(self.radius_rad),
+                "cells_per_edge": np.array(self.cells_per_edge), "words": self._words,
+                "first": self._first.astype(np.int32, copy=False), "stars": self._stars.astype(np.uint16, copy=False)}
+
+    @classmethod
+    def from_arrays(cls, arrays) -> "NearStarCells":
+        if int(arrays["format"]) != cls.FORMAT:
+            raise ValueError(f"cell map format {int(arrays['format'])}, expected {cls.FORMAT}")
+        return cls(float(arrays["radius_rad"]), int(arrays["cells_per_edge"]), arrays["words"],
+                   arrays["first"], arrays["stars"])
+
+    @classmethod
+    def build(cls, vectors: np.ndarray, radius_rad: float, margins_rad: np.ndarray | float = 0.0) -> "NearStarCells":
+        """The map of stars ``vectors`` (unit vectors at the epoch the margins are counted from), each
+        star's radius grown by its margin (~30 ms for 6,000 stars)."""
+        if len(vectors) >= 1 << 16:
+            raise ValueError("at most 65,535 stars")
+        r = float(radius_rad) + np.broadcast_to(np.asarray(margins_rad, dtype=float), (len(vectors),))
+        G = int(min(MAX_CELLS_PER_EDGE, max(8, math.ceil(2.0 * CELLS_PER_RADIUS / float(radius_rad)))))
+        cell_parts, star_parts = [], []
+        for face in range(6):
+            axis, sign = divmod(face, 2)
+            c = (1.0 - 2.0 * sign) * vectors[:, axis]  # cosine of the angle from the face's centre
+            reach = np.minimum(_CORNER + r, math.pi / 2 - 1e-6)
+            rows = np.flatnonzero(c > np.cos(reach))
+            if len(rows) == 0:
+                continue
+            cc = c[rows]
+            u = vectors[rows, (axis + 1) % 3] / cc
+            v = vectors[rows, (axis + 2) % 3] / cc
+            theta = np.arccos(np.minimum(cc, 1.0))
+            half = r[rows] / np.cos(np.minimum(theta + r[rows], math.pi / 2 - 1e-6)) ** 2 * (1 + 1e-9) + 1e-12
+            lo_u, hi_u = cls._span(u, half, G)
+            lo_v, hi_v = cls._span(v, half, G)
+            keep = (lo_u <= hi_u) & (lo_v <= hi_v)
+            rows, lo_u, lo_v = rows[keep], lo_u[keep], lo_v[keep]
+            wu, wv = hi_u[keep] - lo_u + 1, hi_v[keep] - lo_v + 1
+            # Every cell of every square: the columns of each square, then the cells of each column.
+            k = _ragged(wu)
+            iu = lo_u[k] + _ragged_offsets(wu)
+            kk = _ragged(wv[k])
+            iv = lo_v[k][kk] + _ragged_offsets(wv[k])
+            cell_parts.append((face * G + iu[kk]) * G + iv)
+            star_parts.append(rows[k][kk])
+        cells = np.concatenate(cell_parts).astype(np.int64) if cell_parts else np.zeros(0, np.int64)
+        stars = np.concatenate(star_parts).astype(np.int64) if star_parts else np.zeros(0, np.int64)
+        marked = np.zeros(-(-6 * G * G // 64) * 64, dtype=bool)
+        marked[cells] = True
+        words = np.packbits(marked, bitorder="little").view("<u8")
+        # The stars of each marked cell, cell after cell (sorting packed (cell, star) keys is four times
+        # faster than an argsort).
+        keys = np.sort((cells << 16) | stars)
+        cells, stars = keys >> 16, keys & 0xFFFF
+        first = np.append(np.flatnonzero(np.r_[True, cells[1:] != cells[:-1]]), len(cells))
+        return cls(radius_rad, G, words, first.astype(np.int32), stars.astype(np.uint16))
+
+    @staticmethod
+    def _span(u: np.ndarray, half: np.ndarray, G: int) -> tuple[np.ndarray, np.ndarray]:
+        """First and last cell index of [u - half, u + half] on a face edge of G cells (lo > hi: off the face)."""
+        lo = np.floor((u - half + 1.0) * (G / 2)).astype(np.int64)
+        hi = np.floor((u + half + 1.0) * (G / 2)).astype(np.int64)
+        return np.maximum(lo, 0), np.minimum(hi, G - 1)
+
+    def _marked(self, cell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(whether each cell is marked, its word) for int cell numbers."""
+        word = self._words[cell >> 6]
+        return ((word >> (cell & 63).astype(np.uint64)) & np.uint64(1)).astype(bool), word
+
+    def maybe_near(self, points: np.ndarray) -> np.ndarray:
+        """(N,) False where a unit vector has no star within the radius (True: perhaps)."""
+        return self._marked(cells_of(points, self.cells_per_edge))[0]
+
+    def nearest_within(self, points: np.ndarray, star_vectors: np.ndarray, bound_chord: float) -> np.ndarray:
+        """(N,) chord from each point to its nearest star if that is at most ``bound_chord`` (<= the
+        radius's chord), else inf: ``cKDTree(star_vectors).query(points, distance_upper_bound=...)[0]``.
+
+        ``star_vectors`` are the stars' places now (within their margins of the ones the map was made from).
+        """
+        d = np.full(len(points), np.inf)
+        if len(points) == 0:
+            return d
+        cell = cells_of(points, self.cells_per_edge)
+        marked, word = self._marked(cell)
+        hit = np.flatnonzero(marked)
+        if len(hit) == 0:
+            return d
+        cell = cell[hit]
+        below = word[hit] & ((np.uint64(1) << (cell & 63).astype(np.uint64)) - np.uint64(1))
+        rank = self._word_rank[cell >> 6] + _popcount(below)
+        lo, count = self._first[rank], self._first[rank + 1] - self._first[rank]
+        # Each point against each star of its cell.
+        owner = np.repeat(np.arange(len(hit)), count)
+        start = np.cumsum(count) - count
+        star = self._stars[np.repeat(lo - start, count) + np.arange(len(owner))]
+        diff = points[hit][owner] - star_vectors[star]
+        d2 = (diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1]) + diff[:, 2] * diff[:, 2]  # a KD-tree's order
+        best = np.sqrt(np.minimum.reduceat(d2, start))
+        d[hit] = np.where(best <= bound_chord, best, np.inf)
+        return d
