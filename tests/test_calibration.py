@@ -84,6 +84,8 @@ def test_calibration_through_the_api_is_stored_versioned_and_given_to_later_uplo
     ctx = AppContext(storage=Storage.open(db), sky=sky)
     api = TestClient(create_app(ctx))
     assert api.get("/api/spacecraft/OPTICS-SAT/camera").json()["version"] == 2
+    assert [c["version"] for c in api.get("/api/spacecraft/OPTICS-SAT/calibrations").json()] == [1, 2]
+    assert api.get("/api/spacecraft/NO-SUCH-SAT/calibrations").json() == []
     doc = json.loads(paths[6].read_text())
     del doc["camera"]
     up = api.post("/api/sequences", files={"file": ("no-camera.json", json.dumps(doc).encode())}).json()

@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from app.identification import METHODS
 from app.workflow.documents import ManualPointDefinition, PatternDefinition
 from app.workflow.search import PriorRequest
+from app.workflow.view_state import SESSION_PATTERN
 
 #: Largest list an edit may carry (a sequence has at most 64 x 64 sources).
 MAX_LIST = 4096
@@ -48,6 +49,16 @@ class PatternEdit(_Strict):
     manual_points: list[ManualPoint] = Field(default_factory=list, max_length=256)
     operator: str | None = Field(default=None, max_length=MAX_OPERATOR)
 
+    def location_of(self, field: str, key: int) -> str:
+        """Where ``key`` (a track id, or a manual point's position) is in this request, for a located problem."""
+        if field in ("exclude_tracks", "include_tracks"):
+            values = getattr(self, field) or []
+            if key in values:
+                return f"body.{field}[{values.index(key)}]"
+        elif field == "manual_points" and 0 <= key < len(self.manual_points):
+            return f"body.manual_points[{key}]"
+        return f"body.{field}"
+
     def definition(self) -> PatternDefinition:
         return PatternDefinition(
             exclude_tracks=sorted(set(self.exclude_tracks)),
@@ -62,10 +73,10 @@ class PatternReset(_Strict):
 class PriorAttitude(_Strict):
     """A prior attitude for tracking: boresight RA/Dec, roll (README conventions) and its 1-sigma, degrees."""
 
-    ra_deg: float = Field(ge=0.0, lt=360.0)
-    dec_deg: float = Field(ge=-90.0, le=90.0)
-    roll_deg: float = Field(ge=-360.0, le=360.0)
-    sigma_deg: float = Field(default=1.0, gt=0.0, le=10.0)
+    ra_deg: float = Field(ge=0.0, lt=360.0, allow_inf_nan=False)
+    dec_deg: float = Field(ge=-90.0, le=90.0, allow_inf_nan=False)
+    roll_deg: float = Field(ge=-360.0, le=360.0, allow_inf_nan=False)
+    sigma_deg: float = Field(default=1.0, gt=0.0, le=10.0, allow_inf_nan=False)
 
     def request(self) -> PriorRequest:
         return PriorRequest(**self.model_dump())
@@ -81,9 +92,30 @@ class SearchRequest(_Strict):
 
 
 class ConfirmRequest(_Strict):
+    """Confirm a candidate of the latest search.  ``override_reason``: needed (and kept in the audit record)
+    for a candidate that is not the credible best; ``supersede``: replace the sequence's current verdict;
+    ``search_id``: the search the operator looked at (refused if a newer one replaced it)."""
+
     rank: int = Field(ge=1, le=MAX_ID)
     operator: str | None = Field(default=None, max_length=MAX_OPERATOR)
     comment: str | None = Field(default=None, max_length=MAX_COMMENT)
+    override_reason: str | None = Field(default=None, max_length=MAX_COMMENT)
+    supersede: bool = False
+    search_id: int | None = Field(default=None, ge=1, le=MAX_ID)
+
+
+class RejectRequest(_Strict):
+    """Record "no valid attitude" for a sequence, with the reason; ``supersede`` withdraws a confirmation."""
+
+    reason: str = Field(min_length=1, max_length=MAX_COMMENT)
+    operator: str | None = Field(default=None, max_length=MAX_OPERATOR)
+    supersede: bool = False
+
+
+class ViewerFollow(_Strict):
+    """The console session the 3D view should draw."""
+
+    session: str = Field(pattern=SESSION_PATTERN, description="the console's session id")
 
 
 class ViewEdit(_Strict):

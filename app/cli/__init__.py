@@ -20,6 +20,7 @@ COMMANDS = {
     "serve": "start the REST API, the browser console and the 3D view",
     "upload": "upload telemetry files to a running server",
     "calibrate": "fit the camera (focal length, principal point, distortion) over many sequences",
+    "batch": "extract and identify many sequences on a Dask cluster, into the archive or JSON lines",
 }
 
 

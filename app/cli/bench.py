@@ -5,11 +5,15 @@ rejected, time per sequence), ``identification`` (issue 3: top-1/top-5
 correct, wrong "identified" answers, attitude errors, time per sequence and
 the seed's deviation table), ``load`` (issue 4: the real server under 20
 concurrent clients; here ``--n`` is the duration in seconds, default 30, and
-``--think`` each client's pause between loops, default 1 s, 0 for saturation).
+``--think`` each client's pause between loops, default 1 s, 0 for saturation;
+``--adversarial`` adds two clients sending worst-case files, issue 12).
 ``seeds`` (issue 6, also ``--seeds``: Liebe's Tables 2 and 3 and Fig. 2,
 see :mod:`app.bench.seeds`).  ``camera`` (issue 11: identification with
 wrong focal lengths and undeclared distortion, and calibration accuracy
-from 20, 50 and 200 sequences, see :mod:`app.bench.camera`).
+from 20, 50 and 200 sequences, see :mod:`app.bench.camera`).  ``batch``
+(issue 14: sequences per second of ``python -m app batch`` with 1 and 2 Dask
+workers, see :mod:`app.bench.batch`); ``load`` also takes ``--servers 2
+--database postgresql://...`` (two servers on one shared archive).
 Every figure is measured now, on this machine, in one process (the load
 suite adds the server's), from simulated sequences drawn with ``--seed``.
 """
@@ -23,7 +27,7 @@ import logging
 import sys
 import time
 
-SUITES = ("extraction", "identification", "sequence", "load", "seeds", "camera")
+SUITES = ("extraction", "identification", "sequence", "load", "seeds", "camera", "peer", "frames", "batch")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -34,6 +38,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="sequences per table row (default: 100 identification, 300 extraction); "
                         "for the load suite, seconds of load (default 30)")
     p.add_argument("--seed", type=int, default=1, help="random seed of the simulated data (default 1)")
+    p.add_argument("--adversarial", action="store_true",
+                   help="load suite: two more clients send worst-case files (64 snapshots x 64 sources) "
+                        "without pause; the target still counts the ordinary clients")
+    p.add_argument("--servers", type=int, default=1, metavar="N",
+                   help="load suite: N servers on one PostgreSQL archive (needs --database; issue 14)")
+    p.add_argument("--database", default=None, metavar="URL",
+                   help="load suite: a postgresql:// URL; the run makes a fresh database on that server")
     p.add_argument("--think", type=float, default=None, metavar="SECONDS",
                    help="load suite: each client's pause between its loops (default 1; 0 = saturation)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
@@ -47,6 +58,10 @@ def run(args: argparse.Namespace) -> int:
     if args.think is not None and not (0 <= args.think <= 60):
         print("error: --think must be between 0 and 60 seconds", file=sys.stderr)
         return 2
+    if args.servers < 1 or (args.servers > 1 and not args.database):
+        print("error: --servers must be at least 1, and several servers need --database postgresql://...",
+              file=sys.stderr)
+        return 2
     suites = SUITES if args.suite == "all" else (args.suite,)
     results = {}
     for name in suites:
@@ -57,6 +72,10 @@ def run(args: argparse.Namespace) -> int:
             kwargs["n_sequences"] = args.n
         if name == "load" and args.think is not None:
             kwargs["think_s"] = args.think
+        if name == "load" and args.adversarial:
+            kwargs["adversarial"] = module.ADVERSARIAL_CLIENTS
+        if name == "load":
+            kwargs.update(servers=args.servers, database=args.database)
         results[name] = module.run(**kwargs)
         results[name]["wall_s"] = round(time.perf_counter() - t0, 1)
         if not args.json:

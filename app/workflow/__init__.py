@@ -15,6 +15,14 @@ them imports another, and nothing here imports FastAPI or viser.
 * :mod:`.errors` - what the workflow refuses, by kind (the API maps kinds to statuses).
 """
 
-from app.workflow.context import AppContext, build_context
-
 __all__ = ["AppContext", "build_context"]
+
+
+def __getattr__(name: str):
+    """``AppContext`` and ``build_context`` on first use: a worker process imports only
+    :mod:`app.workflow.compute` and should not pay for the whole context (~0.6 s of imports)."""
+    if name in __all__:
+        from app.workflow import context
+
+        return getattr(context, name)
+    raise AttributeError(f"module 'app.workflow' has no attribute {name!r}")

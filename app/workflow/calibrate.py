@@ -200,3 +200,7 @@ def current_camera(ctx: AppContext, spacecraft: str) -> StoredCalibration:
         raise NotFound(f"spacecraft {spacecraft!r} has no camera calibration yet; "
                        f"POST /api/spacecraft/{spacecraft}/calibrate makes one")
     return StoredCalibration.of(row)
+
+
+def calibration_history(ctx: AppContext, spacecraft: str) -> list[StoredCalibration]:
+    return [StoredCalibration.of(row) for row in ctx.storage.calibration_history(spacecraft)]

@@ -86,7 +86,8 @@ class AppContext:
     def compute(self) -> ComputePool:
         """Searches run here, at most ``settings.search_workers`` at once."""
         if self._compute is None:
-            self._compute = ComputePool(0, threads=self.settings.search_workers, sky=self.sky)
+            self._compute = ComputePool(0, threads=self.settings.search_workers, sky=self.sky,
+                                        hard_limit_s=3 * self.settings.search_timeout_s)
         return self._compute
 
     def close(self) -> None:
@@ -123,7 +124,8 @@ def build_context(*, database: str | None = None, host: str = "127.0.0.1",
                      sky.index.mag_limit, sky.index.n_pairs)
             if config.search_processes:
                 # After the Sky: on a first start it built the index cache the workers now load.
-                compute = ComputePool(config.search_workers)
+                compute = ComputePool(config.search_workers, bulk_processes=config.bulk_workers,
+                                      hard_limit_s=3 * config.search_timeout_s)
                 compute.warm_up()
     except BaseException:
         if compute is not None:

@@ -383,7 +383,7 @@ class SequenceSummary(Document):
     first_time: str | None
     n_snapshots: int | None
     uploaded_at: str | None
-    status: Literal["new", "identified", "ambiguous", "no_match", "confirmed"]
+    status: Literal["new", "identified", "ambiguous", "no_match", "confirmed", "rejected"]
     content_sha256: str
 
     @classmethod
@@ -443,6 +443,11 @@ class AttitudeDocument(Document):
     current: bool
     apm_url: str
     aem_url: str | None
+    override_reason: str | None = Field(default=None, description="why the operator confirmed past the guard "
+                                        "rail (a candidate not the credible best, a stale or doubtful search)")
+    overridden: list[str] = Field(default_factory=list, description="the guard rail's reasons that were overridden")
+    withdrawn_by: int | None = Field(default=None, description="the rejection (no valid attitude) that withdrew it")
+    replaces_rejection: int | None = Field(default=None, description="the rejection it replaced as the verdict")
 
 
     @classmethod
@@ -456,7 +461,10 @@ class AttitudeDocument(Document):
                    deviation_arcsec=c.deviation_arcsec, false_match_probability=c.false_match_probability,
                    pattern=PatternUsed.model_validate(c.pattern), candidate=CandidateDocument.model_validate(c.candidate),
                    superseded_by=c.superseded_by, current=c.is_current, apm_url=f"/api/attitudes/{c.id}/apm",
-                   aem_url=f"/api/sequences/{c.seq_id}/aem" if c.aem_text else None)
+                   aem_url=f"/api/sequences/{c.seq_id}/aem" if c.aem_text else None,
+                   override_reason=getattr(c, "override_reason", None), overridden=getattr(c, "overridden", None) or [],
+                   withdrawn_by=getattr(c, "withdrawn_by", None),
+                   replaces_rejection=getattr(c, "replaces_rejection", None))
 
 
 class AttitudePage(Document):
@@ -502,6 +510,9 @@ class ViewDocument(Document):
     status: str | None = None
     pattern_version: int | None = None
     confirmation_id: int | None = None
+    session: str | None = Field(default=None, description="the console session this state belongs to")
+    followed_by_3d: bool = Field(default=False, description="the 3D view draws this session")
+    rejection_id: int | None = Field(default=None, description="the current verdict, when it is 'no valid attitude'")
 
 
 class ViewerDocument(Document):
@@ -600,3 +611,89 @@ class StoredCalibration(CalibrationDocument):
         """The document of an :class:`app.storage.CalibrationRow`."""
         return cls(**row.result, spacecraft=row.spacecraft, version=row.version, operator=row.operator,
                    created_at=utc_text(row.created_at), sequences=row.sequences)
+
+
+# ---------------------------------------------------------------------------
+# Operator review: candidate verdicts, rejections, the work queue (issue 13)
+# ---------------------------------------------------------------------------
+
+class CandidateVerdict(Document):
+    """Whether one candidate of the latest search may be confirmed without a second step, and why not."""
+
+    rank: int
+    credible: bool = Field(description="the credible best: rank 1 of an 'identified' search on the current pattern")
+    reasons: list[str] = Field(description="why it is not credible (empty when it is); confirming it anyway needs "
+                                           "override_reason")
+    deviation_gap_arcsec: float | None = Field(description="its deviation minus rank 1's")
+    odds_vs_best: float | None = Field(description="log10 of its false-match probability over rank 1's: how many "
+                                                   "decades likelier it is to be chance")
+    separation_from_best_deg: float | None = Field(description="rotation angle between its attitude and rank 1's")
+
+
+class RejectionDocument(Document):
+    """An operator's verdict "no valid attitude" with its reason (append-only audit record)."""
+
+    id: int
+    sequence: int
+    sequence_id: str | None
+    spacecraft: str | None
+    search_id: int | None
+    operator: str
+    rejected_at: str
+    reason: str
+    replaces_confirmation: int | None
+    replaces_rejection: int | None
+    current: bool
+
+    @classmethod
+    def of(cls, r, row) -> "RejectionDocument":
+        """The document of a rejection (:class:`app.storage.RejectionRow`) of sequence ``row``."""
+        return cls(id=r.id, sequence=r.seq_id, sequence_id=row.sequence_id if row else None,
+                   spacecraft=row.spacecraft if row else None, search_id=r.search_id, operator=r.operator,
+                   rejected_at=utc_text(r.rejected_at), reason=r.reason,
+                   replaces_confirmation=r.replaces_confirmation, replaces_rejection=r.replaces_rejection,
+                   current=r.is_current)
+
+
+class AuditEntry(Document):
+    """One verdict in a sequence's audit trail, oldest first."""
+
+    kind: Literal["confirmed", "rejected"]
+    id: int = Field(description="attitude id (confirmed) or rejection id (rejected)")
+    operator: str
+    at: str
+    rank: int | None = None
+    search_id: int | None = None
+    reason: str | None = Field(default=None, description="the rejection's reason, or the override reason")
+    comment: str | None = None
+    current: bool
+
+
+class ReviewDocument(Document):
+    """What an operator needs to judge a sequence: each candidate's verdict and the sequence's own."""
+
+    sequence: int
+    status: str
+    search_id: int | None
+    search_status: str | None
+    method: str | None
+    search_pattern_version: int | None
+    pattern_version: int | None
+    stale: bool = Field(description="the pattern changed since the latest search")
+    identified_probability: float = Field(description="a best candidate is 'identified' at most this likely by chance")
+    candidates: list[CandidateVerdict]
+    confirmation: AttitudeDocument | None = Field(description="the current verdict when it is a confirmation")
+    rejection: RejectionDocument | None = Field(description="the current verdict when it is 'no valid attitude'")
+    audit: list[AuditEntry]
+
+
+class SpacecraftDocument(Document):
+    name: str | None
+    sequences: int
+
+
+class OperatorDocument(Document):
+    """Who the console writes as: the bearer token's operator, or the name typed (loopback)."""
+
+    auth_required: bool
+    operator: str | None = Field(description="the token's operator (null: no token sent)")

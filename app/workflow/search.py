@@ -80,8 +80,9 @@ def tracking_prior(ctx: AppContext, spacecraft: str | None, prior: PriorRequest 
 
 
 def search_options(ctx: AppContext, max_candidates: int | None) -> SearchOptions:
-    """The identification options of a search request (the server's time-out, the client's count)."""
-    return SearchOptions(timeout_s=ctx.settings.search_timeout_s,
+    """The identification options of a search request: the server's identification budget (a part of the
+    time-out users see, leaving room for the queue, extraction and storage) and the client's count."""
+    return SearchOptions(timeout_s=ctx.settings.search_budget_s,
                          **({} if max_candidates is None else {"max_candidates": max_candidates}))
 
 
@@ -142,8 +143,8 @@ def store_search(ctx: AppContext, job: SearchJob, result: SearchResult) -> Searc
                                     result=result.model_dump(mode="json"), status=result.status,
                                     elapsed_s=result.elapsed_ms / 1000)
     row = require_sequence(ctx, job.seq_id)
-    # A confirmed sequence stays confirmed: its attitude stands until a new confirmation supersedes it.
-    if row.status != "confirmed":
+    # A confirmed (or rejected) sequence keeps its verdict until an operator supersedes it.
+    if row.status not in ("confirmed", "rejected"):
         ctx.storage.set_status(job.seq_id, result.status)
     return SearchDocument.of(search)
 
@@ -171,7 +172,7 @@ def reusable_search(ctx: AppContext, seq_id: int, method: str, max_candidates: i
     if (timed_out or search.method != method or search.pattern_version != current_pattern_version(ctx, seq_id)
             or search.options != search_options_record(ctx, options, row.camera_calibration)):
         return None
-    if row.status != "confirmed" and row.status != search.status:
+    if row.status not in ("confirmed", "rejected") and row.status != search.status:
         ctx.storage.set_status(seq_id, search.status)
     return SearchDocument.of(search, reused=True)
 

@@ -1,5 +1,6 @@
 """The API's routers, one module per resource."""
 
-from app.api.routes import attitudes, sequences, spacecraft, system, view
+from app.api.routes import attitudes, frames, queue, sequences, spacecraft, system, view
 
-ROUTERS = (sequences.router, attitudes.router, spacecraft.router, system.router, view.router)
+ROUTERS = (sequences.router, attitudes.router, spacecraft.router, system.router, view.router,
+           queue.router, frames.router)

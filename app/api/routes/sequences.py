@@ -2,22 +2,21 @@
 
 from __future__ import annotations
 
-import asyncio
 from typing import Literal
 
-from fastapi import APIRouter, Body, Depends, Path, Query, Request
+from fastapi import APIRouter, BackgroundTasks, Body, Depends, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, PlainTextResponse
 from starlette.datastructures import UploadFile
 
 from app.api.errors import ApiError
-from app.api.routes.common import (ID_LIMITS, attachment, get_context, operator_name, read_body_limited,
-                                   replay_request, too_large, writer)
+from app.api.routes.common import (ID_LIMITS, attachment, compute_within, get_context, operator_name,
+                                   read_body_limited, replay_request, too_large, work_deadline, writer)
 from app.api.schemas import ConfirmRequest, PatternEdit, PatternReset, SearchRequest
-from app.workflow import AppContext, archive, confirm as confirming, search as searching
+from app.storage import SEQUENCE_ORDERS
+from app.workflow import AppContext, archive, confirm as confirming, queue, search as searching
 from app.workflow.documents import (AttitudeDocument, CandidateView, PatternDocument, SearchDocument, SequenceDetail,
                                     SequencePage, UploadDocument)
-from app.workflow.errors import Busy
 
 router = APIRouter(prefix="/api/sequences", tags=["sequences"])
 
@@ -25,8 +24,6 @@ router = APIRouter(prefix="/api/sequences", tags=["sequences"])
 MULTIPART_OVERHEAD = 64 * 1024
 #: Raw-body media types read as telemetry (JSON or CSV; the content decides which).
 RAW_TYPES = ("application/json", "text/csv", "text/plain", "application/octet-stream")
-#: Extra wall-clock time a search may take beyond its own budget (waiting for a worker, extraction).
-SEARCH_GRACE_S = 20.0
 
 SeqId = Path(description="archive id of the sequence", **ID_LIMITS)
 _UPLOAD_BODY = {
@@ -44,7 +41,9 @@ _UPLOAD_BODY = {
     },
     "responses": {"200": {"description": "The same content was uploaded before: the stored sequence"},
                   "413": {"description": "Larger than the upload limit"},
-                  "422": {"description": "Invalid telemetry, with located problems"}},
+                  "422": {"description": "Invalid telemetry, with located problems"},
+                  "503": {"description": "Not processed within the time-out (STARID_SEARCH_TIMEOUT_S); nothing "
+                                         "was stored, try again"}},
 }
 
 
@@ -71,27 +70,42 @@ async def _upload_bytes(request: Request, limit: int) -> tuple[bytes, str | None
 
 @router.post("", status_code=201, openapi_extra=_UPLOAD_BODY, response_model=UploadDocument,
              summary="Upload a telemetry file (201 created, 200 if the same content exists)")
-async def upload(request: Request,
+async def upload(request: Request, background: BackgroundTasks,
                  filename: str | None = Query(None, max_length=255,
                                               description="name of the file, for a raw body (a label only)"),
+                 search: bool = Query(False, description="true: search a new upload (bright pairs) right after "
+                                                         "answering, as the console's work queue does"),
                  _operator: str | None = Depends(writer), ctx: AppContext = Depends(get_context)):
     data, form_name = await _upload_bytes(request, ctx.settings.max_upload_bytes)
+    deadline = work_deadline(ctx)  # the time-out runs from here, as a search's does
     upload = await run_in_threadpool(archive.parse_upload, ctx, data, form_name or filename)
     stored = await run_in_threadpool(archive.stored_upload, ctx, upload)
     if stored is not None:
         return JSONResponse(stored.model_dump(mode="json"), status_code=200)
-    # Extraction is CPU-bound: in the compute pool, beside the searches.
-    extraction = await asyncio.wrap_future(ctx.compute.submit(archive.extraction_job, upload.sequence))
+    # Extraction is CPU-bound: in the compute pool, large files on their own lane.  Nothing is stored
+    # before it is done, so an upload that times out leaves nothing behind.
+    extraction = await compute_within(ctx, deadline, "the upload's extraction", archive.extraction_job,
+                                      upload.sequence, lane=archive.extraction_lane(upload.sequence))
     doc = await run_in_threadpool(archive.store_upload, ctx, upload, extraction)
-    return JSONResponse(doc.model_dump(mode="json"), status_code=201 if doc.created else 200)
+    if search and doc.created:
+        background.add_task(queue.search_new_upload, ctx, doc.id)  # after the response: the queue shows "new"
+    return JSONResponse(doc.model_dump(mode="json"), status_code=201 if doc.created else 200,
+                        background=background)
 
 
-@router.get("", response_model=SequencePage, summary="A page of sequences, newest first")
+@router.get("", response_model=SequencePage,
+            summary="A page of sequences (newest first, or as the work queue: ambiguous and no match first)")
 def list_sequences(offset: int = Query(0, ge=0, le=2**62), limit: int = Query(50, ge=1, le=1000),
                    spacecraft: str | None = Query(None, max_length=128),
-                   status: Literal["new", "identified", "ambiguous", "no_match", "confirmed"] | None = None,
+                   status: Literal["new", "identified", "ambiguous", "no_match", "confirmed", "rejected"] | None = None,
+                   search: str | None = Query(None, max_length=128,
+                                              description="part of the sequence id or file name, or the archive id"),
+                   order: Literal[tuple(SEQUENCE_ORDERS)] = Query(  # type: ignore[valid-type]
+                       "newest", description="newest | oldest | queue (what needs an operator first) | time "
+                                             "(snapshot time, newest first) | time_asc | spacecraft"),
                    ctx: AppContext = Depends(get_context)):
-    return archive.list_sequences(ctx, offset, limit, spacecraft, status)
+    return queue.list_sequences(ctx, offset, limit, spacecraft=spacecraft, status=status, search=search,
+                                order=order)
 
 
 @router.get("/{seq_id}", response_model=SequenceDetail,
@@ -103,7 +117,8 @@ def get_sequence(seq_id: int = SeqId, ctx: AppContext = Depends(get_context)):
 @router.put("/{seq_id}/pattern", response_model=PatternDocument, summary="Set the operator's pattern (a new version)")
 def put_pattern(edit: PatternEdit, seq_id: int = SeqId, token_operator: str | None = Depends(writer),
                 ctx: AppContext = Depends(get_context)):
-    return archive.set_pattern(ctx, seq_id, edit.definition(), operator_name(token_operator, edit.operator))
+    return archive.set_pattern(ctx, seq_id, edit.definition(), operator_name(token_operator, edit.operator),
+                               locate=edit.location_of)
 
 
 @router.post("/{seq_id}/pattern/reset", response_model=PatternDocument,
@@ -114,10 +129,13 @@ def reset_pattern(body: PatternReset | None = Body(None), seq_id: int = SeqId,
 
 
 @router.post("/{seq_id}/search", response_model=SearchDocument,
+             responses={503: {"description": "Not done within the time-out (STARID_SEARCH_TIMEOUT_S); nothing was "
+                                             "stored, try again"}},
              summary="Identify the current pattern; ranked candidates and the status")
 async def search(body: SearchRequest | None = Body(None), seq_id: int = SeqId,
                  _operator: str | None = Depends(writer), ctx: AppContext = Depends(get_context)):
     body = body or SearchRequest()
+    deadline = work_deadline(ctx)
     # An unchanged pattern searched again is answered from the archive without queueing behind
     # the CPU-bound searches of other sequences (see workflow.search.reusable_search).
     reused = await run_in_threadpool(searching.reusable_search, ctx, seq_id, body.method, body.max_candidates)
@@ -126,25 +144,25 @@ async def search(body: SearchRequest | None = Body(None), seq_id: int = SeqId,
     job = await run_in_threadpool(searching.prepare_search, ctx, seq_id, body.method, body.max_candidates,
                                   body.prior.request() if body.prior else None)
     # The compute pool: at most search_workers CPU-bound searches at once, the event loop stays free.
-    future = ctx.compute.submit(searching.compute_search, job)
-    deadline = ctx.settings.search_timeout_s + SEARCH_GRACE_S
-    try:
-        result = await asyncio.wait_for(asyncio.wrap_future(future), timeout=deadline)
-    except asyncio.TimeoutError:
-        raise Busy(f"the search did not finish within {deadline:.0f} s (the server is busy); try again") from None
+    result = await compute_within(ctx, deadline, "the search", searching.compute_search, job)
     return await run_in_threadpool(searching.store_search, ctx, job, result)
 
 
 @router.get("/{seq_id}/candidates/{rank}", response_model=CandidateView,
             summary="One candidate of the latest search with its sky section")
 def get_candidate(seq_id: int = SeqId, rank: int = Path(**ID_LIMITS),
-                  mag: float = Query(6.0, ge=-2.0, le=7.0, description="faintest catalogue star shown (Hp)"),
+                  mag: float = Query(6.0, ge=-2.0, le=7.0, allow_inf_nan=False,
+                                     description="faintest catalogue star shown (Hp)"),
                   ctx: AppContext = Depends(get_context)):
     return searching.candidate_view(ctx, seq_id, rank, mag)
 
 
 @router.post("/{seq_id}/confirm", status_code=201, response_model=AttitudeDocument,
-             summary="Confirm a candidate of the latest search")
+             responses={200: {"description": "The same candidate of the same search was confirmed already: "
+                                             "the stored record (no second audit record)"},
+                        409: {"description": "Not the credible best candidate and no override_reason, another "
+                                             "verdict without supersede, or a search that was replaced"}},
+             summary="Confirm a candidate of the latest search (guard rails: see the request body)")
 def confirm(body: ConfirmRequest, seq_id: int = SeqId, token_operator: str | None = Depends(writer),
             ctx: AppContext = Depends(get_context)):
     operator = operator_name(token_operator, body.operator)
@@ -152,7 +170,10 @@ def confirm(body: ConfirmRequest, seq_id: int = SeqId, token_operator: str | Non
         raise ApiError(422, "a confirmation needs the operator's name",
                        problems=[{"location": "body.operator", "message": "missing operator"}])
     comment = (body.comment or "").strip() or None
-    return confirming.confirm(ctx, seq_id, body.rank, operator, comment)
+    doc, created = confirming.record_confirmation(ctx, seq_id, body.rank, operator, comment,
+                                                  override_reason=body.override_reason, supersede=body.supersede,
+                                                  search_id=body.search_id)
+    return JSONResponse(doc.model_dump(mode="json"), status_code=201 if created else 200)
 
 
 @router.get("/{seq_id}/aem", response_class=PlainTextResponse,

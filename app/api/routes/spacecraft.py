@@ -28,3 +28,9 @@ def calibrate_camera(body: CalibrateRequest | None = Body(None), name: str = Spa
             summary="The spacecraft's current camera calibration (404 when it has none)")
 def current_camera(name: str = Spacecraft, ctx: AppContext = Depends(get_context)):
     return calibrate.current_camera(ctx, name)
+
+
+@router.get("/{name}/calibrations", response_model=list[StoredCalibration],
+            summary="Every calibration of the spacecraft's camera, oldest first (empty when it has none)")
+def calibrations(name: str = Spacecraft, ctx: AppContext = Depends(get_context)):
+    return calibrate.calibration_history(ctx, name)
