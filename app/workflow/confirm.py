@@ -130,7 +130,7 @@ def render_acm(row: SequenceRow, item: LoadedSequence, candidate: CandidateDocum
     covariance = None
     if candidate.sigma_cross_boresight_arcsec is not None and candidate.sigma_roll_arcsec is not None:
         cross, roll = (candidate.sigma_cross_boresight_arcsec / 3600.0) ** 2, (candidate.sigma_roll_arcsec / 3600.0) ** 2
-        covariance = (epoch, (cross, cross, roll))
+        covariance = (epoch, (cross, cross, roll)) if np.isfinite([cross, roll]).all() else None
     snapshots = item.sequence.snapshots
     steps = [(b.time - a.time).total_seconds() for a, b in zip(snapshots, snapshots[1:])]
     sensor = AcmSensor(
