@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from types import SimpleNamespace
@@ -222,6 +223,16 @@ def test_cell_maps_are_kept_on_disk_and_a_damaged_one_is_made_again(sky, tmp_pat
     files[0].write_bytes(b"not a cell map")
     again = Sky(index=sky.index, catalogue=sky.catalogue).near_star_cells(2000, 0.004)
     assert isinstance(again, NearStarCells) and np.array_equal(again.arrays()["stars"], made.arrays()["stars"])
+    # At most MAX_CACHED_FILES maps stay on disk, the newest.
+    from app.identification.sky import MAX_CACHED_FILES
+
+    for k in range(MAX_CACHED_FILES + 3):
+        stale = tmp_path / f"near-star-cells-stale{k:02d}.npz"
+        stale.write_bytes(b"old")
+        os.utime(stale, (1e9 + k, 1e9 + k))
+    Sky(index=sky.index, catalogue=sky.catalogue).near_star_cells(1500, 0.004)  # a new map: written, then pruned
+    left = sorted(f.name for f in tmp_path.glob("near-star-cells-*.npz"))
+    assert len(left) == MAX_CACHED_FILES and not any("stale00" in f or "stale03" in f for f in left)
 
 
 # --- writing the fixture -------------------------------------------------------------------------------

@@ -23,6 +23,9 @@ from app.index import BrightPairIndex, load_index
 
 log = logging.getLogger(__name__)
 
+#: Cell maps (1-5 MB each) kept on disk, the most recently made.
+MAX_CACHED_FILES = 12
+
 
 class Sky:
     """The catalogue and the bright-pair index, loaded once (the identification context).
@@ -127,6 +130,15 @@ class Sky:
             tmp.replace(path)  # atomic: a concurrent reader never sees half a file
         except OSError as exc:
             log.info("cache %s not written (%s)", path, exc)
+        # The least recently made beyond MAX_CACHED_FILES go: a camera uses one or two maps, and ever new
+        # cameras must not fill the disk.
+        files = sorted(path.parent.glob(f"{name}-*.npz"), key=lambda f: f.stat().st_mtime, reverse=True)
+        for old in files[MAX_CACHED_FILES:]:
+            if old != path:
+                try:
+                    old.unlink()
+                except OSError:  # another process removed it first
+                    pass
         return arrays
 
     def _stars_digest(self) -> str:
