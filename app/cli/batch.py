@@ -133,7 +133,8 @@ def summary(report) -> str:
     rate = report.sequences_per_s
     lines = [f"{report.mode}: {report.total} sequences, {report.processed} processed ({statuses}), "
              f"{report.skipped} skipped as done, {report.invalid} invalid, {report.failed} failed",
-             f"{report.workers} workers ({report.threads} threads), start-up {report.startup_s:.1f} s; "
+             f"{report.workers} worker{'s' if report.workers != 1 else ''} ({report.threads} thread"
+             f"{'s' if report.threads != 1 else ''}), start-up {report.startup_s:.1f} s; "
              f"processing {report.processing_s:.2f} s"
              + (f" = {rate} sequences/s" if rate is not None else "")]
     lines += [f"  {message}" for message in report.errors[:10]]
