@@ -61,7 +61,8 @@ def confirmed(tmp_path_factory, sky, sample_dir):
             r = client.post(f"/api/sequences/{sid}/confirm", json={"rank": 1, "operator": "Zoë Ünal"})
             assert r.status_code == 201, r.text
             attitude = r.json()
-            first, again = (client.get(f"/api/attitudes/{attitude['id']}/acm") for _ in range(2))
+            assert attitude["acm_url"] == f"/api/attitudes/{attitude['id']}/acm"
+            first, again = (client.get(attitude["acm_url"]) for _ in range(2))
             assert first.status_code == 200 and again.status_code == 200
             assert first.headers["content-disposition"].endswith('.acm"')
             truth = json.loads((sample_dir / name.replace(".json", ".truth.json")).read_text())

@@ -266,14 +266,14 @@ def test_solve_cli_methods(sample_dir, capsys):
     from app.cli import solve
 
     path = str(sample_dir / "01-clean.json")
-    args = argparse.Namespace(files=[path], json=True, candidates=None, method="both", prior=None)
+    args = argparse.Namespace(files=[path], json=True, candidates=None, method="both", prior=None, fov_deg=None)
     assert solve.run(args) == 0
     doc = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     for key in ("file", "sequence_id", "status", "error", "reference_snapshot", "sources", "candidates"):
         assert key in doc
     assert doc["methods_agree"] is True
     assert doc["tf_candidates"] and doc["candidates"]
-    args = argparse.Namespace(files=[path], json=True, candidates=None, method="tf", prior=None)
+    args = argparse.Namespace(files=[path], json=True, candidates=None, method="tf", prior=None, fov_deg=None)
     assert solve.run(args) == 0
     tf_doc = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert tf_doc["tf_candidates"] is None and tf_doc["methods_agree"] is None

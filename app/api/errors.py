@@ -18,7 +18,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from app.storage import StorageError, UnknownSequence
+from app.storage import StorageError, UnknownSequence, UnstorableValue
 from app.telemetry.errors import TelemetryError
 from app.workflow.errors import Busy, Conflict, Invalid, NotFound, TooLarge, WorkflowError
 
@@ -129,6 +129,13 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(UnknownSequence)
     async def unknown_sequence(_: Request, exc: UnknownSequence) -> JSONResponse:
         return JSONResponse(error_body(str(exc)), status_code=404)
+
+    @app.exception_handler(UnstorableValue)
+    async def unstorable(_: Request, exc: UnstorableValue) -> JSONResponse:
+        # The backstop for a value the backend cannot hold that no field check caught (request fields
+        # refuse U+0000 themselves, with their location): the write was rolled back, nothing is stored.
+        return JSONResponse(error_body(f"{exc}; nothing was stored",
+                                       [{"location": "request", "message": str(exc)}]), status_code=422)
 
     @app.exception_handler(StorageError)
     async def storage_error(_: Request, exc: StorageError) -> JSONResponse:

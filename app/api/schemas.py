@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
 from app.identification import METHODS
 from app.workflow.documents import ManualPointDefinition, PatternDefinition
@@ -24,6 +24,19 @@ MAX_COMMENT = 2000
 #: Ids and ranks fit a 64-bit database integer.
 MAX_ID = 2**63 - 1
 
+
+def _without_nul(text: str | None) -> str | None:
+    if text is not None and "\x00" in text:
+        raise ValueError("must not contain a NUL character (U+0000)")
+    return text
+
+
+#: Free text a client sends (names, comments, reasons, search terms): any character but U+0000.
+#: PostgreSQL's text cannot hold U+0000 and SQLite can; refusing it here gives the same located 422
+#: on both backends instead of a stored row on one and a failed write on the other.  As a query
+#: parameter write ``Annotated[Text, Query(...)]``: with ``= Query(...)`` as the default FastAPI drops
+#: the validator.
+Text = Annotated[str, AfterValidator(_without_nul)]
 
 #: A track id as the extraction numbers them (0..tracks-1; bounded so nothing overflows).
 TrackId = Annotated[int, Field(ge=0, le=1_000_000)]
@@ -47,7 +60,7 @@ class PatternEdit(_Strict):
     exclude_tracks: list[TrackId] = Field(default_factory=list, max_length=MAX_LIST)
     include_tracks: list[TrackId] | None = Field(default=None, max_length=MAX_LIST)
     manual_points: list[ManualPoint] = Field(default_factory=list, max_length=256)
-    operator: str | None = Field(default=None, max_length=MAX_OPERATOR)
+    operator: Text | None = Field(default=None, max_length=MAX_OPERATOR)
 
     def location_of(self, field: str, key: int) -> str:
         """Where ``key`` (a track id, or a manual point's position) is in this request, for a located problem."""
@@ -67,7 +80,7 @@ class PatternEdit(_Strict):
 
 
 class PatternReset(_Strict):
-    operator: str | None = Field(default=None, max_length=MAX_OPERATOR)
+    operator: Text | None = Field(default=None, max_length=MAX_OPERATOR)
 
 
 class PriorAttitude(_Strict):
@@ -97,9 +110,9 @@ class ConfirmRequest(_Strict):
     ``search_id``: the search the operator looked at (refused if a newer one replaced it)."""
 
     rank: int = Field(ge=1, le=MAX_ID)
-    operator: str | None = Field(default=None, max_length=MAX_OPERATOR)
-    comment: str | None = Field(default=None, max_length=MAX_COMMENT)
-    override_reason: str | None = Field(default=None, max_length=MAX_COMMENT)
+    operator: Text | None = Field(default=None, max_length=MAX_OPERATOR)
+    comment: Text | None = Field(default=None, max_length=MAX_COMMENT)
+    override_reason: Text | None = Field(default=None, max_length=MAX_COMMENT)
     supersede: bool = False
     search_id: int | None = Field(default=None, ge=1, le=MAX_ID)
 
@@ -107,8 +120,8 @@ class ConfirmRequest(_Strict):
 class RejectRequest(_Strict):
     """Record "no valid attitude" for a sequence, with the reason; ``supersede`` withdraws a confirmation."""
 
-    reason: str = Field(min_length=1, max_length=MAX_COMMENT)
-    operator: str | None = Field(default=None, max_length=MAX_OPERATOR)
+    reason: Text = Field(min_length=1, max_length=MAX_COMMENT)
+    operator: Text | None = Field(default=None, max_length=MAX_OPERATOR)
     supersede: bool = False
 
 
@@ -133,6 +146,6 @@ class ViewEdit(_Strict):
 class CalibrateRequest(_Strict):
     """Who calibrates, and which optical parameters to fit (default focal length, principal point, k1)."""
 
-    operator: str | None = Field(default=None, max_length=MAX_OPERATOR)
+    operator: Text | None = Field(default=None, max_length=MAX_OPERATOR)
     parameters: list[Literal["f", "focal_length_px", "cx", "cy", "k1", "k2"]] | None = Field(
         default=None, min_length=1, max_length=6)

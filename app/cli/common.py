@@ -1,8 +1,10 @@
-"""What the file-processing commands share: the batch loop over telemetry files."""
+"""What the file-processing commands share: the batch loop over telemetry files, and ``--fov-deg``."""
 
 from __future__ import annotations
 
+import argparse
 import logging
+import math
 import sys
 from typing import Callable
 
@@ -10,9 +12,32 @@ from app.workflow.documents import Document
 from app.workflow.files import telemetry_files
 
 
+#: ``--fov-deg`` bounds, as the API's ``fov_deg`` field and the sidecar's (degrees).
+FOV_MIN_DEG, FOV_MAX_DEG = 0.1, 120.0
+FOV_HELP = ("horizontal field of view of image files and folders of frames, degrees (0.1 to 120, known to "
+            "+-5 %%); wins over a sidecar's camera or fov_deg and the FITS header's optics. Refused for "
+            "spot-list files, which carry their own camera (that file is reported invalid)")
+
+
+def fov_deg(text: str) -> float:
+    """``--fov-deg``: a finite number of degrees from :data:`FOV_MIN_DEG` to :data:`FOV_MAX_DEG`."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value) or not FOV_MIN_DEG <= value <= FOV_MAX_DEG:
+        raise argparse.ArgumentTypeError(f"must be a number from {FOV_MIN_DEG:g} to {FOV_MAX_DEG:g} degrees, "
+                                         f"got {text!r}")
+    return value
+
+
+def add_fov_argument(p: argparse.ArgumentParser, help_text: str = FOV_HELP) -> None:
+    p.add_argument("--fov-deg", type=fov_deg, default=None, metavar="DEG", help=help_text)
+
+
 def for_each_file(paths: list[str], process: Callable[[str, object], Document],
                   invalid: Callable[[str, str], Document], as_json: bool,
-                  print_summary: Callable[[Document], None]) -> int:
+                  print_summary: Callable[[Document], None], *, fov_deg: float | None = None) -> int:
     """Run ``process(path, sequence)`` on every telemetry file, in input order.
 
     A file that does not parse gives ``invalid(path, message)`` and the batch
@@ -21,11 +46,13 @@ def for_each_file(paths: list[str], process: Callable[[str, object], Document],
     files must not be lost to a bug triggered by one of them, so the
     failure is reported as that file's error (the traceback only in the
     debug log) instead of ending the command.  With ``as_json`` each result
-    is one line of JSON on stdout.  Returns the exit status: 0 if every file
-    was valid, 2 otherwise.
+    is one line of JSON on stdout.  ``fov_deg`` is the optics of image inputs
+    (a spot-list file given with it is invalid: see
+    :func:`app.workflow.files.telemetry_files`).  Returns the exit status: 0
+    if every file was valid, 2 otherwise.
     """
     status = 0
-    for path, sequence, error in telemetry_files(paths):
+    for path, sequence, error in telemetry_files(paths, fov_deg=fov_deg):
         if error is not None:
             doc = invalid(path, str(error))
             status = 2

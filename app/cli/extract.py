@@ -12,6 +12,11 @@ source in input order, ``rejected`` the reason (``ghost``, ``hot_pixel``,
 An invalid file gets status ``invalid``, its validation error and null
 members, and the batch goes on.  Exit status 0 when every file was valid,
 2 otherwise.
+
+Image files and folders of frames are one pass each (README "Full-frame
+images"); ``--fov-deg DEG`` gives their optics when neither a sidecar nor
+the FITS header does (and wins over both).  A spot-list file given with
+``--fov-deg`` is reported invalid (it carries its own camera).
 """
 
 from __future__ import annotations
@@ -19,12 +24,15 @@ from __future__ import annotations
 import argparse
 from collections import Counter
 
-from app.cli.common import for_each_file
+from app.cli.common import add_fov_argument, for_each_file
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("files", nargs="+", metavar="FILE", help="telemetry files (tubsat-snapshots/1 JSON or CSV)")
+    p.add_argument("files", nargs="+", metavar="FILE",
+                   help="telemetry files (tubsat-snapshots/1 JSON or CSV), image files (FITS, PNG, JPEG, TIFF) "
+                        "or folders of frames")
     p.add_argument("--json", action="store_true", help="one JSON object per file, one per line")
+    add_fov_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -34,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     def invalid(path, message):
         return ExtractDocument(file=path, sequence_id=None, status="invalid", error=message)
 
-    return for_each_file(args.files, extract_document, invalid, args.json, print_summary)
+    return for_each_file(args.files, extract_document, invalid, args.json, print_summary, fov_deg=args.fov_deg)
 
 
 def print_summary(doc) -> None:

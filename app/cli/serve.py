@@ -1,4 +1,4 @@
-"""`python -m app serve [--host 127.0.0.1] [--port 8000] [--db PATH]`: the REST API and the console.
+"""`python -m app serve [--host 127.0.0.1] [--port 8000] [--db PATH|URL]`: the REST API and the console.
 
 One uvicorn worker serves the API under /api, the console (static/) at /
 and the OpenAPI documentation at /docs.  The port is taken first, before
@@ -35,9 +35,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1; any other needs bearer tokens)")
     p.add_argument("--port", type=_port, default=8000, help="TCP port (default 8000)")
-    p.add_argument("--db", metavar="PATH", default=None,
-                   help="SQLite database file (default: STARID_DB, DATABASE_URL or "
-                        "~/.local/share/starid/starid.sqlite3)")
+    p.add_argument("--db", metavar="PATH|URL", default=None,
+                   help="the archive: a SQLite file, or postgresql://user@host:port/dbname to share one archive "
+                        "between servers (default: STARID_DB, DATABASE_URL or ~/.local/share/starid/starid.sqlite3)")
     p.add_argument("--viewer-port", type=_port, default=None,
                    help="port of the 3D view (viser, always on 127.0.0.1; default: --port + 1, "
                         "or the next free port)")

@@ -15,6 +15,11 @@ finds any).
 ``--prior RA,DEC,ROLL[,SIGMA_DEG]`` switches to tracking mode (Liebe's
 predictional estimate): the pattern is matched near that attitude (degrees;
 sigma default 1 deg) instead of searched for over the whole sky.
+
+Image files and folders of frames are one pass each (README "Full-frame
+images"); ``--fov-deg DEG`` gives their optics when neither a sidecar nor
+the FITS header does (and wins over both).  A spot-list file given with
+``--fov-deg`` is reported invalid (it carries its own camera).
 """
 
 from __future__ import annotations
@@ -24,7 +29,7 @@ import logging
 import math
 import sys
 
-from app.cli.common import for_each_file
+from app.cli.common import add_fov_argument, for_each_file
 
 #: The lost-in-space identifiers a file can be solved with, and both compared.
 METHODS = ("bright_pair", "tf", "both")
@@ -33,7 +38,9 @@ MAX_CANDIDATES = 50
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("files", nargs="+", metavar="FILE", help="telemetry files (tubsat-snapshots/1 JSON or CSV)")
+    p.add_argument("files", nargs="+", metavar="FILE",
+                   help="telemetry files (tubsat-snapshots/1 JSON or CSV), image files (FITS, PNG, JPEG, TIFF) "
+                        "or folders of frames")
     p.add_argument("--json", action="store_true", help="one JSON object per file and line")
     p.add_argument("--candidates", type=candidate_count, default=None, metavar="N",
                    help=f"distinct candidates to report, 1 to {MAX_CANDIDATES} (default 6)")
@@ -41,6 +48,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="identifier: bright_pair (default), tf (Liebe's triangle features) or both, compared")
     p.add_argument("--prior", type=parse_prior, default=None, metavar="RA,DEC,ROLL[,SIGMA_DEG]",
                    help="tracking mode from this attitude (degrees; its 1-sigma defaults to 1 deg)")
+    add_fov_argument(p)
 
 
 def candidate_count(text: str) -> int:
@@ -89,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     def invalid(path, message):
         return SolveDocument(file=path, sequence_id=None, status="invalid", error=message)
 
-    return for_each_file(args.files, solve_one, invalid, args.json, print_summary)
+    return for_each_file(args.files, solve_one, invalid, args.json, print_summary, fov_deg=args.fov_deg)
 
 
 def print_summary(doc) -> None:

@@ -1,8 +1,16 @@
-"""`python -m app upload DIR_OR_FILES --server URL [--token T]`: send telemetry files to a server.
+"""`python -m app upload DIR_OR_FILES --server URL [--token T] [--fov-deg DEG]`: send telemetry to a server.
 
 Directories are searched (not recursively) for ``*.json`` and ``*.csv``
 files, leaving out ``*.truth.json`` (the simulator's truth files); files
-named explicitly are always sent.  A progress bar goes to stderr and one
+named explicitly are always sent.  Spot lists go to ``POST /api/sequences``.
+Full frames (issue 15) go to ``POST /api/frames``, as ``solve`` reads them:
+an image file named explicitly (FITS, PNG, JPEG, TIFF) is one pass, with
+``<stem>.frames.json`` beside it as its sidecar if there is one; a
+directory holding images is one pass of all of them, with its
+``frames.json`` as the sidecar (not sent as a spot list).  ``--fov-deg``
+(horizontal field of view, degrees, 0.1 to 120, known to +-5 %) is sent as
+the passes' ``fov_deg`` field; a spot-list file is refused with it, unsent
+(it carries its own camera), and the others go on.  A progress bar goes to stderr and one
 line per file to stdout: ``created``, ``duplicate``, ``invalid`` with the
 server's message, ``too large`` or ``error``.  The server is asked for its
 health first, which checks the URL (``--server`` is the server's base URL,
@@ -20,15 +28,25 @@ from __future__ import annotations
 import argparse
 import errno
 import json
+import math
 import socket
 import sys
 import time
 import urllib.error
 import urllib.parse
 import urllib.request
+import uuid
+from dataclasses import dataclass
 from pathlib import Path
 
 SUFFIXES = (".json", ".csv")
+#: Image files (app.frames.images.ALL_SUFFIXES; repeated so that this command needs only the standard library).
+IMAGE_SUFFIXES = (".fits", ".fit", ".fts", ".fits.gz", ".fit.gz", ".png", ".jpg", ".jpeg", ".tif", ".tiff")
+#: A folder's sidecar, and a single image's (``<stem>.frames.json``).
+FOLDER_SIDECAR = "frames.json"
+SIDECAR_SUFFIX = ".frames.json"
+#: --fov-deg's bounds (the API's fov_deg field).
+FOV_MIN_DEG, FOV_MAX_DEG = 0.1, 120.0
 #: A file answered 503 (the server was busy past its time-out; nothing was stored) is sent again this
 #: many times, after 1 s, then 2 s, ... (the server asks for a second with Retry-After).
 BUSY_RETRIES = 2
@@ -41,16 +59,66 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--server", required=True, metavar="URL", help="server base URL, e.g. http://127.0.0.1:8000")
     p.add_argument("--token", default=None, help="bearer token (needed when the server is not on loopback)")
     p.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for each upload (default 60)")
+    p.add_argument("--fov-deg", type=fov_deg, default=None, metavar="DEG",
+                   help="horizontal field of view of the image passes, degrees (0.1 to 120, known to +-5 %%; "
+                        "wins over a sidecar's camera and the FITS header's optics); a spot-list file given "
+                        "with it is refused, unsent: it carries its own camera")
 
 
-def telemetry_files(paths: list[str]) -> list[Path]:
-    """Explicit files as given, then the telemetry files of each directory in name order."""
-    files: list[Path] = []
+def fov_deg(text: str) -> float:
+    """``--fov-deg``: a finite number of degrees from 0.1 to 120 (as ``app.cli.common.fov_deg``)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value) or not FOV_MIN_DEG <= value <= FOV_MAX_DEG:
+        raise argparse.ArgumentTypeError(f"must be a number from {FOV_MIN_DEG:g} to {FOV_MAX_DEG:g} degrees, "
+                                         f"got {text!r}")
+    return value
+
+
+def is_image(path: Path) -> bool:
+    return path.name.lower().endswith(IMAGE_SUFFIXES)
+
+
+def _image_sidecar(image: Path) -> Path | None:
+    """``<stem>.frames.json`` beside a single image, if it exists."""
+    name = image.name
+    for suffix in sorted(IMAGE_SUFFIXES, key=len, reverse=True):
+        if name.lower().endswith(suffix):
+            sidecar = image.with_name(name[: -len(suffix)] + SIDECAR_SUFFIX)
+            return sidecar if sidecar.is_file() else None
+    return None
+
+
+@dataclass(frozen=True)
+class FramePass:
+    """One pass of frames to send to ``/api/frames``: its label, images and optional sidecar."""
+
+    label: Path
+    images: tuple[Path, ...]
+    sidecar: Path | None
+
+
+def telemetry_files(paths: list[str]) -> list[Path | FramePass]:
+    """Explicit files as given, then the telemetry files of each directory in name order.
+
+    An explicit image file is a :class:`FramePass` of its own; a directory holding images gives one
+    :class:`FramePass` of them all (its ``frames.json`` the sidecar), before its spot-list files.
+    """
+    files: list[Path | FramePass] = []
     for raw in paths:
         path = Path(raw)
         if path.is_dir():
-            files += sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in SUFFIXES
-                            and not p.name.lower().endswith(".truth.json"))
+            entries = sorted(p for p in path.iterdir() if p.is_file())
+            images = tuple(p for p in entries if is_image(p))
+            sidecar = path / FOLDER_SIDECAR
+            if images:
+                files.append(FramePass(path, images, sidecar if sidecar.is_file() else None))
+            files += [p for p in entries if p.suffix.lower() in SUFFIXES and not p.name.lower().endswith(".truth.json")
+                      and not (images and p.name == FOLDER_SIDECAR)]
+        elif is_image(path):
+            files.append(FramePass(path, (path,), _image_sidecar(path)))
         else:
             files.append(path)
     return files
@@ -137,6 +205,45 @@ def upload_one(server: str, path: Path, token: str | None, timeout: float,
     if token:
         headers["Authorization"] = f"Bearer {token}"
     request = urllib.request.Request(url, data=data, headers=headers, method="POST")
+    return _send(server, request, timeout)
+
+
+def multipart_body(fields: list[tuple[str, str | None, bytes]]) -> tuple[bytes, str]:
+    """``(body, content type)`` of a multipart/form-data request: ``(name, filename or None, data)`` parts."""
+    boundary = "starid-" + uuid.uuid4().hex
+    parts = []
+    for name, filename, data in fields:
+        disposition = f'form-data; name="{name}"'
+        if filename is not None:
+            safe = filename.replace("\\", "_").replace('"', "_").replace("\r", "_").replace("\n", "_")
+            disposition += f'; filename="{safe}"'
+        head = f"--{boundary}\r\nContent-Disposition: {disposition}\r\n"
+        if filename is not None:
+            head += "Content-Type: application/octet-stream\r\n"
+        parts.append(head.encode("utf-8") + b"\r\n" + data + b"\r\n")
+    return b"".join(parts) + f"--{boundary}--\r\n".encode(), f"multipart/form-data; boundary={boundary}"
+
+
+def upload_pass(server: str, frame_pass: FramePass, token: str | None, timeout: float,
+                fov: float | None = None) -> tuple[int | None, dict | None, str | None]:
+    """POST one pass of frames (and its sidecar, and ``fov_deg``) to ``/api/frames``; as :func:`upload_one`."""
+    try:
+        fields = [("files", image.name, image.read_bytes()) for image in frame_pass.images]
+        if frame_pass.sidecar is not None:
+            fields.append(("sidecar", frame_pass.sidecar.name, frame_pass.sidecar.read_bytes()))
+    except OSError as exc:
+        return None, None, f"cannot read the file: {exc.strerror or exc}"
+    if fov is not None:
+        fields.append(("fov_deg", None, repr(float(fov)).encode()))
+    body, content_type = multipart_body(fields)
+    headers = {"Content-Type": content_type, "Accept": "application/json"}
+    if token:
+        headers["Authorization"] = f"Bearer {token}"
+    request = urllib.request.Request(server.rstrip("/") + "/api/frames", data=body, headers=headers, method="POST")
+    return _send(server, request, timeout)
+
+
+def _send(server: str, request: urllib.request.Request, timeout: float) -> tuple[int | None, dict | None, str | None]:
     try:
         with urllib.request.urlopen(request, timeout=timeout) as response:
             return response.status, _json(response.read()), None
@@ -162,8 +269,9 @@ def run(args: argparse.Namespace) -> int:
         return 2
     files = telemetry_files(args.paths)
     if not files:
-        print("upload: no .json or .csv files found", file=sys.stderr)
+        print("upload: no .json, .csv or image files found", file=sys.stderr)
         return 2
+    fov = getattr(args, "fov_deg", None)
     interactive = sys.stderr.isatty()
     end = "\r" if interactive else "\n"
     try:
@@ -172,13 +280,24 @@ def run(args: argparse.Namespace) -> int:
         print(f"upload: {exc}", file=sys.stderr)
         return 1
     counts = {"created": 0, "duplicate": 0, "refused": 0}
-    for k, path in enumerate(files):
+    for k, item in enumerate(files):
+        path = item.label if isinstance(item, FramePass) else item
         sys.stderr.write(progress_bar(k, len(files), path.name) + end)
         sys.stderr.flush()
+        if fov is not None and not isinstance(item, FramePass):
+            if interactive:
+                sys.stderr.write(" " * (BAR_WIDTH + 60) + "\r")
+            print(f"{path}: invalid (not sent): --fov-deg applies to image files and folders of frames only; "
+                  "a spot list carries its own camera: upload it without --fov-deg", flush=True)
+            counts["refused"] += 1
+            continue
         try:
             for attempt in range(1 + BUSY_RETRIES):
-                status, doc, error = upload_one(args.server, path, args.token, args.timeout,
-                                                max_bytes if isinstance(max_bytes, int) else None)
+                if isinstance(item, FramePass):
+                    status, doc, error = upload_pass(args.server, item, args.token, args.timeout, fov)
+                else:
+                    status, doc, error = upload_one(args.server, path, args.token, args.timeout,
+                                                    max_bytes if isinstance(max_bytes, int) else None)
                 if status != 503 or attempt == BUSY_RETRIES:
                     break
                 time.sleep(BUSY_PAUSE_S * (attempt + 1))  # the server said: busy, try again shortly

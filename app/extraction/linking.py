@@ -47,10 +47,21 @@ The steps of :func:`extract`:
 
 A sequence of one snapshot has nothing to track against: every source
 becomes a one-sighting track and pattern point, with a note.
+
+**Known hot pixels.**  ``known_hot`` (per snapshot, a flag per source)
+names sources the caller already knows to be hot pixels, e.g. those on the
+camera's mapped hot pixels (:mod:`app.frames.hotpixels`).  They keep their
+place in the input (the per-source arrays are indexed as before) but get
+the ``hot_pixel`` verdict: they take no part in the motion estimate or the
+association, so they are never tracks or pattern points, even in a single
+snapshot or when the sky hardly moves, where step 4 cannot tell them.
+Without any flagged source the result is exactly that of ``extract``
+without ``known_hot``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -348,19 +359,32 @@ def _max_sky_motion_px(camera, motion: np.ndarray, members: np.ndarray) -> float
     return float(np.nanmax(shift))
 
 
-def _single_snapshot(sequence: Sequence, p: ExtractionParameters) -> Extraction:
+def _single_snapshot(sequence: Sequence, p: ExtractionParameters, hot: np.ndarray | None = None) -> Extraction:
+    """Every source a one-sighting track, numbered in input order; ``hot`` (n,) flags known hot pixels,
+    which are left out (verdict ``hot_pixel``)."""
     snapshot = sequence.snapshots[0]
     n = snapshot.n_sources
-    tracks = tuple(Track(id=k, snapshots=np.array([0]), source_indices=np.array([k]),
+    if hot is None or not hot.any():
+        kept = np.arange(n)
+        track_of_source = np.arange(n)
+        rejection = (None,) * n
+        notes = ("single snapshot: nothing to track against, every source is a pattern point",)
+    else:
+        kept = np.flatnonzero(~hot)
+        track_of_source = np.full(n, -1)
+        track_of_source[kept] = np.arange(len(kept))
+        rejection = tuple(HOT_PIXEL if h else None for h in hot)
+        notes = ("single snapshot: nothing to track against, every source is a pattern point "
+                 "except the known hot pixels",)
+    tracks = tuple(Track(id=t, snapshots=np.array([0]), source_indices=np.array([k]),
                          xy=np.asarray(snapshot.xy[k:k + 1], dtype=float),
-                         mean_brightness=float(snapshot.brightness[k])) for k in range(n))
+                         mean_brightness=float(snapshot.brightness[k])) for t, k in enumerate(kept))
     motion = np.eye(3)[None]
-    return Extraction(reference=0, track_of_source=(np.arange(n),), rejection=((None,) * n,),
+    return Extraction(reference=0, track_of_source=(track_of_source,), rejection=(rejection,),
                       tracks=tracks, motion=motion,
                       pattern=tracks_pattern(sequence.camera, motion, tracks, p.sigma_default_px),
                       seed_pattern=seed_pattern(sequence.camera, 0, tracks, p.sigma_default_px),
-                      noise_px=p.sigma_default_px,
-                      notes=("single snapshot: nothing to track against, every source is a pattern point",))
+                      noise_px=p.sigma_default_px, notes=notes)
 
 
 def _no_sources(sequence: Sequence, p: ExtractionParameters) -> Extraction:
@@ -374,16 +398,41 @@ def _no_sources(sequence: Sequence, p: ExtractionParameters) -> Extraction:
                       notes=("no sources in any snapshot",))
 
 
-def extract(sequence: Sequence, parameters: ExtractionParameters = DEFAULT_PARAMETERS) -> Extraction:
+def _known_hot_flags(sequence: Sequence, known_hot) -> tuple[np.ndarray, ...]:
+    """``known_hot`` as one (n_i,) bool array per snapshot; ValueError when it does not fit the sequence."""
+    if len(known_hot) != len(sequence.snapshots):
+        raise ValueError(f"known_hot has {len(known_hot)} entries for {len(sequence.snapshots)} snapshots")
+    flags = []
+    for i, (snapshot, per) in enumerate(zip(sequence.snapshots, known_hot)):
+        per = np.asarray(per, dtype=bool).reshape(-1)
+        if per.shape[0] != snapshot.n_sources:
+            raise ValueError(f"known_hot[{i}] has {per.shape[0]} flags for {snapshot.n_sources} sources")
+        flags.append(per)
+    return tuple(flags)
+
+
+def extract(sequence: Sequence, parameters: ExtractionParameters = DEFAULT_PARAMETERS, *,
+            known_hot=None) -> Extraction:
     """Tell tracked stars from ghosts, hot pixels and outliers (see the module docstring).
 
-    Raises ValueError for a sequence without snapshots.
+    ``known_hot``: per snapshot, a flag per source (input order) for sources known to be hot pixels
+    (see the module docstring); they get the ``hot_pixel`` verdict.  The result records it as
+    :attr:`Extraction.known_hot`.  Raises ValueError for a sequence without snapshots, or a
+    ``known_hot`` that does not match the sequence's sources.
     """
-    p = parameters
     if not sequence.snapshots:
         raise ValueError("a sequence needs at least one snapshot")
+    if known_hot is None:
+        return _extract(sequence, parameters, None)
+    flags = _known_hot_flags(sequence, known_hot)
+    return dataclasses.replace(_extract(sequence, parameters, flags if any(f.any() for f in flags) else None),
+                               known_hot=flags)
+
+
+def _extract(sequence: Sequence, p: ExtractionParameters, known_hot: tuple[np.ndarray, ...] | None) -> Extraction:
+    """:func:`extract` for a sequence with snapshots; ``known_hot`` None or flags with at least one set."""
     if len(sequence.snapshots) == 1:
-        return _single_snapshot(sequence, p)
+        return _single_snapshot(sequence, p, None if known_hot is None else known_hot[0])
     if not any(s.n_sources for s in sequence.snapshots):
         return _no_sources(sequence, p)
     camera = sequence.camera
@@ -397,13 +446,16 @@ def extract(sequence: Sequence, parameters: ExtractionParameters = DEFAULT_PARAM
     vectors_pad[snap, index] = vectors
     flat_of = np.full(valid.shape, -1)
     flat_of[snap, index] = np.arange(len(snap))
+    known = None if known_hot is None else np.concatenate(known_hot)  # flattened order is (snapshot, source)
 
-    # 1. motion, without recurring sources while they are a minority
+    # 1. motion, without recurring sources while they are a minority (and never known hot pixels)
     rows, _ = _same_pixel_pairs(xy, snap, p.hot_tol_floor_px, p.max_pixel_partners)
     recurring = np.bincount(rows, minlength=len(snap)) >= 2
     motion_valid = valid.copy()
     if 0 < recurring.sum() < 0.5 * len(snap):
         motion_valid[snap[recurring], index[recurring]] = False
+    if known is not None:
+        motion_valid[snap[known], index[known]] = False
     motion_vectors = np.where(motion_valid[..., None], vectors_pad, 0.0)  # zero rows never match
     to_common, component, used, link_sq = _chain_motions(motion_vectors, bright_pad, motion_valid,
                                                          chord_px, camera.width * camera.height, p)
@@ -421,6 +473,8 @@ def extract(sequence: Sequence, parameters: ExtractionParameters = DEFAULT_PARAM
     # 4. hot pixels, 5. association
     hot = _hot_pixels(xy, snap, comp, _predicted_pixels(camera, to_common, common), hot_tol, gate,
                       p.max_pixel_partners)
+    if known is not None:
+        hot |= known
     linked_snapshot = np.bincount(component)[comp] >= 2  # a lone snapshot has nothing to track against
     label = _associate(common, snap, comp, ~hot & linked_snapshot, gate * chord_px)
     # the full tracks (gaps bridged, more stars per snapshot) pin the rotations better

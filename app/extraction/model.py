@@ -20,7 +20,7 @@ DEFAULT_SIGHTING_SIGMA_PX = 0.7
 
 #: Rejection reasons of a source.
 GHOST = "ghost"  # no consistent partner in any other snapshot
-HOT_PIXEL = "hot_pixel"  # stays on the same pixel while the sky moves away from it
+HOT_PIXEL = "hot_pixel"  # stays on the same pixel while the sky moves away from it, or known hot (a map)
 OUTLIER = "outlier"  # linked to a track but inconsistent with it
 REASONS = (GHOST, HOT_PIXEL, OUTLIER)
 
@@ -132,3 +132,6 @@ class Extraction:
     noise_px: float = math.nan
     #: Human-readable remarks (single snapshot, sky not moving, ...).
     notes: tuple[str, ...] = ()
+    #: Per snapshot (n_i,) bool: the sources the caller declared hot pixels (``extract``'s
+    #: ``known_hot``, e.g. from the camera's hot-pixel map); None when none were given.
+    known_hot: tuple[np.ndarray, ...] | None = None

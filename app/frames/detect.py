@@ -22,6 +22,8 @@ Steps, per frame:
    hot pixels, elongated and extended blobs are not stars; saturated round
    blobs are bright stars and stay, flagged;
    close pairs the filter merged are split again from an unfiltered look at 10 sigma;
+   stars a trail ran over or beside are looked for again once the trail is modelled and
+   subtracted (:func:`_stars_on_trails`);
 5. positions: windowed centroids (``sep.winpos``, SExtractor's XWIN/YWIN,
    Gaussian window from the half-light radius), which at SNR 50 land within
    a few hundredths of a pixel; brightness = flux in a circular aperture of
@@ -165,6 +167,7 @@ def detect(pixels: np.ndarray, options: DetectionOptions = DetectionOptions(), *
     uniform = float(sample.max()) <= UNIFORM_NOISE_RATIO * float(sample.min())
     objects = _extract(sep, sub, float(np.median(sample)) if uniform else rms, options)
     objects = _split_blends(sep, sub, float(np.median(sample)), objects, options)
+    objects, measured = _stars_on_trails(sep, sub, float(np.median(sample)), objects, options)
     if len(objects) > options.max_candidates:
         order = np.argsort(-objects["flux"], kind="stable")[:options.max_candidates]
         objects = objects[np.sort(order)]
@@ -203,7 +206,7 @@ def detect(pixels: np.ndarray, options: DetectionOptions = DetectionOptions(), *
     snr = np.zeros(n)
     measure = np.array([not any(x in REJECTING_FLAGS for x in f) for f in flags], dtype=bool)
     if measure.any():
-        xy[measure], flux[measure], snr[measure] = _refine(sep, sub, rms, xy[measure], a[measure])
+        xy[measure], flux[measure], snr[measure] = _refine(sep, measured, rms, xy[measure], a[measure])
     xy[:, 0] = np.clip(xy[:, 0], -0.5, width - 0.5)
     xy[:, 1] = np.clip(xy[:, 1], -0.5, height - 0.5)
     flux = np.maximum(flux, 0.0)
@@ -272,9 +275,7 @@ def _split_blends(sep, sub: np.ndarray, noise: float, objects, options: Detectio
     d = np.hypot(sharp["x"][:, None] - objects["x"][None, :], sharp["y"][:, None] - objects["y"][None, :])
     owner = np.argmin(d, axis=1)
     near = d[np.arange(len(sharp)), owner] <= np.maximum(3.0 * objects["a"][owner], 3.0)
-    a, b, npix = objects["a"], objects["b"], objects["npix"]
-    trail = ((npix >= options.min_area_for_shape_px) & (a > options.max_elongation * np.maximum(b, 1e-9))) \
-        | (npix > options.max_area_px)  # a trail's pieces are no stars: it stays one flagged blob
+    trail = _is_trail(objects, options)  # a trail's pieces are no stars: it stays one flagged blob
     split = [k for k in np.unique(owner[near]) if np.count_nonzero(near & (owner == k)) >= 2 and not trail[k]]
     split = split[:options.max_split_per_frame]
     if not split:
@@ -283,6 +284,153 @@ def _split_blends(sep, sub: np.ndarray, noise: float, objects, options: Detectio
     keep = np.ones(len(objects), dtype=bool)
     keep[split] = False
     return np.concatenate([objects[keep], parts.astype(objects.dtype)])
+
+
+def _is_trail(objects, options: DetectionOptions) -> np.ndarray:
+    """Blobs that are no stars by shape: elongated (trails) or larger than any star image."""
+    a, b, npix = objects["a"], objects["b"], objects["npix"]
+    return ((npix >= options.min_area_for_shape_px) & (a > options.max_elongation * np.maximum(b, 1e-9))) \
+        | (npix > options.max_area_px)
+
+
+@dataclass(frozen=True)
+class _Trail:
+    """A straight trail: centre, direction (radians, sep's ``theta`` convention), half length and half
+    width (px), and the box of pixels it covers (rows, columns)."""
+
+    x: float
+    y: float
+    theta: float
+    half_length: float
+    half_width: float
+    rows: slice
+    cols: slice
+
+
+def _trails(objects, indices: np.ndarray, shape: tuple[int, int]) -> list[_Trail]:
+    """The straight trails behind the elongated blobs ``indices``, pieces of one line joined.
+
+    sep's deblending cuts a long trail into several blobs; modelled apart, the joins would leave
+    residual pieces.  Blobs whose centres lie on one another's axis (within twice the wider one's
+    RMS width) and whose axes agree within 5 degrees are one line: its direction is the longest
+    piece's, its extent covers every piece (a uniform segment of RMS length ``a`` is ``2 a sqrt(3)``
+    long).
+    """
+    group = list(range(len(indices)))
+
+    def root(i: int) -> int:
+        while group[i] != i:
+            group[i] = group[group[i]]
+            i = group[i]
+        return i
+
+    obj = objects[indices]
+    for i in range(len(obj)):
+        for j in range(i + 1, len(obj)):
+            turn = abs((float(obj["theta"][i] - obj["theta"][j]) + np.pi / 2) % np.pi - np.pi / 2)
+            c, s = np.cos(obj["theta"][i]), np.sin(obj["theta"][i])
+            off = abs((obj["y"][j] - obj["y"][i]) * c - (obj["x"][j] - obj["x"][i]) * s)
+            if turn < np.radians(5.0) and off < 2.0 * max(float(obj["b"][i]), float(obj["b"][j]), 1.0):
+                group[root(j)] = root(i)
+    height, width = shape
+    pad = 3
+    out = []
+    for r in sorted({root(i) for i in range(len(obj))}):
+        members = obj[[i for i in range(len(obj)) if root(i) == r]]
+        longest = members[int(np.argmax(members["a"]))]
+        theta = float(longest["theta"])
+        c, s = np.cos(theta), np.sin(theta)
+        weight = members["npix"].astype(float)
+        x0, y0 = float(np.average(members["x"], weights=weight)), float(np.average(members["y"], weights=weight))
+        along = (members["x"] - x0) * c + (members["y"] - y0) * s
+        ends = np.concatenate([along - members["a"] * np.sqrt(3.0), along + members["a"] * np.sqrt(3.0)])
+        shift = (ends.max() + ends.min()) / 2.0
+        out.append(_Trail(x=x0 + shift * c, y=y0 + shift * s, theta=theta,
+                          half_length=float(ends.max() - ends.min()) / 2.0,
+                          half_width=max(3.0 * float(members["b"].max()), 2.0),
+                          rows=slice(max(0, int(members["ymin"].min()) - pad),
+                                     min(height, int(members["ymax"].max()) + pad + 1)),
+                          cols=slice(max(0, int(members["xmin"].min()) - pad),
+                                     min(width, int(members["xmax"].max()) + pad + 1))))
+    return out
+
+
+def _trail_model(sub: np.ndarray, trail: _Trail) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """A straight trail's light: (model cut-out over ``trail.rows, trail.cols``, where it is on, the
+    position along it) or None.
+
+    A satellite or aircraft crossing during the exposure leaves a line of even brightness: within
+    the trail's extent the light across the line is the same everywhere along it.  Its profile
+    across is the median of the cut-out's pixels in half-pixel bins of distance from the axis
+    (the median ignores the few stars riding on it).  Beyond the half width or past the ends the
+    model is 0.
+    """
+    cut = sub[trail.rows, trail.cols]
+    yy, xx = np.mgrid[trail.rows, trail.cols]
+    c, s = np.cos(trail.theta), np.sin(trail.theta)
+    dx, dy = xx - trail.x, yy - trail.y
+    along, across = dx * c + dy * s, dy * c - dx * s
+    on = (np.abs(across) <= trail.half_width) & (np.abs(along) <= trail.half_length)
+    if np.count_nonzero(on) < 20:
+        return None
+    bins = np.round(across * 2.0).astype(int)
+    model = np.zeros_like(cut)
+    for k in np.unique(bins[on]):
+        inside = on & (bins == k)
+        model[inside] = np.median(cut[inside])
+    return model, on, along
+
+
+def _stars_on_trails(sep, sub: np.ndarray, noise: float, objects, options: DetectionOptions):
+    """Stars merged into a trail's blob, found again: (objects with them added, the image to measure on).
+
+    A trail flagged ``elongated`` takes every star it touches with it.  Its model
+    (:func:`_trail_model`) is subtracted and the residual searched at the detection threshold, with
+    the trail's own shot noise (the residual's robust spread on it) as the noise there; round
+    blobs at least 4 px inside its ends and not found before are stars (appended; the trail stays
+    one flagged blob),
+    measured later on the image with the trails' light taken out, so their centroids are not
+    pulled towards the line.  Residual pieces of an uneven trail are elongated and stay rejected.
+    """
+    if not len(objects):
+        return objects, sub
+    elongated = np.flatnonzero(_is_trail(objects, options) & (objects["npix"] <= 50 * options.max_area_px))
+    if not len(elongated):
+        return objects, sub
+    clean = sub.copy()
+    found = []
+    for trail in _trails(objects, elongated[:options.max_split_per_frame], sub.shape):
+        model = _trail_model(sub, trail)
+        if model is None:
+            continue
+        light, on, along = model
+        clean[trail.rows, trail.cols] -= light
+        residual = np.ascontiguousarray(clean[trail.rows, trail.cols])
+        on_noise = 1.4826 * float(np.median(np.abs(residual[on] - np.median(residual[on]))))
+        err = np.where(on, max(noise, on_noise), noise).astype(np.float32)
+        sep.set_extract_pixstack(SEP_PIXSTACK)
+        try:
+            parts = sep.extract(residual, options.threshold_sigma, err=err, minarea=options.min_area_px,
+                                deblend_cont=0.005, clean=False)
+        except Exception:  # noqa: BLE001 - a refinement only: the trail stays what it was
+            continue
+        px = np.clip(np.round(parts["x"]).astype(int), 0, residual.shape[1] - 1)
+        py = np.clip(np.round(parts["y"]).astype(int), 0, residual.shape[0] - 1)
+        parts = parts[(parts["a"] <= options.max_elongation * np.maximum(parts["b"], 1e-9))
+                      & (parts["npix"] <= options.max_area_px)
+                      & (np.abs(along[py, px]) <= trail.half_length - 4.0)]
+        for name in ("x", "xmin", "xmax", "xpeak", "xcpeak"):
+            parts[name] += trail.cols.start
+        for name in ("y", "ymin", "ymax", "ypeak", "ycpeak"):
+            parts[name] += trail.rows.start
+        found.append(parts.astype(objects.dtype))
+    found = np.concatenate(found) if found else objects[:0]
+    # Blobs beside the trail were found on their own already: keep only the new ones.
+    others = objects[np.setdiff1d(np.arange(len(objects)), elongated)]
+    if len(found) and len(others):
+        gap = np.hypot(found["x"][:, None] - others["x"][None, :], found["y"][:, None] - others["y"][None, :])
+        found = found[gap.min(axis=1) > np.maximum(2.0, 2.0 * found["a"])]
+    return (np.concatenate([objects, found]) if len(found) else objects), clean
 
 
 def _max_neighbour(sub: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:

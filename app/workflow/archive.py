@@ -13,6 +13,13 @@ Invariants kept here (the storage module keeps the rest):
   the sequence is refused with a message (:class:`Conflict`).
 * A pattern version is stored only after its definition was built into a
   pattern successfully.
+* A spot-list upload of a spacecraft whose camera (same sensor size) has a
+  hot-pixel map (built from uploads of its frames, :mod:`app.frames.hotpixels`)
+  is extracted with the sources on the map's hot pixels given as known hot
+  pixels (:func:`hot_pixel_sources`): they keep their place in the file's
+  numbering but get the ``hot_pixel`` verdict, so they are never tracks or
+  pattern points.  The map's version is recorded in the stored extraction
+  (``hot_pixel_map``); a map made later never changes a stored sequence.
 """
 
 from __future__ import annotations
@@ -22,8 +29,11 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
+
 from app.camera import CAMERAS, Camera
 from app.extraction import Pattern, PatternError, build_pattern, describe_track_ids, extract, unknown_tracks
+from app.frames.hotpixels import HotPixelMap, near_hot_pixel
 from app.storage import PatternVersion, SequenceRow, content_sha256
 from app.telemetry import Sequence, parse_telemetry
 from app.timefmt import utc_text
@@ -105,6 +115,10 @@ class ParsedUpload:
     filename: str | None
     #: The spacecraft's calibration version whose camera the file was given (it had no camera block).
     camera_calibration: int | None = None
+    #: The version of the camera's hot-pixel map applied (None: no map for this spacecraft and sensor size)...
+    hot_pixel_map: int | None = None
+    #: ...and per snapshot, a flag per source (file order) on one of its hot pixels (see hot_pixel_sources).
+    known_hot: tuple[np.ndarray, ...] | None = None
 
 
 def parse_upload(ctx: AppContext, data: bytes, filename: str | None) -> ParsedUpload:
@@ -122,9 +136,23 @@ def parse_upload(ctx: AppContext, data: bytes, filename: str | None) -> ParsedUp
         calibration = ctx.storage.current_calibration(sequence.spacecraft)
         if calibration is not None:
             sequence = dataclasses.replace(sequence, camera=Camera(**calibration.camera))
+    hot_pixel_map, known_hot = hot_pixel_sources(ctx, sequence)
     # parse_telemetry accepted the bytes as UTF-8; keep the text as sent.
     return ParsedUpload(sequence=sequence, raw_text=bytes(data).decode("utf-8"), filename=filename,
-                        camera_calibration=None if calibration is None else calibration.version)
+                        camera_calibration=None if calibration is None else calibration.version,
+                        hot_pixel_map=hot_pixel_map, known_hot=known_hot)
+
+
+def hot_pixel_sources(ctx: AppContext, sequence: Sequence) -> tuple[int | None, tuple[np.ndarray, ...] | None]:
+    """``(version, flags)``: the current hot-pixel map of the sequence's camera (its spacecraft and sensor
+    size) and, per snapshot, which sources lie on one of its hot pixels (within
+    :data:`app.frames.hotpixels.SPOT_RADIUS_PX`); ``(None, None)`` when there is no such map."""
+    camera = sequence.camera
+    row = ctx.storage.current_hot_pixel_map(sequence.spacecraft, f"{camera.width}x{camera.height}")
+    if row is None:
+        return None, None
+    hot = HotPixelMap.from_json(row.map, version=row.version).hot
+    return row.version, tuple(near_hot_pixel(snapshot.xy, hot) for snapshot in sequence.snapshots)
 
 
 def stored_upload(ctx: AppContext, upload: ParsedUpload) -> UploadDocument | None:
@@ -133,9 +161,25 @@ def stored_upload(ctx: AppContext, upload: ParsedUpload) -> UploadDocument | Non
     return None if row is None else _upload_document(ctx, row, created=False)
 
 
-def extraction_job(sequence: Sequence, *, sky=None):
-    """Extraction as a compute-pool job (it needs no catalogue)."""
-    return extract(sequence)
+def extraction_job(sequence: Sequence, known_hot=None, *, sky=None):
+    """Extraction as a compute-pool job (it needs no catalogue); ``known_hot``: an upload's
+    :attr:`ParsedUpload.known_hot` (else :func:`store_upload` extracts again with it)."""
+    return extract(sequence) if known_hot is None else extract(sequence, known_hot=known_hot)
+
+
+def upload_extraction(upload: ParsedUpload, extraction):
+    """The extraction to store for ``upload``: ``extraction`` when it was made with the upload's known hot
+    pixels (or neither has any), else the upload extracted again with them."""
+    wanted = upload.known_hot if upload.known_hot is not None and any(f.any() for f in upload.known_hot) else None
+    given = extraction.known_hot
+    if given is not None and not any(f.any() for f in given):
+        given = None
+    if wanted is None and given is None:
+        return extraction
+    if wanted is not None and given is not None and len(wanted) == len(given) \
+            and all(np.array_equal(a, b) for a, b in zip(wanted, given)):
+        return extraction
+    return extraction_job(upload.sequence, wanted)
 
 
 #: Uploads with more sources than this (16 snapshots of 16) are extracted on the compute pool's bulk
@@ -152,14 +196,20 @@ def extraction_lane(sequence: Sequence) -> str:
 
 
 def store_upload(ctx: AppContext, upload: ParsedUpload, extraction) -> UploadDocument:
-    """Store a parsed and extracted upload (``created`` False: the same content was stored meanwhile)."""
+    """Store a parsed and extracted upload (``created`` False: the same content was stored meanwhile).
+
+    An extraction made without the upload's known hot pixels is made again with them (see
+    :func:`upload_extraction`): callers that pass ``upload.known_hot`` to :func:`extraction_job`
+    save that second run.
+    """
     sequence = upload.sequence
+    extraction = upload_extraction(upload, extraction)
     row, created = ctx.storage.add_sequence(
         raw_text=upload.raw_text, filename=upload.filename, sequence_id=sequence.sequence_id,
         spacecraft=sequence.spacecraft, camera=sequence.camera.to_dict(),
         first_time=sequence.snapshots[0].time if sequence.snapshots else None,
         n_snapshots=len(sequence.snapshots), camera_calibration=upload.camera_calibration,
-        extraction=ExtractionDocument.of(extraction).model_dump(mode="json"))
+        extraction=ExtractionDocument.of(extraction, hot_pixel_map=upload.hot_pixel_map).model_dump(mode="json"))
     if created:
         ctx.cache.put(row.id, LoadedSequence(sequence, extraction))
         ctx.storage.add_pattern_version(row.id, automatic_definition().model_dump(), kind="automatic")

@@ -211,7 +211,7 @@ def _file_one(ctx: AppContext, path: str, method: str, max_candidates: int | Non
     except TelemetryError as exc:
         return "invalid", str(exc)
     row = ctx.storage.find_sequence(content_sha256(upload.raw_text))
-    seq_id = row.id if row is not None else store_upload(ctx, upload, extraction_job(upload.sequence)).id
+    seq_id = row.id if row is not None else store_upload(ctx, upload, extraction_job(upload.sequence, upload.known_hot)).id
     return _search_one(ctx, seq_id, method, max_candidates)
 
 

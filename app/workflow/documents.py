@@ -80,6 +80,10 @@ class ExtractionDocument(Document):
     into the reference snapshot's frame (null where unknown).  The stored
     document is authoritative: patterns refer to its track ids, so the
     archive never re-runs extraction (see :meth:`to_extraction`).
+    ``hot_pixel_map`` is the version of the spacecraft camera's hot-pixel map
+    whose pixels were given to extraction as known hot pixels (spot-list
+    uploads to the archive; null: none, as for the command line and for
+    uploads stored before maps were applied).
     """
 
     version: int | None = Field(default=None, description="extraction version that made it (null: before version 1)")
@@ -92,9 +96,11 @@ class ExtractionDocument(Document):
     noise_px: float | None = Field(description="estimated 1-sigma position noise of one sighting, pixels")
     notes: list[str]
     motion: list[list[list[float]] | None] | None = None
+    hot_pixel_map: int | None = Field(default=None, description="version of the camera's hot-pixel map applied "
+                                                               "to the sources (null: none)")
 
     @classmethod
-    def of(cls, extraction: Extraction) -> "ExtractionDocument":
+    def of(cls, extraction: Extraction, hot_pixel_map: int | None = None) -> "ExtractionDocument":
         return cls(
             version=EXTRACTION_VERSION,
             reference_snapshot=int(extraction.reference),
@@ -108,7 +114,8 @@ class ExtractionDocument(Document):
             seed_pattern=PatternPoint.rows(extraction.seed_pattern),
             noise_px=_rounded(extraction.noise_px, None),
             notes=list(extraction.notes),
-            motion=[m.tolist() if np.all(np.isfinite(m)) else None for m in extraction.motion])
+            motion=[m.tolist() if np.all(np.isfinite(m)) else None for m in extraction.motion],
+            hot_pixel_map=hot_pixel_map)
 
     @property
     def complete(self) -> bool:
@@ -443,6 +450,7 @@ class AttitudeDocument(Document):
     current: bool
     apm_url: str
     aem_url: str | None
+    acm_url: str = Field(description="CCSDS ACM 2.0: states per snapshot, rate, determination and covariance")
     override_reason: str | None = Field(default=None, description="why the operator confirmed past the guard "
                                         "rail (a candidate not the credible best, a stale or doubtful search)")
     overridden: list[str] = Field(default_factory=list, description="the guard rail's reasons that were overridden")
@@ -462,6 +470,7 @@ class AttitudeDocument(Document):
                    pattern=PatternUsed.model_validate(c.pattern), candidate=CandidateDocument.model_validate(c.candidate),
                    superseded_by=c.superseded_by, current=c.is_current, apm_url=f"/api/attitudes/{c.id}/apm",
                    aem_url=f"/api/sequences/{c.seq_id}/aem" if c.aem_text else None,
+                   acm_url=f"/api/attitudes/{c.id}/acm",
                    override_reason=getattr(c, "override_reason", None), overridden=getattr(c, "overridden", None) or [],
                    withdrawn_by=getattr(c, "withdrawn_by", None),
                    replaces_rejection=getattr(c, "replaces_rejection", None))

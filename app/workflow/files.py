@@ -27,7 +27,9 @@ def telemetry_files(paths: list[str], *, fov_deg: float | None = None
                     ) -> Iterator[tuple[str, Sequence | None, TelemetryError | None]]:
     """``(path, sequence, None)`` for each file that parses, ``(path, None, error)`` for each that does not.
 
-    An image file or a folder of frames is one pass (see :func:`_load`); ``fov_deg`` gives its optics.
+    An image file or a folder of frames is one pass (see :func:`_load`); ``fov_deg`` (the horizontal
+    field of view in degrees, known to +-5 %) gives its optics, over a sidecar's and the FITS header's.
+    A spot-list file carries its own camera, so with ``fov_deg`` it is refused (:data:`FOV_SPOT_LIST`).
     """
     for path in paths:
         try:
@@ -38,11 +40,20 @@ def telemetry_files(paths: list[str], *, fov_deg: float | None = None
 
 # --- image files and folders of frames (issue 15) ------------------------------------------------
 
+#: Why ``fov_deg`` is refused for a spot-list file: its camera block (or the default camera, which the
+#: operator can see and change in the file) is the camera, and a field of view given for a batch of
+#: images silently replacing it would change the optics of every spot list in the batch.
+FOV_SPOT_LIST = ("applies to image files and folders of frames only; a spot list carries its own camera "
+                 "(its camera block, else the default camera): leave --fov-deg out for it, or give it a camera block")
+
+
 def _load(path: str, fov_deg: float | None) -> Sequence:
     """Spot-list telemetry, or (an image file, a folder of images) the pass of frames it holds."""
     from app.workflow.frames import frames_sequence_from_path, is_frames_path
 
     if not is_frames_path(path):
+        if fov_deg is not None:
+            raise TelemetryError.at("--fov-deg", FOV_SPOT_LIST, filename=path)
         return load_telemetry_file(path)
     try:
         return frames_sequence_from_path(path, fov_deg=fov_deg)

@@ -230,7 +230,8 @@ export function renderConfirmed() {
       c.override_reason ? el("div", { class: "override" }, `override: ${c.override_reason}`) : null,
       el("div", { class: "mono" }, `RA ${fmt(c.ra_deg, 4)}°  Dec ${fmt(c.dec_deg, 4)}°  roll ${fmt(c.roll_deg, 4)}°`),
       el("div", {}, el("a", { href: c.apm_url, download: "", id: "confirmed-apm" }, "Download APM"),
-        c.aem_url ? el("a", { href: c.aem_url, download: "", id: "confirmed-aem" }, "Download AEM") : null)));
+        c.aem_url ? el("a", { href: c.aem_url, download: "", id: "confirmed-aem" }, "Download AEM") : null,
+        el("a", { href: c.acm_url, download: "", id: "confirmed-acm" }, "Download ACM"))));
   } else {
     box.replaceChildren(...parts(
       el("div", {}, el("strong", {}, "No valid attitude"), ` (rejection #${j.id})`),

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, BackgroundTasks, Body, Depends, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
@@ -12,7 +12,7 @@ from starlette.datastructures import UploadFile
 from app.api.errors import ApiError
 from app.api.routes.common import (ID_LIMITS, attachment, compute_within, get_context, operator_name,
                                    read_body_limited, replay_request, too_large, work_deadline, writer)
-from app.api.schemas import ConfirmRequest, PatternEdit, PatternReset, SearchRequest
+from app.api.schemas import ConfirmRequest, PatternEdit, PatternReset, SearchRequest, Text
 from app.storage import SEQUENCE_ORDERS
 from app.workflow import AppContext, archive, confirm as confirming, queue, search as searching
 from app.workflow.documents import (AttitudeDocument, CandidateView, PatternDocument, SearchDocument, SequenceDetail,
@@ -85,7 +85,7 @@ async def upload(request: Request, background: BackgroundTasks,
     # Extraction is CPU-bound: in the compute pool, large files on their own lane.  Nothing is stored
     # before it is done, so an upload that times out leaves nothing behind.
     extraction = await compute_within(ctx, deadline, "the upload's extraction", archive.extraction_job,
-                                      upload.sequence, lane=archive.extraction_lane(upload.sequence))
+                                      upload.sequence, upload.known_hot, lane=archive.extraction_lane(upload.sequence))
     doc = await run_in_threadpool(archive.store_upload, ctx, upload, extraction)
     if search and doc.created:
         background.add_task(queue.search_new_upload, ctx, doc.id)  # after the response: the queue shows "new"
@@ -96,10 +96,10 @@ async def upload(request: Request, background: BackgroundTasks,
 @router.get("", response_model=SequencePage,
             summary="A page of sequences (newest first, or as the work queue: ambiguous and no match first)")
 def list_sequences(offset: int = Query(0, ge=0, le=2**62), limit: int = Query(50, ge=1, le=1000),
-                   spacecraft: str | None = Query(None, max_length=128),
+                   spacecraft: Annotated[Text | None, Query(max_length=128)] = None,
                    status: Literal["new", "identified", "ambiguous", "no_match", "confirmed", "rejected"] | None = None,
-                   search: str | None = Query(None, max_length=128,
-                                              description="part of the sequence id or file name, or the archive id"),
+                   search: Annotated[Text | None, Query(max_length=128, description="part of the sequence id or "
+                                                                                    "file name, or the archive id")] = None,
                    order: Literal[tuple(SEQUENCE_ORDERS)] = Query(  # type: ignore[valid-type]
                        "newest", description="newest | oldest | queue (what needs an operator first) | time "
                                              "(snapshot time, newest first) | time_asc | spacecraft"),
