@@ -65,12 +65,15 @@ PLAN94_INDEX = MappingProxyType({"mercury": 1, "venus": 2, "mars": 4, "jupiter":
                                  "uranus": 7, "neptune": 8})
 
 
-def _barycentric_au(name: str, jd_tt: float) -> np.ndarray:
+def _barycentric_au(name: str, jd_tt: float, epv=None) -> np.ndarray:
     """Barycentric position (au, ICRS axes) of the Sun, the Earth or a planet, as astropy's
-    ``get_body_barycentric(name, time, ephemeris="builtin")`` computes it (TDB ~ TT)."""
+    ``get_body_barycentric(name, time, ephemeris="builtin")`` computes it (TDB ~ TT).
+
+    ``epv``: ``erfa.epv00(jd_tt, 0.0)`` when the caller has it already (the same numbers, once).
+    """
     import erfa
 
-    earth_helio, earth_bary = erfa.epv00(jd_tt, 0.0)
+    earth_helio, earth_bary = erfa.epv00(jd_tt, 0.0) if epv is None else epv
     if name == "earth":
         return np.asarray(earth_bary["p"], dtype=float)
     sun = np.asarray(earth_bary["p"], dtype=float) - np.asarray(earth_helio["p"], dtype=float)
@@ -91,12 +94,13 @@ def _body_vectors_at_minute(t_minute: datetime, names: tuple[str, ...]) -> dict[
     import erfa
 
     jd = tt_julian_date(t_minute)
-    _, earth_bary = erfa.epv00(jd, 0.0)
+    epv = erfa.epv00(jd, 0.0)
+    _, earth_bary = epv
     earth = np.asarray(earth_bary["p"], dtype=float) * AU_KM
     beta = np.asarray(earth_bary["v"], dtype=float) * AU_KM / 86400.0 / SPEED_OF_LIGHT_KM_S
     out = {}
     for name in names:
-        d = _barycentric_au(name, jd) * AU_KM - earth
+        d = _barycentric_au(name, jd, epv) * AU_KM - earth
         light_time_days = np.linalg.norm(d) / SPEED_OF_LIGHT_KM_S / 86400.0
         d = _barycentric_au(name, jd - light_time_days) * AU_KM - earth
         v = d / np.linalg.norm(d) + beta

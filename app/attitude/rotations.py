@@ -17,8 +17,9 @@ convention), representing the same rotation as ``R``.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 def rotation_from_radec_roll(ra_deg: float, dec_deg: float, roll_deg: float) -> np.ndarray:
@@ -53,12 +54,16 @@ def radec_roll_from_rotation(R: np.ndarray) -> tuple[float, float, float]:
 
 def quaternion_from_rotation(R: np.ndarray) -> np.ndarray:
     """Scalar-last unit quaternion of ``R`` with a non-negative scalar part."""
+    from scipy.spatial.transform import Rotation  # imported when needed: start-up does not need it
+
     q = Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat()
     return -q if q[3] < 0 else q
 
 
 def rotation_from_quaternion(q) -> np.ndarray:
     """Scalar-last quaternion -> rotation matrix."""
+    from scipy.spatial.transform import Rotation
+
     return Rotation.from_quat(np.asarray(q, dtype=float)).as_matrix()
 
 
@@ -130,6 +135,58 @@ def rotation_from_pair(b1: np.ndarray, b2: np.ndarray, r1: np.ndarray, r2: np.nd
     Tb = triad(np.asarray(b1, float), np.asarray(b2, float))
     Tr = triad(np.asarray(r1, float), np.asarray(r2, float))
     return Tb @ np.swapaxes(Tr, -1, -2)
+
+
+def rotation_from_rotvec(phi: np.ndarray) -> np.ndarray:
+    """``exp([phi]x)``: the rotation matrices (..., 3, 3) of rotation vectors ``phi`` (..., 3) (Rodrigues).
+
+    ``Rotation.from_rotvec(phi).as_matrix()``; one rotation vector (an
+    optics fit's trial step, a sequence fit's correction) in Python floats,
+    to rounding (~1e-16) and at a quarter of the cost of scipy's object
+    (whose Cython does stacks faster than a dozen numpy calls would).
+    ``R = cos t I + a [phi]x + b phi phi^T`` with ``t = |phi|``, ``a = sin t
+    / t`` and ``b = (1 - cos t) / t^2``, both from ``h = sin(t/2) / (t/2)``
+    (no cancellation for small t, 1 at t = 0): ``a = h cos(t/2)``, ``b =
+    h^2 / 2``.
+    """
+    phi = np.asarray(phi, dtype=float)
+    if phi.size != 3:
+        from scipy.spatial.transform import Rotation
+
+        return Rotation.from_rotvec(phi.reshape(-1, 3)).as_matrix().reshape(phi.shape[:-1] + (3, 3))
+    x, y, z = phi.reshape(3).tolist()
+    t = math.sqrt(x * x + y * y + z * z)
+    h = math.sin(t / 2) / (t / 2) if t > 0 else 1.0
+    a, b, c = h * math.cos(t / 2), 0.5 * h * h, math.cos(t)
+    return np.array([[c + b * x * x, b * x * y - a * z, b * x * z + a * y],
+                     [b * x * y + a * z, c + b * y * y, b * y * z - a * x],
+                     [b * x * z - a * y, b * y * z + a * x, c + b * z * z]]).reshape(phi.shape[:-1] + (3, 3))
+
+
+def rotvec_from_rotation(R: np.ndarray) -> np.ndarray:
+    """``log(R)``: the rotation vectors (..., 3) of rotation matrices (..., 3, 3), the inverse of
+    :func:`rotation_from_rotvec`.
+
+    ``Rotation.from_matrix(R).as_rotvec()`` to rounding for the rotations
+    of a few degrees or less it is used on (a sequence fit's residuals and
+    inter-snapshot motions), at a third of its cost: the antisymmetric part
+    of R is ``sin t n``, the trace ``1 + 2 cos t``.  That axis loses
+    accuracy as t nears 180 degrees, so angles beyond 2 rad go to scipy.
+    """
+    R = np.asarray(R, dtype=float)
+    s = np.empty(R.shape[:-1])
+    s[..., 0] = R[..., 2, 1] - R[..., 1, 2]
+    s[..., 1] = R[..., 0, 2] - R[..., 2, 0]
+    s[..., 2] = R[..., 1, 0] - R[..., 0, 1]
+    s *= 0.5
+    sin_t = np.sqrt(s[..., 0] * s[..., 0] + s[..., 1] * s[..., 1] + s[..., 2] * s[..., 2])
+    t = np.arctan2(sin_t, 0.5 * (R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0))
+    if (t > 2.0).any():
+        from scipy.spatial.transform import Rotation
+
+        return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(R.shape[:-1])
+    s *= np.divide(t, sin_t, out=np.ones_like(t), where=sin_t > 0)[..., None]
+    return s
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -26,9 +26,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from app.attitude.rotations import propagate, solve_wahba
+from app.attitude.rotations import propagate, rotation_from_rotvec, rotvec_from_rotation, solve_wahba
 from app.attitude.wahba import wahba_covariance
 
 
@@ -88,8 +87,9 @@ def wahba_per_snapshot(body: np.ndarray, ref: np.ndarray, sigma_rad: np.ndarray,
     n_kept = keep.sum(axis=1)
     R = solve_wahba(body, ref, np.where(keep, weight, 0.0))
     cov = wahba_covariance(body, np.where(keep, sigma_rad, np.inf))
+    usable = ((n_kept >= min_stars) & np.isfinite(cov).all(axis=(1, 2))).tolist()  # one test for all snapshots
     return [SnapshotAttitude(position=int(p), dt_s=float(t), rotation=R[k], covariance=cov[k], n_stars=int(n_kept[k]))
-            if n_kept[k] >= min_stars and np.all(np.isfinite(cov[k])) else None
+            if usable[k] else None
             for k, (p, t) in enumerate(zip(positions, dt_s))]
 
 
@@ -141,9 +141,11 @@ def _fit_once(snaps: list[SnapshotAttitude], R0: np.ndarray, rate_guess: np.ndar
 
     def residuals_and_jacobian(c, w):
         phi = -w[None, :] * dt[:, None]
-        turn = Rotation.from_rotvec(phi).as_matrix()  # (S, 3, 3)
-        pred = turn @ (Rotation.from_rotvec(c).as_matrix() @ R0)
-        r = Rotation.from_matrix(R_obs @ np.swapaxes(pred, 1, 2)).as_rotvec()  # (S, 3)
+        # Rodrigues and its inverse in numpy (app.attitude.rotations): scipy's Rotation objects cost more
+        # than the arithmetic here, and Gauss-Newton asks for them every iteration.
+        turn = rotation_from_rotvec(phi)  # (S, 3, 3)
+        pred = turn @ (rotation_from_rotvec(c) @ R0)
+        r = rotvec_from_rotation(R_obs @ np.swapaxes(pred, 1, 2))  # (S, 3)
         J = np.concatenate([-turn, dt[:, None, None] * left_jacobian(phi)], axis=2)  # (S, 3, 6)
         return np.einsum("sij,sj->si", W, r).reshape(-1), np.einsum("sij,sjk->sik", W, J).reshape(-1, 6)
 
@@ -160,7 +162,7 @@ def _fit_once(snaps: list[SnapshotAttitude], R0: np.ndarray, rate_guess: np.ndar
         cov = np.linalg.inv(J.T @ J) * max(1.0, chi2_red)
     except np.linalg.LinAlgError:
         return None, np.zeros(0)
-    rotation = Rotation.from_rotvec(c).as_matrix() @ R0
+    rotation = rotation_from_rotvec(c) @ R0
     fit = SequenceFit(rotation=rotation, covariance=cov[:3, :3], rate_rad_s=w,
                       rate_covariance=cov[3:, 3:], snapshots=tuple(snaps), chi2_reduced=chi2_red)
     return fit, (f.reshape(-1, 3) ** 2).sum(axis=1)
@@ -188,9 +190,9 @@ def rate_from_motion(motion: np.ndarray, dt_s: np.ndarray) -> np.ndarray | None:
     ``R_i = M_i^T R_ref = exp(-[w]x dt_i) R_ref``, so ``log(M_i) = w dt_i``:
     a least-squares slope through the origin.
     """
-    ok = np.array([np.all(np.isfinite(M)) for M in motion]) & (np.abs(dt_s) > 0)
+    ok = np.isfinite(motion).all(axis=(1, 2)) & (np.abs(dt_s) > 0)
     if ok.sum() < 1:
         return None
-    phi = Rotation.from_matrix(motion[ok]).as_rotvec()
+    phi = rotvec_from_rotation(motion[ok])
     t = dt_s[ok]
     return (phi * t[:, None]).sum(axis=0) / (t @ t)

@@ -65,7 +65,6 @@ import dataclasses
 import math
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 from app.attitude import solve_wahba
 from app.extraction.model import GHOST, HOT_PIXEL, OUTLIER, Extraction, ExtractionParameters, Track
@@ -279,6 +278,9 @@ def _associate(common: np.ndarray, snap: np.ndarray, comp: np.ndarray, usable: n
             if len(np.unique(cols)) < len(cols):
                 # two sources want one track: the optimal one-to-one assignment decides
                 cost[cost > max_cost] = too_far
+                # Imported here: scipy.optimize costs ~0.1 s at start-up and few sequences come here.
+                from scipy.optimize import linear_sum_assignment
+
                 rows, cols = linear_sum_assignment(cost)
                 keep = cost[rows, cols] < too_far
                 rows, cols = rows[keep], cols[keep]

@@ -212,7 +212,12 @@ def _scores(rotation: np.ndarray, va_index: np.ndarray, vb_index: np.ndarray, ve
     score = np.empty(len(rotation))
     for start in range(0, len(rotation), step):
         part = slice(start, start + step)
-        d2 = _nearest_chord_sq(rotation[part], vectors[va_index[part]], vectors[vb_index[part]]).min(axis=2)
+        pred = np.matmul(vectors[va_index[part]], np.swapaxes(rotation[part], -1, -2))  # (h, Na, 3) = (R v_a)^T
+        # The nearest source has the largest dot product: 2 - 2 max(dot) is the smallest squared chord
+        # of :func:`_nearest_chord_sq`, bit for bit (2 - 2x rounds monotonically), without making and
+        # scanning the (h, Na, Nb) array of chords (a third of the time).
+        dots = np.matmul(pred, np.swapaxes(vectors[vb_index[part]], -1, -2))
+        d2 = 2.0 - 2.0 * dots.max(axis=2)
         score[part] = np.clip(1.0 - d2 / score_gate**2, 0.0, None).sum(axis=1)
     return score
 

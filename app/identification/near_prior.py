@@ -21,7 +21,6 @@ from dataclasses import replace
 from datetime import datetime
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from app.attitude import angle_between
 from app.camera import Camera
@@ -69,6 +68,8 @@ def identify_near_prior(pattern, camera: Camera, t: datetime, sky: Sky, prior_ro
 
     # Start the fit from the prior moved so the predicted stars shift onto the points.
     # Rotating by +a about camera y adds a to x/z; by +a about x subtracts a from y/z.
+    from scipy.spatial.transform import Rotation  # here, not at start-up (lost in space never needs it)
+
     nudge = Rotation.from_rotvec([best_offset[1], -best_offset[0], 0.0]).as_matrix()
     start = nudge @ prior
     r = refine(start, p.vectors, p.weights, p.field, p.match_tol, agree)
