@@ -79,12 +79,13 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     phases += [(f, 1) for f in searched] + [(f, options.focal_search_features) for f in searched]
     phases += [(None, None)] * bool(searched)
     settled_at = None
-    focal_search_started = None
+    tried_before_focal_search = None
     for f, max_features in phases:
         if f is not None:
             # A pattern that matches nowhere (the Earth, noise) must not pay a dozen searches.
-            focal_search_started = focal_search_started or _time.perf_counter()
-            if _time.perf_counter() - focal_search_started > options.focal_search_budget_s:
+            if tried_before_focal_search is None:
+                tried_before_focal_search = search.n_tried
+            if search.n_tried - tried_before_focal_search > options.focal_search_max_hypotheses:
                 continue
         p = at(f)
         if search.run(p, max_features):
