@@ -92,6 +92,8 @@ def _cube() -> bytes:
     ([("files", ("t.png", frame_png_bytes(np.zeros((64, 64), np.uint16)), "image/png"))], {"fov_deg": "abc"},
      "body.fov_deg"),
     ([("sidecar", ("s.json", b"{}", "application/json"))], {}, "body.files"),
+    ([("files", ("t.png", frame_png_bytes(np.zeros((64, 64), np.uint16)), "image/png"))],
+     {"fov_deg": "20", "spacecraft": "sat\x00one"}, "body.spacecraft"),
 ])
 def test_bad_uploads_give_located_422s(api, files, data, location):
     r = api.post("/api/frames", files=files, data=data)

@@ -44,6 +44,14 @@ Records
   (``replaces_confirmation``), both at insert, so no rejection is ever updated.
 * ``hot_pixel_maps``, ``frame_uploads`` - versioned hot-pixel maps of a camera
   and the frames each sequence came from (issue 15), append-only.
+* ``frame_previews`` - append-only, one row per snapshot of a sequence uploaded
+  as frames (schema version 7): the frame stretched to 8 bits and averaged
+  over ``scale`` x ``scale`` blocks so that it is at most 1024 pixels wide,
+  as a PNG of at most 2 MiB (``MAX_PREVIEW_PNG_BYTES``; the schema refuses
+  larger ones), with its overlay in full-resolution pixels (detections used
+  as sources, rejected blobs and why, the hot pixels of the map applied).
+  The frames themselves are not kept; sequences uploaded before version 7, or
+  as spot lists, have no preview.
 
 Schema versions
 ---------------
@@ -58,11 +66,13 @@ from app.storage.base import Storage, backend_of
 from app.storage.records import (
     DATABASE_URL_ENV,
     MAX_PAGE,
+    MAX_PREVIEW_PNG_BYTES,
     PATTERN_KINDS,
     SEQUENCE_ORDERS,
     STATUSES,
     CalibrationRow,
     ConfirmationRow,
+    FramePreviewRow,
     HotPixelMapRow,
     PatternVersion,
     RejectionRow,
@@ -79,8 +89,8 @@ from app.storage.records import (
 from app.storage.sqlite import MIGRATIONS, SQLiteStorage
 
 __all__ = [
-    "DATABASE_URL_ENV", "MAX_PAGE", "MIGRATIONS", "PATTERN_KINDS", "SEQUENCE_ORDERS", "STATUSES",
-    "CalibrationRow", "ConfirmationRow", "HotPixelMapRow", "PatternVersion", "RejectionRow", "SQLiteStorage",
-    "SearchRow", "SequenceRow", "StaleHotPixelMap", "Storage", "StorageError", "UnknownSequence",
-    "UnstorableValue", "VerdictExists", "backend_of", "content_sha256", "default_database_path",
+    "DATABASE_URL_ENV", "MAX_PAGE", "MAX_PREVIEW_PNG_BYTES", "MIGRATIONS", "PATTERN_KINDS", "SEQUENCE_ORDERS",
+    "STATUSES", "CalibrationRow", "ConfirmationRow", "FramePreviewRow", "HotPixelMapRow", "PatternVersion",
+    "RejectionRow", "SQLiteStorage", "SearchRow", "SequenceRow", "StaleHotPixelMap", "Storage", "StorageError",
+    "UnknownSequence", "UnstorableValue", "VerdictExists", "backend_of", "content_sha256", "default_database_path",
 ]

@@ -36,6 +36,7 @@ from typing import Any
 from app.storage.records import (
     _CONFIRMATIONS,
     _CURRENT_CONFIRMATION,
+    _FRAME_PREVIEW_LIGHT_COLUMNS,
     _REJECTIONS,
     _SEQUENCE_LIGHT_COLUMNS,
     DATABASE_URL_ENV,
@@ -44,6 +45,7 @@ from app.storage.records import (
     STATUSES,
     CalibrationRow,
     ConfirmationRow,
+    FramePreviewRow,
     HotPixelMapRow,
     PatternVersion,
     RejectionRow,
@@ -53,9 +55,11 @@ from app.storage.records import (
     UnknownSequence,
     VerdictExists,
     _calibration_row,
+    _check_frame_preview,
     _check_page,
     _confirmation_row,
     _dumps,
+    _frame_preview_row,
     _hot_pixel_map_row,
     _now,
     _pattern_row,
@@ -565,4 +569,43 @@ class Storage:
                                (upload_sha256,)).fetchone()
         return None if row is None else int(row[0])
 
+    # -- frame previews (issue 15 item 5) -------------------------------------
 
+    def add_frame_previews(self, seq_id: int, previews: list[dict]) -> int:
+        """Store the previews of a sequence's frames (each a dict: ``snapshot``, ``width``, ``height``,
+        ``scale``, ``image_width``, ``image_height``, ``png`` bytes, ``overlay``), all in one transaction.
+
+        Append-only: a snapshot that has a preview keeps it (the first stored wins, so the same frames
+        uploaded twice at once store one set).  Returns how many were stored now.  ValueError (nothing
+        stored) for a preview that is not one (:func:`app.storage.records._check_frame_preview`: PNG
+        bytes of at most :data:`app.storage.records.MAX_PREVIEW_PNG_BYTES`, sizes that agree).
+        """
+        rows = [_check_frame_preview(p) for p in previews]
+        if len({r[0] for r in rows}) != len(rows):
+            raise ValueError("two previews of the same snapshot")
+        stored = 0
+        with self._transaction() as conn:
+            self._require_sequence(conn, seq_id)
+            now = _time_text(_now())
+            for snapshot, width, height, scale, image_width, image_height, png, overlay in rows:
+                new_id = self._insert(
+                    conn, "INSERT INTO frame_previews (seq_id, snapshot, width, height, scale, image_width, "
+                    "image_height, png, overlay_json, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?) "
+                    "ON CONFLICT (seq_id, snapshot) DO NOTHING",
+                    (seq_id, snapshot, width, height, scale, image_width, image_height, png, overlay, now))
+                stored += new_id is not None
+        return stored
+
+    def frame_previews(self, seq_id: int) -> "list[FramePreviewRow]":
+        """The previews of a sequence's frames without their PNGs, by snapshot (empty: none kept)."""
+        with self._transaction(write=False) as conn:
+            rows = conn.execute(f"SELECT {_FRAME_PREVIEW_LIGHT_COLUMNS} FROM frame_previews WHERE seq_id = ? "
+                                "ORDER BY snapshot", (seq_id,)).fetchall()
+        return [_frame_preview_row(r) for r in rows]
+
+    def frame_preview(self, seq_id: int, snapshot: int) -> "FramePreviewRow | None":
+        """One snapshot's preview with its PNG, if kept."""
+        with self._transaction(write=False) as conn:
+            row = conn.execute(f"SELECT {_FRAME_PREVIEW_LIGHT_COLUMNS}, png FROM frame_previews "
+                               "WHERE seq_id = ? AND snapshot = ?", (seq_id, snapshot)).fetchone()
+        return None if row is None else _frame_preview_row(row, png=True)

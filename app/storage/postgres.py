@@ -300,6 +300,25 @@ MIGRATIONS: list[list[str]] = [
         _confirmations_only_supersede(("epoch", "rate_deg_s_json", "override_reason", "overridden_json",
                                        "replaces_rejection", "acm_text")),
     ],
+    # 7 (issue 15 item 5): a preview of each frame of a sequence uploaded as frames (PNG of at most
+    # 2 MiB, with its overlay), one per snapshot, append-only.
+    [
+        """CREATE TABLE frame_previews (
+            id BIGINT GENERATED ALWAYS AS IDENTITY PRIMARY KEY,
+            seq_id BIGINT NOT NULL REFERENCES sequences (id),
+            snapshot INTEGER NOT NULL CHECK (snapshot >= 0),
+            width INTEGER NOT NULL CHECK (width >= 1),
+            height INTEGER NOT NULL CHECK (height >= 1),
+            scale INTEGER NOT NULL CHECK (scale >= 1),
+            image_width INTEGER NOT NULL CHECK (image_width >= 1),
+            image_height INTEGER NOT NULL CHECK (image_height >= 1),
+            png BYTEA NOT NULL CHECK (octet_length(png) <= 2097152),
+            overlay_json JSONB NOT NULL,
+            created_at TIMESTAMPTZ NOT NULL,
+            UNIQUE (seq_id, snapshot)
+        )""",
+        *_refuse("frame_previews", "frame previews are append-only"),
+    ],
 ]
 
 

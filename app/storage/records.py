@@ -354,3 +354,71 @@ def _hot_pixel_map_row(row) -> HotPixelMapRow:
     return HotPixelMapRow(id=row["id"], spacecraft=row["spacecraft"], sensor=row["sensor"], version=row["version"],
                           map=_loads(row["map_json"]), frames=row["frames"], hot_pixels=row["hot_pixels"],
                           seq_id=row["seq_id"], created_at=_time(row["created_at"]))
+
+
+# -- frame previews (issue 15 item 5) -------------------------------------------
+
+#: Largest PNG of one frame preview the archive stores (bytes); the schema refuses larger ones too.
+MAX_PREVIEW_PNG_BYTES = 2 * 1024 * 1024
+#: Largest overlay document of one frame preview (bytes of its JSON).
+MAX_PREVIEW_OVERLAY_BYTES = 512 * 1024
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+@dataclass(frozen=True)
+class FramePreviewRow:
+    """The stored preview of one frame of a sequence uploaded as frames.
+
+    ``width`` x ``height``: the frame's full size (sensor pixels); the PNG (``image_width`` x
+    ``image_height``) is the frame stretched to 8 bits and averaged over ``scale`` x ``scale`` blocks.
+    ``overlay``: detections, rejected blobs and hot pixels in full-resolution pixels (0, 0 = centre
+    of the top-left pixel).  ``png`` is None in listings (:meth:`Storage.frame_previews`).
+    """
+
+    id: int
+    seq_id: int
+    snapshot: int
+    width: int
+    height: int
+    scale: int
+    image_width: int
+    image_height: int
+    overlay: dict
+    created_at: datetime
+    png: bytes | None = field(default=None, repr=False)
+
+
+_FRAME_PREVIEW_LIGHT_COLUMNS = ("id, seq_id, snapshot, width, height, scale, image_width, image_height, "
+                                "overlay_json, created_at")
+
+
+def _frame_preview_row(row, png: bool = False) -> FramePreviewRow:
+    return FramePreviewRow(id=row["id"], seq_id=row["seq_id"], snapshot=row["snapshot"], width=row["width"],
+                           height=row["height"], scale=row["scale"], image_width=row["image_width"],
+                           image_height=row["image_height"], overlay=_loads(row["overlay_json"]),
+                           created_at=_time(row["created_at"]), png=bytes(row["png"]) if png else None)
+
+
+def _check_frame_preview(preview: dict) -> tuple:
+    """The INSERT parameters of one preview (``snapshot``, ``width``, ``height``, ``scale``, ``image_width``,
+    ``image_height``, ``png``, ``overlay``), or ValueError."""
+    try:
+        snapshot, width, height, scale, image_width, image_height = (
+            int(preview[k]) for k in ("snapshot", "width", "height", "scale", "image_width", "image_height"))
+        png, overlay = preview["png"], preview["overlay"]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"a frame preview needs snapshot, width, height, scale, image_width, image_height, "
+                         f"png and overlay ({exc})") from None
+    if snapshot < 0 or min(width, height, scale, image_width, image_height) < 1:
+        raise ValueError("a frame preview's snapshot must be >= 0 and its sizes and scale >= 1")
+    if image_width != -(-width // scale) or image_height != -(-height // scale):
+        raise ValueError(f"a {width} x {height} frame at scale {scale} is a {-(-width // scale)} x "
+                         f"{-(-height // scale)} image, not {image_width} x {image_height}")
+    if not isinstance(png, (bytes, bytearray, memoryview)) or not bytes(png[:8]) == _PNG_MAGIC:
+        raise ValueError("a frame preview's image must be PNG bytes")
+    if len(png) > MAX_PREVIEW_PNG_BYTES:
+        raise ValueError(f"a frame preview's PNG is {len(png)} bytes; at most {MAX_PREVIEW_PNG_BYTES}")
+    overlay_text = _dumps(overlay)
+    if not isinstance(overlay, dict) or len(overlay_text.encode()) > MAX_PREVIEW_OVERLAY_BYTES:
+        raise ValueError(f"a frame preview's overlay must be an object of at most {MAX_PREVIEW_OVERLAY_BYTES} bytes")
+    return snapshot, width, height, scale, image_width, image_height, bytes(png), overlay_text

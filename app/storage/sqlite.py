@@ -280,6 +280,29 @@ MIGRATIONS: list[list[str]] = [
         _confirmations_only_supersede(("epoch", "rate_deg_s_json", "override_reason", "overridden_json",
                                        "replaces_rejection", "acm_text")),
     ],
+    # 7 (issue 15 item 5): a preview of each frame of a sequence uploaded as frames (the frame
+    # stretched to 8 bits, averaged over scale x scale blocks, as PNG; at most 2 MiB) with its overlay
+    # (detections, rejected blobs, hot pixels), one per snapshot, append-only.
+    [
+        """CREATE TABLE frame_previews (
+            id INTEGER PRIMARY KEY,
+            seq_id INTEGER NOT NULL REFERENCES sequences (id),
+            snapshot INTEGER NOT NULL CHECK (snapshot >= 0),
+            width INTEGER NOT NULL CHECK (width >= 1),
+            height INTEGER NOT NULL CHECK (height >= 1),
+            scale INTEGER NOT NULL CHECK (scale >= 1),
+            image_width INTEGER NOT NULL CHECK (image_width >= 1),
+            image_height INTEGER NOT NULL CHECK (image_height >= 1),
+            png BLOB NOT NULL CHECK (length(png) <= 2097152),
+            overlay_json TEXT NOT NULL,
+            created_at TEXT NOT NULL,
+            UNIQUE (seq_id, snapshot)
+        )""",
+        """CREATE TRIGGER frame_previews_no_update BEFORE UPDATE ON frame_previews
+            BEGIN SELECT RAISE(ABORT, 'frame previews are append-only'); END""",
+        """CREATE TRIGGER frame_previews_no_delete BEFORE DELETE ON frame_previews
+            BEGIN SELECT RAISE(ABORT, 'frame previews are append-only'); END""",
+    ],
 ]
 
 

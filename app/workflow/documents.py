@@ -706,3 +706,69 @@ class OperatorDocument(Document):
 
     auth_required: bool
     operator: str | None = Field(description="the token's operator (null: no token sent)")
+
+
+# ---------------------------------------------------------------------------
+# Frame previews (issue 15 item 5)
+# ---------------------------------------------------------------------------
+
+class FrameDetection(Document):
+    """A detection reported as a source of the snapshot (full-resolution pixels)."""
+
+    source: int = Field(description="index of the source in the snapshot (file order): what the extraction's "
+                                    "`sources[snapshot][source]` names the track of")
+    x: float
+    y: float
+    brightness: float | None = None
+    flags: list[str] = Field(default_factory=list, description="the detector's flags: saturated, edge")
+
+
+class FrameRejected(Document):
+    """A blob of the frame that is not a source, and why."""
+
+    x: float
+    y: float
+    reason: str = Field(description="hot_pixel, mapped_hot_pixel, elongated (a trail), extended, not_brightest "
+                                    "(a star beyond the brightest reported), joined by '+' with other flags")
+
+
+class FrameOverlay(Document):
+    """What is drawn over a frame: full-resolution pixels, (0, 0) the centre of the top-left pixel."""
+
+    detections: list[FrameDetection] = Field(default_factory=list)
+    rejected: list[FrameRejected] = Field(default_factory=list, description="the brightest 200 at most")
+    rejected_total: int = 0
+    hot_pixels: list[tuple[int, int]] = Field(default_factory=list,
+                                              description="(x, y) of the camera's hot-pixel map applied to the pass")
+    hot_pixels_total: int = 0
+
+
+class FramePreviewInfo(Document):
+    """One snapshot's frame preview (the image is at ``url``)."""
+
+    snapshot: int = Field(description="snapshot index (time order, from 0)")
+    width: int = Field(description="the frame's width, pixels")
+    height: int = Field(description="the frame's height, pixels")
+    scale: int = Field(description="each image pixel is the mean of scale x scale frame pixels; image pixel (i, j) "
+                                   "is centred on frame pixel ((j + 0.5) scale - 0.5, (i + 0.5) scale - 0.5)")
+    image_width: int = Field(description="the PNG's width: ceil(width / scale)")
+    image_height: int = Field(description="the PNG's height: ceil(height / scale)")
+    url: str
+    overlay: FrameOverlay
+
+    @classmethod
+    def of(cls, seq_id: int, row) -> "FramePreviewInfo":
+        """From a stored :class:`app.storage.FramePreviewRow`."""
+        return cls(snapshot=row.snapshot, width=row.width, height=row.height, scale=row.scale,
+                   image_width=row.image_width, image_height=row.image_height,
+                   url=f"/api/sequences/{seq_id}/frames/{row.snapshot}.png",
+                   overlay=FrameOverlay.model_validate(row.overlay))
+
+
+class FramePreviewsDocument(Document):
+    """The frame previews of a sequence (``GET /api/sequences/{id}/frames``): empty for spot-list uploads
+    and for frames uploaded before previews were kept."""
+
+    sequence: int
+    max_png_bytes: int = Field(description="largest PNG kept of one frame; a larger one is made at twice the scale")
+    frames: list[FramePreviewInfo]

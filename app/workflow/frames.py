@@ -5,37 +5,47 @@ An upload of frames ends as an ordinary archived sequence: the frames are detect
 (:func:`app.frames.frames_to_sequence`), extracted, and stored with
 :func:`app.workflow.archive.store_upload` under the `tubsat-snapshots/1` text of the detected
 sources (with the frames' content hash and detection report in its ``frames`` block), so the
-archive stays text and everything downstream is unchanged.  The images themselves are not kept.
+archive stays text and everything downstream is unchanged.  The images themselves are not kept;
+a preview of each is (:func:`frame_previews`: stretched to 8 bits, at most
+:data:`PREVIEW_MAX_WIDTH` pixels wide, a PNG of at most 2 MiB, with the detections, rejected
+blobs and hot pixels as an overlay), for the console (``GET /api/sequences/{id}/frames``).
 
 Steps of ``POST /api/frames``: :func:`prepare_frames` (in a thread: the sidecar, the upload's
 hash and whether the same frames were stored before, the spacecraft's hot-pixel map),
-:func:`frames_job` (in the compute pool: reading, detection, extraction; errors come back as
-values because a TelemetryError does not survive pickling), :func:`store_frames` (in a thread:
-the upload, then the spacecraft's hot-pixel map as a new version).
+:func:`frames_job` (in the compute pool: reading, detection, extraction, the previews; errors
+come back as values because a TelemetryError does not survive pickling), :func:`store_frames`
+(in a thread: the upload, its previews, then the spacecraft's hot-pixel map as a new version).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
+import io
 import json
 import logging
+import math
 import os
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from app.extraction import extract
-from app.frames import (FrameLimits, FramePass, FramesTimeout, HotPixelMap, Sidecar, drop_hot_pixel_sources,
-                        frames_content_sha256, frames_to_sequence, looks_like_image, parse_sidecar, peek_frame)
-from app.frames.detect import DetectionOptions
+from app.frames import (Detections, FrameLimits, FramePass, FramesTimeout, HotPixelMap, Sidecar,
+                        drop_hot_pixel_sources, frames_content_sha256, frames_to_sequence, looks_like_image,
+                        near_hot_pixel, parse_sidecar, peek_frame, read_frames)
+from app.frames.detect import REJECTING_FLAGS, DetectionOptions
 from app.frames.images import ALL_SUFFIXES, file_sha256
-from app.storage import StaleHotPixelMap
+from app.storage import MAX_PREVIEW_PNG_BYTES, StaleHotPixelMap
 from app.telemetry import Sequence
 from app.telemetry.errors import Problem, TelemetryError
 from app.workflow import archive
 from app.workflow.context import AppContext
-from app.workflow.documents import Document, ExtractionDocument, SequenceSummary, UploadDocument
+from app.workflow.documents import (Document, ExtractionDocument, FramePreviewInfo, FramePreviewsDocument,
+                                    SequenceSummary, UploadDocument)
 from app.workflow.errors import Busy, NotFound
 
 log = logging.getLogger(__name__)
@@ -45,6 +55,22 @@ FOLDER_SIDECAR = "frames.json"
 SIDECAR_SUFFIX = ".frames.json"
 #: Tries at storing a hot-pixel map when other uploads of the same camera store theirs at once.
 MAP_STORE_TRIES = 5
+#: Widest preview image, pixels: a wider frame is averaged over scale x scale blocks, the smallest
+#: integer scale that brings it to this width or less.
+PREVIEW_MAX_WIDTH = 1024
+#: Most bytes of all the previews of one pass (64 frames of a busy 16 Mpx camera would be ~100 MiB);
+#: frames after the budget is spent have no preview.  Each PNG is at most ``MAX_PREVIEW_PNG_BYTES``
+#: (2 MiB): a PNG larger than that is made again at twice the scale, until it fits.
+PREVIEW_PASS_BYTES = 32 * 1024 * 1024
+#: Pixels this many noise sigmas above the background are white in a preview.
+STRETCH_TOP_SIGMA = 50.0
+#: Rejected blobs and hot pixels listed in one preview's overlay (the brightest blobs; the map's
+#: first hot pixels); the overlay says how many there were in all.
+OVERLAY_MAX_REJECTED = 200
+OVERLAY_MAX_HOT_PIXELS = 2000
+#: A reported source is the detection within this distance (pixels): the sources are the
+#: detections' positions rounded to 3 decimals.
+SOURCE_MATCH_PX = 0.01
 
 
 # ---------------------------------------------------------------------------
@@ -98,6 +124,8 @@ class FramesResult:
     extraction: object = None
     problems: list[dict] | None = None
     timeout: str | None = None
+    #: A preview per frame (snapshot order; frames without one are left out).
+    previews: list["FramePreview"] = dataclasses.field(default_factory=list)
 
 
 def upload_sha256(files: list[tuple[str, bytes]], sidecar: bytes | None, sequence_id: str | None,
@@ -156,7 +184,13 @@ def frames_job(request: FramesRequest, *, sky=None) -> FramesResult:
         log.warning("frames could not be processed", exc_info=True)
         return FramesResult(problems=[{"location": "files", "message": "the images could not be processed "
                                        f"({type(exc).__name__}: {str(exc)[:160]})"}])
-    return FramesResult(frame_pass=frame_pass, extraction=extract(frame_pass.sequence))
+    extraction = extract(frame_pass.sequence)
+    try:
+        previews = frame_previews(request.files, frame_pass, request.limits, deadline=deadline)
+    except Exception:  # noqa: BLE001 - the previews are a convenience: never the reason an upload fails
+        log.warning("no previews of the frames", exc_info=True)
+        previews = []
+    return FramesResult(frame_pass=frame_pass, extraction=extraction, previews=previews)
 
 
 def store_frames(ctx: AppContext, request: FramesRequest, result: FramesResult) -> UploadDocument:
@@ -174,6 +208,9 @@ def store_frames(ctx: AppContext, request: FramesRequest, result: FramesResult) 
     recorded = ctx.storage.add_frame_upload(request.upload_sha256, doc.id)
     if recorded != doc.id:
         return _stored_document(ctx, recorded)
+    if result.previews:
+        # Append-only: a sequence that has previews keeps them (the same detections from other frames).
+        ctx.storage.add_frame_previews(doc.id, [p.to_storage() for p in result.previews])
     spacecraft = frame_pass.sequence.spacecraft or request.map_spacecraft
     if doc.created and spacecraft:
         add_frames_to_map(ctx, spacecraft, frame_pass, doc.id)
@@ -222,12 +259,201 @@ def without_hot_pixels(ctx: AppContext, sequence: Sequence) -> tuple[Sequence, l
     """Spot-list telemetry without its sources on the spacecraft's mapped hot pixels (same sensor size).
 
     ``(sequence, dropped)``: ``dropped[i]`` are the file-order positions removed from snapshot i.
-    The one call an upload path needs (see the README section "Full-frame images").
+    Not what the archive does with a spot-list upload: removing sources renumbers the rest, and the
+    stored extraction's numbering is authoritative, so :func:`app.workflow.archive.parse_upload` flags
+    them instead (:func:`app.workflow.archive.hot_pixel_sources`) and extraction gives them the
+    ``hot_pixel`` verdict in place.  This is for a caller that wants the filtered telemetry itself.
     """
     hot_map = current_hot_pixel_map(ctx, sequence.spacecraft, sequence.camera.width, sequence.camera.height)
     if hot_map is None:
         return sequence, [[] for _ in sequence.snapshots]
     return drop_hot_pixel_sources(sequence, hot_map.hot)
+
+
+# ---------------------------------------------------------------------------
+# Previews: what the console shows of each frame
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class FramePreview:
+    """One frame as the console shows it: an 8-bit PNG of ``image_width`` x ``image_height`` pixels, each
+    the mean of ``scale`` x ``scale`` pixels of the ``width`` x ``height`` frame, and its overlay."""
+
+    snapshot: int
+    width: int
+    height: int
+    scale: int
+    image_width: int
+    image_height: int
+    png: bytes
+    overlay: dict
+
+    def to_storage(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def preview_scale(width: int) -> int:
+    """The smallest integer scale that makes a frame ``width`` pixels wide at most :data:`PREVIEW_MAX_WIDTH`."""
+    return max(1, math.ceil(width / PREVIEW_MAX_WIDTH))
+
+
+def block_mean(pixels: np.ndarray, scale: int) -> np.ndarray:
+    """The frame averaged over ``scale`` x ``scale`` blocks; the last row and column of blocks may be cut by
+    the frame's edge (their mean is over the pixels inside).  Block (i, j) covers pixels
+    ``i*scale .. i*scale + scale - 1``: its centre is at ``(j + 0.5) * scale - 0.5`` in full-resolution x."""
+    data = np.asarray(pixels, dtype=np.float64)
+    if scale == 1:
+        return data
+    height, width = data.shape
+    rows, cols = -(-height // scale), -(-width // scale)
+    padded = np.zeros((rows * scale, cols * scale))
+    padded[:height, :width] = data
+    count = np.zeros_like(padded)
+    count[:height, :width] = 1.0
+    sums = padded.reshape(rows, scale, cols, scale).sum(axis=(1, 3))
+    return sums / count.reshape(rows, scale, cols, scale).sum(axis=(1, 3))
+
+
+def stretch_to_8bit(image: np.ndarray) -> np.ndarray:
+    """A frame as 8-bit grey an operator can read: the background (median) nearly black with its noise
+    (MAD) just visible, stars a few sigma high clear of it, bright ones not all white: an asinh stretch
+    from the background (black) to :data:`STRETCH_TOP_SIGMA` sigma above it (white), about linear
+    for the first 2 sigma.  Relative to the noise, so hot pixels and saturated stars do not darken
+    the rest."""
+    data = np.asarray(image, dtype=np.float64)
+    finite = np.isfinite(data)
+    if not finite.all():
+        data = np.where(finite, data, np.median(data[finite]) if finite.any() else 0.0)
+    step = max(1, int(math.sqrt(data.size / 250_000)))
+    sample = data[::step, ::step]
+    median = float(np.median(sample))
+    sigma = 1.4826 * float(np.median(np.abs(sample - median)))
+    if not sigma > 0:
+        sigma = float(np.std(sample)) or 1.0
+    low = median
+    high = median + STRETCH_TOP_SIGMA * sigma
+    soft = 2.0 * sigma
+    scaled = np.arcsinh(np.clip(data - low, 0.0, None) / soft) / math.asinh((high - low) / soft)
+    return np.clip(np.round(scaled * 255.0), 0, 255).astype(np.uint8)
+
+
+def encode_png(grey: np.ndarray) -> bytes:
+    from PIL import Image
+
+    stream = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(grey, dtype=np.uint8), mode="L").save(stream, format="PNG")
+    return stream.getvalue()
+
+
+def render_preview(pixels: np.ndarray, snapshot: int, overlay: dict) -> FramePreview | None:
+    """The preview of one frame; at twice the scale while its PNG exceeds ``MAX_PREVIEW_PNG_BYTES``
+    (None when even a 16-pixel-wide image would: not a frame to preview)."""
+    height, width = pixels.shape
+    scale = preview_scale(width)
+    while True:
+        png = encode_png(stretch_to_8bit(block_mean(pixels, scale)))
+        if len(png) <= MAX_PREVIEW_PNG_BYTES:
+            return FramePreview(snapshot=snapshot, width=width, height=height, scale=scale,
+                                image_width=-(-width // scale), image_height=-(-height // scale), png=png,
+                                overlay=overlay)
+        scale *= 2
+        if -(-width // scale) < 16:
+            return None
+
+
+def frame_overlay(detections: Detections, snapshot, hot: list[tuple[int, int]]) -> dict:
+    """What the console draws over one frame, in full-resolution pixels (0, 0 = centre of the top-left pixel).
+
+    * ``detections``: the snapshot's sources in file order (``source`` = the index the extraction's
+      tracks refer to), with the detector's flags (``saturated``, ``edge``);
+    * ``rejected``: every other blob, brightest first, with why it is no source: ``hot_pixel``
+      (one sharp pixel), ``mapped_hot_pixel`` (on a hot pixel of the camera's map), ``elongated``
+      (a trail), ``extended`` (glare, the Moon), ``not_brightest`` (a star beyond the ``max_sources``
+      brightest reported), plus its other flags;
+    * ``hot_pixels``: the hot pixels of the camera's map applied to the pass.
+    """
+    xy = detections.xy
+    used: set[int] = set()
+    rows = []
+    for j in range(snapshot.n_sources):
+        x, y = float(snapshot.xy[j, 0]), float(snapshot.xy[j, 1])
+        flags: list[str] = []
+        if len(detections):
+            distance = np.hypot(xy[:, 0] - x, xy[:, 1] - y)
+            k = int(np.argmin(distance))
+            if distance[k] <= SOURCE_MATCH_PX and k not in used:
+                used.add(k)
+                flags = list(detections.flags[k])
+        rows.append({"source": j, "x": round(x, 3), "y": round(y, 3),
+                     "brightness": round(float(snapshot.brightness[j]), 2), "flags": flags})
+    on_hot = near_hot_pixel(detections.peak_pixel, hot, radius_px=1.0) if len(detections) \
+        else np.zeros(0, dtype=bool)
+    rejected = []
+    total = 0
+    for k in range(len(detections)):
+        if k in used:
+            continue
+        total += 1
+        if len(rejected) >= OVERLAY_MAX_REJECTED:
+            continue
+        flags = detections.flags[k]
+        reasons = [f for f in flags if f in REJECTING_FLAGS]
+        if on_hot[k] and "hot_pixel" not in reasons:
+            reasons.append("mapped_hot_pixel")
+        if not reasons:
+            reasons.append("not_brightest")
+        reasons += [f for f in flags if f not in REJECTING_FLAGS]
+        rejected.append({"x": round(float(xy[k, 0]), 2), "y": round(float(xy[k, 1]), 2), "reason": "+".join(reasons)})
+    return {"detections": rows, "rejected": rejected, "rejected_total": total,
+            "hot_pixels": [[int(x), int(y)] for x, y in hot[:OVERLAY_MAX_HOT_PIXELS]], "hot_pixels_total": len(hot)}
+
+
+def frame_previews(files: list[tuple[str, bytes]], frame_pass: FramePass, limits: FrameLimits, *,
+                   deadline: float | None = None) -> list[FramePreview]:
+    """A preview of each frame of the pass, in snapshot order (the frames are read again, one file at a
+    time: the pass keeps only its detections).  Frames past the deadline or the pass's byte budget
+    (:data:`PREVIEW_PASS_BYTES`) get none."""
+    reports = (frame_pass.sequence.extra.get("frames") or {}).get("frames") or []
+    snapshot_of = {(report.get("file"), report.get("part")): i for i, report in enumerate(reports)}
+    hot = frame_pass.hot_map.hot
+    previews: dict[int, FramePreview] = {}
+    spent = 0
+    for name, data in files:
+        for frame in read_frames(data, re.split(r"[\\/]", name)[-1], limits):
+            i = snapshot_of.get((frame.file, frame.part))
+            if i is None or i in previews or i >= len(frame_pass.detections):
+                continue
+            if (deadline is not None and time.monotonic() > deadline) or spent >= PREVIEW_PASS_BYTES:
+                return [previews[k] for k in sorted(previews)]
+            overlay = frame_overlay(frame_pass.detections[i], frame_pass.sequence.snapshots[i], hot)
+            preview = render_preview(frame.pixels, i, overlay)
+            if preview is not None and spent + len(preview.png) <= PREVIEW_PASS_BYTES:
+                previews[i] = preview
+                spent += len(preview.png)
+    return [previews[k] for k in sorted(previews)]
+
+
+def frame_previews_document(ctx: AppContext, seq_id: int) -> FramePreviewsDocument:
+    """The previews kept of a sequence's frames (an empty list for spot-list uploads and frames uploaded
+    before previews were kept); NotFound for an unknown sequence."""
+    archive.require_sequence(ctx, seq_id)
+    rows = ctx.storage.frame_previews(seq_id)
+    return FramePreviewsDocument(sequence=seq_id, max_png_bytes=MAX_PREVIEW_PNG_BYTES,
+                                 frames=[FramePreviewInfo.of(seq_id, row) for row in rows])
+
+
+def frame_preview_png(ctx: AppContext, seq_id: int, snapshot: int) -> bytes:
+    """The PNG of one snapshot's preview; NotFound (saying why) when there is none."""
+    row = ctx.storage.frame_preview(seq_id, snapshot)
+    if row is not None:
+        return row.png
+    stored = archive.require_sequence(ctx, seq_id)
+    if not ctx.storage.frame_previews(seq_id):
+        raise NotFound(f"sequence {seq_id} has no frame images: it was uploaded as a spot list, or as frames "
+                       "before their previews were kept")
+    n = stored.n_snapshots
+    raise NotFound(f"snapshot {snapshot} of sequence {seq_id} has no frame image"
+                   + (f" (snapshots 0 to {n - 1})" if n and snapshot >= n else ""))
 
 
 def _stored_document(ctx: AppContext, seq_id: int) -> UploadDocument:

@@ -8,6 +8,7 @@
 // confirmation names the search it was made on. Every action ends in a visible result or error.
 import * as api from "./api.js";
 import { $, el, toast, errorText, fmt, fmtProbability, fmtTime, store, stored } from "./dom.js";
+import { FrameView } from "./frame.js";
 import { SnapshotPlayer } from "./player.js";
 import { drawSky, hitAt } from "./sky.js";
 import { SESSION, state } from "./state.js";
@@ -20,14 +21,18 @@ const POLL_MS = 1000;
 const QUEUE_REFRESH_MS = 4000;
 const viewPath = (extra = "") => `/api/view?session=${encodeURIComponent(SESSION)}${extra}`;
 
+// A track in or out of the pattern: what a click on it does in the player and in the frame panel.
+const onToggleTrack = (track) => editPattern((def) => toggleTrack(def, track), `track T${track}`);
 const player = new SnapshotPlayer({
-  onToggleTrack: (track) => editPattern((def) => toggleTrack(def, track), `track T${track}`),
+  onToggleTrack,
   onPick: (snapshot, x, y) => editPattern((def) => ({ ...def, manual_points: [...(def.manual_points || []), { snapshot, x, y }] }),
     `a point at (${x}, ${y}) of snapshot ${snapshot + 1}`),
   onRemoveManual: (k) => editPattern((def) => ({ ...def, manual_points: def.manual_points.filter((_, i) => i !== k) }),
     `hand-picked point ${k + 1}`),
   onMessage: (text) => toast(text),
+  onShow: (index) => frameView.show(index),   // the frame panel follows the snapshot shown
 });
+const frameView = new FrameView({ onToggleTrack, onMessage: (text) => toast(text) });
 
 // ---------------------------------------------------------------- helpers
 
@@ -143,6 +148,7 @@ async function loadDetail(id, { fresh = false } = {}) {
     state.calibrationShown = detail.spacecraft;
     action("Loading the camera calibration", () => showCalibration(detail.spacecraft));
   }
+  frameView.setSequence(detail);   // first: the player's snapshot then shows in the frame panel
   player.setSequence(detail);
   renderPattern();
   renderSearchSummary();

@@ -8,11 +8,11 @@ const SNAP_RADIUS_PX = 6;      // a picked point snaps to a reported source this
 const PLAY_INTERVAL_MS = 450;
 
 export class SnapshotPlayer {
-  constructor({ onToggleTrack, onPick, onRemoveManual, onMessage }) {
+  constructor({ onToggleTrack, onPick, onRemoveManual, onMessage, onShow }) {
     this.canvas = $("player-canvas");
     this.ctx = this.canvas.getContext("2d");
     this.slider = $("snapshot-slider");
-    this.callbacks = { onToggleTrack, onPick, onRemoveManual, onMessage };
+    this.callbacks = { onToggleTrack, onPick, onRemoveManual, onMessage, onShow };
     this.detail = null;
     this.index = 0;
     this.timer = null;
@@ -129,6 +129,8 @@ export class SnapshotPlayer {
       ctx.moveTo(cx, cy - 7); ctx.lineTo(cx + 7, cy); ctx.lineTo(cx, cy + 7); ctx.lineTo(cx - 7, cy); ctx.closePath();
       ctx.fill();
     }
+    // Whoever follows the snapshot shown (the frame panel).
+    if (this.callbacks.onShow) this.callbacks.onShow(this.index);
   }
 
   drawSource(s) {

@@ -1,26 +1,29 @@
-"""/api/frames: a pass of star-camera frames (FITS, PNG, JPEG, TIFF) uploaded as one sequence (issue 15)."""
+"""/api/frames: a pass of star-camera frames (FITS, PNG, JPEG, TIFF) uploaded as one sequence (issue 15);
+/api/sequences/{id}/frames: the previews kept of its frames, with their overlays."""
 
 from __future__ import annotations
 
 import asyncio
 import math
 import time
+import unicodedata
 
-from fastapi import APIRouter, Depends, Query, Request
+from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
 
 from app.api.errors import ApiError
-from app.api.routes.common import get_context, read_body_limited, replay_request, writer
+from app.api.routes.common import ID_LIMITS, get_context, read_body_limited, replay_request, writer
 from app.frames import FrameLimits
 from app.workflow import AppContext
 from app.workflow import frames as framing
 from app.workflow.compute import BULK
-from app.workflow.documents import UploadDocument
+from app.workflow.documents import FramePreviewsDocument, UploadDocument
 from app.workflow.errors import Busy
 
-router = APIRouter(prefix="/api/frames", tags=["frames"])
+# No prefix: the uploads live under /api/frames, the previews under the sequence they belong to.
+router = APIRouter(tags=["frames"])
 
 #: Room for multipart boundaries and part headers on top of the frames' size limit.
 MULTIPART_OVERHEAD = 256 * 1024
@@ -63,6 +66,11 @@ def _text_field(form, name: str, limit: int = 128) -> str | None:
     if len(value) > limit:
         raise ApiError(422, f"{name} is longer than {limit} characters",
                        problems=[{"location": f"body.{name}", "message": f"at most {limit} characters"}])
+    # As in telemetry files: control characters break CSV and log lines, and PostgreSQL cannot store U+0000.
+    if any(unicodedata.category(c) in ("Cc", "Cs") for c in value):
+        raise ApiError(422, f"{name} contains control characters",
+                       problems=[{"location": f"body.{name}",
+                                  "message": "must not contain control characters or lone surrogates"}])
     return value or None
 
 
@@ -80,7 +88,7 @@ def _fov(form) -> float | None:
     return value
 
 
-@router.post("", status_code=201, openapi_extra=_UPLOAD_BODY, response_model=UploadDocument,
+@router.post("/api/frames", status_code=201, openapi_extra=_UPLOAD_BODY, response_model=UploadDocument,
              summary="Upload the frames of one pass (201 created, 200 if the same frames were stored)")
 async def upload_frames(request: Request, _operator: str | None = Depends(writer),
                         ctx: AppContext = Depends(get_context)):
@@ -127,9 +135,29 @@ async def upload_frames(request: Request, _operator: str | None = Depends(writer
     return JSONResponse(doc.model_dump(mode="json"), status_code=201 if doc.created else 200)
 
 
-@router.get("/hot-pixels", response_model=framing.HotPixelMapDocument,
+@router.get("/api/frames/hot-pixels", response_model=framing.HotPixelMapDocument,
             summary="A spacecraft camera's hot-pixel map (current hot pixels and every version)")
 def hot_pixels(spacecraft: str = Query(..., min_length=1, max_length=128),
                sensor: str = Query(..., pattern=r"^\d{1,6}x\d{1,6}$", description="WIDTHxHEIGHT, e.g. 752x582"),
                ctx: AppContext = Depends(get_context)):
     return framing.hot_pixel_map_document(ctx, spacecraft, sensor)
+
+
+SeqId = Path(description="archive id of the sequence", **ID_LIMITS)
+_PNG_RESPONSE = {200: {"content": {"image/png": {}}, "description": "The preview: 8-bit grey PNG"},
+                 404: {"description": "No such sequence, or no frame image of that snapshot"}}
+
+
+@router.get("/api/sequences/{seq_id}/frames", response_model=FramePreviewsDocument,
+            summary="The frame previews of a sequence uploaded as frames, with detections, rejected blobs and "
+                    "hot pixels (an empty list for spot lists)")
+def frame_previews(seq_id: int = SeqId, ctx: AppContext = Depends(get_context)):
+    return framing.frame_previews_document(ctx, seq_id)
+
+
+@router.get("/api/sequences/{seq_id}/frames/{snapshot}.png", response_class=Response, responses=_PNG_RESPONSE,
+            summary="One snapshot's frame preview (stretched to 8 bits, at most 1024 pixels wide)")
+def frame_preview_png(seq_id: int = SeqId, snapshot: int = Path(ge=0, le=100_000, description="snapshot index"),
+                      ctx: AppContext = Depends(get_context)):
+    png = framing.frame_preview_png(ctx, seq_id, snapshot)
+    return Response(png, media_type="image/png")

@@ -1,0 +1,179 @@
+"""The console's frame panel (issue 15 item 5) in a real Chromium: a rendered pass of frames uploaded,
+opened, its frame shown with one marker per reported source, zoomed, panned, stepped, clicked.
+
+Screenshots: test-artifacts/screenshots/frames-*.png.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+
+import httpx
+import numpy as np
+
+from app.camera import CAMERAS
+from app.simulate import frames_fits_bytes, simulate_frames
+
+TIMEOUT_MS = 20_000
+CAMERA = CAMERAS["tubsat-752x582-20deg"]
+
+
+def expect_text(locator, pattern: str, timeout: int = TIMEOUT_MS) -> None:
+    from playwright.sync_api import expect
+
+    expect(locator).to_contain_text(re.compile(pattern), timeout=timeout)
+
+
+def upload_pass(server: str, sequence_id: str, seed: int) -> dict:
+    frames, times, _ = simulate_frames(np.random.default_rng(seed), CAMERA, n_frames=4, trail=True)
+    data = frames_fits_bytes(frames, times, camera=CAMERA, spacecraft="FRAME-SAT")
+    r = httpx.post(server + "/api/frames", files=[("files", (f"{sequence_id}.fits", data, "application/fits"))],
+                   data={"sequence_id": sequence_id}, timeout=120)
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
+def open_console(new_page, server: str, width: int = 1280, height: int = 800):
+    watched = new_page(width, height)
+    watched.page.goto(server + "/")
+    watched.page.wait_for_selector("body[data-ready='1']")
+    return watched
+
+
+def open_sequence(page, seq_id: int, name: str) -> None:
+    page.fill("#filter-search", name)
+    page.locator(f"#sequence-list li[data-id='{seq_id}']").click()
+    expect_text(page.locator("#seq-title"), re.escape(name))
+
+
+def markers(page) -> list[dict]:
+    return json.loads(page.locator("#frame-canvas").get_attribute("data-markers") or "[]")
+
+
+def wait_for_frame(page, snapshot: int) -> None:
+    """Until the frame panel shows the image of ``snapshot``."""
+    page.wait_for_function(
+        f"(() => {{ const c = document.getElementById('frame-canvas');"
+        f" return c.dataset.snapshot === '{snapshot}' && c.dataset.image.endsWith('/frames/{snapshot}.png'); }})()",
+        timeout=TIMEOUT_MS)
+
+
+def to_page(page, marker: dict) -> tuple[float, float]:
+    """Page coordinates of a marker (its canvas coordinates, through the canvas's CSS size)."""
+    page.locator("#frame-canvas").scroll_into_view_if_needed()
+    box = page.locator("#frame-canvas").bounding_box()
+    size = page.evaluate("(() => { const c = document.getElementById('frame-canvas'); return [c.width, c.height]; })()")
+    return box["x"] + marker["x"] * box["width"] / size[0], box["y"] + marker["y"] * box["height"] / size[1]
+
+
+def canvas_pixels_hash(page) -> str:
+    return page.evaluate("document.getElementById('frame-canvas').toDataURL().slice(-4000)")
+
+
+def test_the_frame_panel_shows_zooms_follows_and_edits(server, api, new_page):
+    doc = upload_pass(server, "frames-console", 515)
+    seq_id = doc["id"]
+    detail = api(f"/api/sequences/{seq_id}")
+    frames = api(f"/api/sequences/{seq_id}/frames")["frames"]
+    assert len(frames) == 4
+
+    watched = open_console(new_page, server)
+    page = watched.page
+    open_sequence(page, seq_id, "frames-console")
+    card = page.locator("#frame-card")
+    assert card.is_visible()
+    index = int(page.locator("#frame-canvas").get_attribute("data-snapshot"))
+    wait_for_frame(page, index)
+    expect_text(page.locator("#frame-caption"), rf"snapshot {index + 1}/4 · 752×582 px")
+
+    # One detection marker per reported source, each labelled with its track as the player names it.
+    shown = markers(page)
+    detections = [m for m in shown if m["kind"] == "detection"]
+    sources = detail["telemetry"]["snapshots"][index]["sources"]
+    assert len(detections) == len(sources) > 0
+    assert sorted(m["source"] for m in detections) == list(range(len(sources)))
+    tracks = detail["extraction"]["sources"][index]
+    assert all(m["track"] == tracks[m["source"]] for m in detections)
+    assert any(m["kind"] == "rejected" for m in shown)  # the camera's hot pixels, unmapped yet
+    # The markers sit on the sensor positions: the canvas is the sensor scaled to fit.
+    box = page.locator("#frame-canvas").bounding_box()
+    zoom = float(page.locator("#frame-canvas").get_attribute("data-zoom"))
+    assert abs(zoom - min(box["width"] / 752, box["height"] / 582)) < 0.02
+    watched.screenshot("frames-01-opened", full_page=True)
+
+    # The tooltip of a detection names its track; of a rejected blob, why.
+    some = next(m for m in detections if m["track"] is not None)
+    page.mouse.move(*to_page(page, some))
+    expect_text(page.locator("#frame-tip"), rf"T{some['track']}\b")
+
+    # Zoom: the + button, then the wheel about a source; the markers grow apart.
+    before = markers(page)
+    page.click("#frame-zoom-in")
+    zoomed = float(page.locator("#frame-canvas").get_attribute("data-zoom"))
+    assert zoomed > zoom * 1.4
+    box = page.locator("#frame-canvas").bounding_box()
+    page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    page.mouse.wheel(0, -400)
+    page.wait_for_function(f"Number(document.getElementById('frame-canvas').dataset.zoom) > {zoomed * 1.2}")
+    more = float(page.locator("#frame-canvas").get_attribute("data-zoom"))
+    assert more <= 32
+    watched.screenshot("frames-02-zoomed")
+    # Drag to pan: the markers move with the mouse.
+    first = {(m["kind"], m.get("source")): m for m in markers(page) if m["kind"] == "detection"}
+    box = page.locator("#frame-canvas").bounding_box()
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.mouse.move(cx, cy)
+    page.mouse.down()
+    page.mouse.move(cx + 60, cy + 30, steps=4)
+    page.mouse.up()
+    moved = {(m["kind"], m.get("source")): m for m in markers(page) if m["kind"] == "detection"}
+    common = set(first) & set(moved)
+    assert common and all(moved[k]["x"] > first[k]["x"] + 40 for k in common)
+    page.click("#frame-fit")
+    assert abs(float(page.locator("#frame-canvas").get_attribute("data-zoom")) - zoom) < 1e-3
+    assert len(markers(page)) == len(before)
+
+    # The snapshot player steps: the frame panel follows, with another image and its own sources.
+    picture = canvas_pixels_hash(page)
+    page.click("#step-fwd")
+    following = (index + 1) % 4
+    wait_for_frame(page, following)
+    assert canvas_pixels_hash(page) != picture
+    detections = [m for m in markers(page) if m["kind"] == "detection"]
+    assert len(detections) == len(detail["telemetry"]["snapshots"][following]["sources"])
+    page.evaluate("window.scrollTo(0, 0)")  # a full-page shot of a scrolled page repeats the sticky header
+    watched.screenshot("frames-03-next-snapshot", full_page=True)
+
+    # A click on a tracked detection takes its track out of the pattern, as a click in the player does.
+    in_pattern = {p["track"] for p in detail["pattern"]["points"] if p["track"] is not None}
+    target = next(m for m in detections if m["track"] in in_pattern)
+    page.mouse.click(*to_page(page, target))
+    expect_text(page.locator("#pattern-caption"), r"version 2 \(edit")
+    after = api(f"/api/sequences/{seq_id}")
+    assert target["track"] in after["pattern"]["definition"]["exclude_tracks"]
+    # The panel keeps the snapshot and draws the track dashed (out of the pattern).
+    wait_for_frame(page, following)
+    assert not watched.errors, watched.errors
+
+
+def test_the_frame_panel_fits_1024_pixel_screens_and_stays_away_from_spot_lists(server, api, new_page):
+    doc = upload_pass(server, "frames-narrow", 516)
+    watched = open_console(new_page, server, 1024, 768)
+    page = watched.page
+    open_sequence(page, doc["id"], "frames-narrow")
+    index = int(page.locator("#frame-canvas").get_attribute("data-snapshot"))
+    wait_for_frame(page, index)
+    card = page.locator("#frame-card").bounding_box()
+    canvas = page.locator("#frame-canvas").bounding_box()
+    assert canvas["x"] >= card["x"] and canvas["x"] + canvas["width"] <= card["x"] + card["width"] + 0.5
+    assert page.evaluate("document.documentElement.scrollWidth") <= 1024
+    watched.screenshot("frames-04-1024px", full_page=True)
+    # A spot-list upload has no frame panel.
+    from pathlib import Path
+
+    sample = Path(__file__).resolve().parents[2] / "sample_telemetry" / "01-clean.json"
+    spot = api("/api/sequences", "POST", raw=sample.read_bytes())
+    open_sequence(page, spot["id"], spot["sequence"]["sequence_id"])
+    assert page.locator("#frame-card").is_hidden()
+    assert not watched.errors, watched.errors
