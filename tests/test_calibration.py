@@ -61,12 +61,17 @@ def test_calibrate_command_recovers_the_true_focal_length_and_distortion(wrong_o
     assert outward > 0  # a longer true focal length and a positive k1 both push corner stars outward
 
 
-def test_calibration_through_the_api_is_stored_versioned_and_given_to_later_uploads(tmp_path, sky,
+def test_calibration_through_the_api_is_stored_versioned_and_given_to_later_uploads(tmp_path, sky, sample_dir,
                                                                                     wrong_optics_files):
     paths, true_camera = wrong_optics_files
     db = tmp_path / "cal.sqlite3"
     ctx = AppContext(storage=Storage.open(db), sky=sky)
     api = TestClient(create_app(ctx))
+    # An older sequence of another sensor under the same name: left out, and the calibration says so.
+    other = json.loads((sample_dir / "09-wide-30deg.json").read_text())
+    other["spacecraft"] = "OPTICS-SAT"
+    seq = api.post("/api/sequences", files={"file": ("other.json", json.dumps(other).encode())}).json()["id"]
+    assert api.post(f"/api/sequences/{seq}/search").json()["status"] == "identified"
     for path in paths[:6]:
         seq = api.post("/api/sequences", files={"file": (path.name, path.read_bytes())}).json()["id"]
         assert api.post(f"/api/sequences/{seq}/search").json()["status"] == "identified"
@@ -75,6 +80,10 @@ def test_calibration_through_the_api_is_stored_versioned_and_given_to_later_uplo
     assert r.status_code == 201, r.text
     first = r.json()
     assert first["version"] == 1 and first["operator"] == "cal" and len(first["sequences"]) == 6
+    width, height = other["camera"]["width"], other["camera"]["height"]
+    assert first["notes"] == [f"1 identified or confirmed sequence of another sensor size ({width}x{height}) left "
+                              f"out: a calibration is of one camera, the {CAMERA.width}x{CAMERA.height} sensor of "
+                              "the newest sequence"]
     assert abs(first["camera"]["focal_length_px"] - true_camera.focal_length_px) < 4 * first["sigma"]["focal_length_px"]
     second = api.post("/api/spacecraft/OPTICS-SAT/calibrate", json={"parameters": ["f", "k1"]}).json()
     assert second["version"] == 2 and set(second["sigma"]) == {"focal_length_px", "k1"}

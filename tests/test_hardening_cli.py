@@ -113,3 +113,30 @@ def test_the_socket_serve_binds_answers_without_nagle_delays():
             assert thread.submit(asyncio.run, accepted_nodelay()).result(60) == 1
         finally:
             sock.close()
+
+
+def test_folders_are_read_for_their_telemetry_and_truth_files_are_left_out(tmp_path, sample_dir):
+    """What a shell glob or a folder gives: every spot list once, in name order; the simulator's truth
+    files are left out (said on stderr), and a folder with nothing to read is its own located error."""
+    import shutil
+
+    folder = tmp_path / "pass"
+    folder.mkdir()
+    for name in ("07-single.json", "07-single.truth.json", "08-csv.csv", "08-csv.truth.json"):
+        shutil.copy(sample_dir / name, folder / name)
+    (tmp_path / "empty").mkdir()
+    done = _run_cli("extract", str(folder), str(sample_dir / "01-clean.truth.json"), str(tmp_path / "empty"), "--json")
+    assert done.returncode == 2, done.stderr
+    lines = [json.loads(line) for line in done.stdout.splitlines()]
+    assert [line["file"] for line in lines] == [str(folder / "07-single.json"), str(folder / "08-csv.csv"),
+                                                str(tmp_path / "empty")]
+    assert [line["status"] for line in lines] == ["ok", "ok", "invalid"]
+    assert "folder: the folder holds no telemetry" in lines[2]["error"]
+    assert "left out 3 truth files" in done.stderr and "Traceback" not in done.stderr
+
+
+@pytest.mark.parametrize("prior", ["434.6,-39.86,77.7", "-1,0,0", "10,91,0", "10,0,400", "10,0,0,0"])
+def test_a_prior_outside_the_apis_bounds_is_refused(prior, sample_dir):
+    done = _run_cli("solve", str(sample_dir / "07-single.json"), f"--prior={prior}")
+    assert done.returncode == 2
+    assert "argument --prior: RA must be within [0, 360)" in done.stderr and "Traceback" not in done.stderr

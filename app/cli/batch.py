@@ -98,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
         database = None if args.out is not None else _database(args.db)
         n = args.workers or os.cpu_count() or 1
         where = args.scheduler or f"a local cluster of {n} worker process{'es' if n > 1 else ''}"
-        print(f"batch: starting {where} (each loads the catalogue once)...", file=sys.stderr)
+        into = f"into {args.out}" if args.out is not None else f"into the archive {_shown(database)}"
+        print(f"batch: starting {where} (each loads the catalogue once), {into}...", file=sys.stderr)
         cluster = batch.start_cluster(args.scheduler, args.workers or os.cpu_count() or 1)
         if args.out is not None:
             report = batch.files_to_jsonl(cluster, paths, Path(args.out), method=args.method,
@@ -118,6 +119,15 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(report.to_json()))
     print(summary(report), file=sys.stderr)
     return 0 if report.invalid == 0 and report.failed == 0 else 2
+
+
+def _shown(database: str) -> str:
+    """The archive as the operator should see it: a file path, or a PostgreSQL URL without its password."""
+    if database.startswith(("postgresql://", "postgres://")):
+        from app.storage.postgres import redacted
+
+        return redacted(database)
+    return database
 
 
 def _database(given: str | None) -> str:

@@ -13,7 +13,8 @@ with its 1-sigma, or with ``--json`` one object::
 
 The camera object can be pasted into the telemetry files' camera block.
 Exit status 0 on success, 2 when the files cannot fix a camera (fewer than
-three identified sequences, invalid files only, ...).
+three identified sequences, invalid files only, ...) or when some files were
+invalid (the camera is then fitted over the others, and printed).
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ def run(args: argparse.Namespace) -> int:
     from app.identification import SearchOptions, Sky
     from app.workflow.calibrate import calibrate_files
     from app.workflow.errors import WorkflowError
+    from app.cli.common import command_line_inputs
     from app.workflow.files import telemetry_files
 
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
@@ -51,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     invalid = []
 
     def valid_files():
-        for path, sequence, error in telemetry_files(args.files):
+        for path, sequence, error in telemetry_files(command_line_inputs(args.files)):
             if error is None:
                 yield path, sequence
             else:
@@ -65,12 +67,14 @@ def run(args: argparse.Namespace) -> int:
         return 2
     for path, what in report:
         print(f"{path}: {what}", file=sys.stderr)
+    # As solve and extract: the camera is fitted over the valid files, and invalid ones make the status 2.
+    status = 2 if invalid else 0
     if args.json:
         print(document.model_dump_json())
-        return 0
+        return status
     print(f"camera fitted over {document.sequences_used} sequences ({document.observations_used} snapshots, "
           f"{document.stars_used} stars, {document.stars_rejected} rejected); "
           f"rms {document.rms_px_before:.3f} px with the declared camera -> {document.rms_px_after:.3f} px")
     for name, sigma in document.sigma.items():
         print(f"  {name:<16} {document.camera[name]:>14.6f}  +- {sigma:.3g}")
-    return 0
+    return status

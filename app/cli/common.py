@@ -9,7 +9,7 @@ import sys
 from typing import Callable
 
 from app.workflow.documents import Document
-from app.workflow.files import telemetry_files
+from app.workflow.files import input_files, telemetry_files
 
 
 #: ``--fov-deg`` bounds, as the API's ``fov_deg`` field and the sidecar's (degrees).
@@ -35,10 +35,21 @@ def add_fov_argument(p: argparse.ArgumentParser, help_text: str = FOV_HELP) -> N
     p.add_argument("--fov-deg", type=fov_deg, default=None, metavar="DEG", help=help_text)
 
 
+def command_line_inputs(paths: list[str]) -> list[str]:
+    """The inputs of files and folders named on the command line (:func:`app.workflow.files.input_files`),
+    saying on stderr how many simulator truth files were left out."""
+    inputs, truth = input_files(paths)
+    if truth:
+        print(f"left out {len(truth)} truth file{'s' * (len(truth) != 1)} (*.truth.json: the simulator's "
+              "answers, not telemetry)", file=sys.stderr)
+    return inputs
+
+
 def for_each_file(paths: list[str], process: Callable[[str, object], Document],
                   invalid: Callable[[str, str], Document], as_json: bool,
                   print_summary: Callable[[Document], None], *, fov_deg: float | None = None) -> int:
-    """Run ``process(path, sequence)`` on every telemetry file, in input order.
+    """Run ``process(path, sequence)`` on every telemetry file, in input order (folders: their telemetry
+    files, or their frames as one pass; see :func:`command_line_inputs`).
 
     A file that does not parse gives ``invalid(path, message)`` and the batch
     goes on.  So does a file that parses but cannot be processed: the
@@ -52,7 +63,7 @@ def for_each_file(paths: list[str], process: Callable[[str, object], Document],
     if every file was valid, 2 otherwise.
     """
     status = 0
-    for path, sequence, error in telemetry_files(paths, fov_deg=fov_deg):
+    for path, sequence, error in telemetry_files(command_line_inputs(paths), fov_deg=fov_deg):
         if error is not None:
             doc = invalid(path, str(error))
             status = 2

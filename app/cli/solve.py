@@ -75,8 +75,10 @@ def parse_prior(text: str):
         raise argparse.ArgumentTypeError(f"expected RA,DEC,ROLL[,SIGMA_DEG] in degrees, got {text!r}")
     ra, dec, roll = values[:3]
     sigma = values[3] if len(values) == 4 else 1.0
-    if not -90.0 <= dec <= 90.0 or not 0.0 < sigma <= 10.0:
-        raise argparse.ArgumentTypeError("DEC must be within [-90, 90] and SIGMA_DEG within (0, 10]")
+    # The API's bounds (app.api.schemas.PriorAttitude): an RA of 434 is a typo, not 74.
+    if not 0.0 <= ra < 360.0 or not -90.0 <= dec <= 90.0 or not -360.0 <= roll <= 360.0 or not 0.0 < sigma <= 10.0:
+        raise argparse.ArgumentTypeError("RA must be within [0, 360), DEC within [-90, 90], ROLL within "
+                                         f"[-360, 360] and SIGMA_DEG within (0, 10], got {text!r}")
     return Prior(rotation=rotation_from_radec_roll(ra, dec, roll), sigma_deg=sigma)
 
 

@@ -311,6 +311,6 @@ def run(args: argparse.Namespace) -> int:
         print(line, flush=True)
         counts["created" if status == 201 else "duplicate" if status == 200 else "refused"] += 1
     sys.stderr.write(progress_bar(len(files), len(files), "done") + "\n")
-    print(f"{len(files)} files: {counts['created']} created, {counts['duplicate']} duplicate, "
+    print(f"{len(files)} file{'s' * (len(files) != 1)}: {counts['created']} created, {counts['duplicate']} duplicate, "
           f"{counts['refused']} refused", file=sys.stderr)
     return 0 if counts["refused"] == 0 else 2

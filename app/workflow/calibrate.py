@@ -143,12 +143,15 @@ def calibrate_files(files: Iterable[tuple[str, object]], sky, options,
 # From the archive
 # ---------------------------------------------------------------------------
 
-def archive_observations(ctx: AppContext, spacecraft: str) -> tuple[list[Observation], list[int], Camera | None]:
+def archive_observations(ctx: AppContext, spacecraft: str
+                         ) -> tuple[list[Observation], list[int], Camera | None, dict[str, int]]:
     """Observations of the newest usable sequences of ``spacecraft`` (at most :data:`MAX_SEQUENCES`), the
-    archive ids used, and their camera."""
+    archive ids used, their camera (the newest usable sequence's sensor), and how many usable sequences
+    of other sensor sizes ("WxH") were left out."""
     from app.workflow.documents import SearchResult
 
     observations, used, camera = [], [], None
+    other_sensors: dict[str, int] = {}
     offset = 0
     while len(used) < MAX_SEQUENCES:
         rows, total = ctx.storage.list_sequences(offset, 200, spacecraft=spacecraft)
@@ -168,7 +171,10 @@ def archive_observations(ctx: AppContext, spacecraft: str) -> tuple[list[Observa
             if camera is None:
                 camera = declared
             elif (declared.width, declared.height) != (camera.width, camera.height):
-                continue  # another sensor under the same spacecraft name: not this camera
+                # Another sensor under the same spacecraft name: not this camera.
+                sensor = f"{declared.width}x{declared.height}"
+                other_sensors[sensor] = other_sensors.get(sensor, 0) + 1
+                continue
             found = candidate_observations(item.sequence, item.extraction, candidate, ctx.sky, str(light.id))
             if found and len(used) < MAX_SEQUENCES:
                 observations += found
@@ -176,17 +182,20 @@ def archive_observations(ctx: AppContext, spacecraft: str) -> tuple[list[Observa
         offset += len(rows)
         if not rows or offset >= total:
             break
-    return observations, used, camera
+    return observations, used, camera, other_sensors
 
 
 def calibrate_spacecraft(ctx: AppContext, spacecraft: str, operator: str | None = None,
                          parameters: Iterable[str] | None = None) -> StoredCalibration:
     """Fit the camera of ``spacecraft`` from its archive and store it as the next calibration version."""
-    observations, used, camera = archive_observations(ctx, spacecraft)
+    observations, used, camera, other_sensors = archive_observations(ctx, spacecraft)
     if camera is None:
         raise NotFound(f"no identified or confirmed sequence of spacecraft {spacecraft!r} to calibrate from")
     result = fit(observations, camera, parameters)
-    document = CalibrationDocument.of(result, residual_map(observations, result, camera))
+    notes = [f"{n} identified or confirmed sequence{'s' * (n != 1)} of another sensor size ({sensor}) left out: "
+             f"a calibration is of one camera, the {camera.width}x{camera.height} sensor of the newest sequence"
+             for sensor, n in sorted(other_sensors.items())]
+    document = CalibrationDocument.of(result, residual_map(observations, result, camera), notes=notes)
     used_ids = sorted({int(o.sequence) for o, inlier in zip(observations, result.inliers) if np.any(inlier)}
                       & set(used))
     row = ctx.storage.add_calibration(spacecraft, camera=document.camera, result=document.model_dump(mode="json"),

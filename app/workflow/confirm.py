@@ -361,8 +361,9 @@ def bulk_aem(ctx: AppContext, spacecraft: str, start: datetime | None, end: date
     version_line = rows[0].aem_text.split("\n", 1)[0]  # "CCSDS_AEM_VERS = 2.0", as the stored messages say
     created = datetime.now(timezone.utc)
     header = [version_line,
-              *comment_lines([f"Confirmed attitudes of spacecraft {spacecraft}: {len(rows)} sequences, one "
-                              "segment each, as rendered at their confirmation",
+              *comment_lines([f"Confirmed attitudes of spacecraft {spacecraft}: {len(rows)} "
+                              f"sequence{'s' * (len(rows) != 1)}, one segment each, as rendered at their "
+                              "confirmation",
                               f"Time range {utc_text(start) if start else '-'} to {utc_text(end) if end else '-'}"]),
               f"CREATION_DATE = {format_epoch(created)}", f"ORIGINATOR = {ORIGINATOR}"]
     text = "\n".join(header) + "\n\n" + "\n\n".join(segments) + "\n"

@@ -592,9 +592,11 @@ class CalibrationDocument(Document):
     rms_px_after: float
     chi2_reduced: float
     residual_map: ResidualMap | None = None
+    notes: list[str] = Field(default_factory=list, description="what was left out, and why")
 
     @classmethod
-    def of(cls, calibration, residual_map: ResidualMap | None = None) -> "CalibrationDocument":
+    def of(cls, calibration, residual_map: ResidualMap | None = None,
+           notes: list[str] | None = None) -> "CalibrationDocument":
         """The document of an :class:`app.camera_fit.Calibration` (and its residual map)."""
         return cls(camera=calibration.camera.to_dict(),
                    sigma={name: float(f"{value:.4g}") for name, value in calibration.sigma.items()},
@@ -603,7 +605,8 @@ class CalibrationDocument(Document):
                    sequences_used=calibration.sequences_used, observations_used=calibration.observations_used,
                    stars_used=calibration.stars_used, stars_rejected=calibration.stars_rejected,
                    rms_px_before=round(calibration.rms_px_before, 4), rms_px_after=round(calibration.rms_px_after, 4),
-                   chi2_reduced=round(calibration.chi2_reduced, 4), residual_map=residual_map)
+                   chi2_reduced=round(calibration.chi2_reduced, 4), residual_map=residual_map,
+                   notes=list(notes or []))
 
 
 class StoredCalibration(CalibrationDocument):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
+from pathlib import Path
 
 from app.attitude import rotation_angle_between
 from app.extraction import extract
@@ -23,13 +24,52 @@ from app.workflow.documents import CandidateDocument, ExtractDocument, Extractio
 AGREE_DEG = 0.1
 
 
+#: The simulator's truth files (``<id>.truth.json`` beside each sequence): never telemetry.
+TRUTH_SUFFIX = ".truth.json"
+#: Spot-list files a folder is read for.
+SPOT_LIST_SUFFIXES = (".json", ".csv")
+#: A folder with nothing to read.
+EMPTY_FOLDER = "the folder holds no telemetry (.json, .csv) and no frames (FITS, PNG, JPEG, TIFF)"
+
+
+def input_files(paths: list[str]) -> tuple[list[str], list[str]]:
+    """``(inputs, truth files left out)`` of the command line's files and folders, in order.
+
+    A file is an input as given; a folder holding images is one pass of frames (read with its
+    ``frames.json``), then its spot-list files in name order; ``*.truth.json`` files are left out
+    (a shell glob such as ``sample_telemetry/*.json`` takes them in).  A folder with nothing to
+    read stays an input, so that it is reported (:data:`EMPTY_FOLDER`).
+    """
+    from app.workflow.frames import FOLDER_SIDECAR, is_frames_path
+
+    inputs, truth = [], []
+    for raw in paths:
+        folder = Path(raw)
+        if not folder.is_dir():
+            (truth if raw.lower().endswith(TRUTH_SUFFIX) else inputs).append(raw)
+            continue
+        try:
+            entries = sorted(p for p in folder.iterdir() if p.is_file())
+        except OSError:
+            inputs.append(raw)  # reported when read
+            continue
+        frames = is_frames_path(raw)
+        spot_lists = [p for p in entries if p.suffix.lower() in SPOT_LIST_SUFFIXES
+                      and not (frames and p.name == FOLDER_SIDECAR)]
+        truth += [str(p) for p in spot_lists if p.name.lower().endswith(TRUTH_SUFFIX)]
+        found = ([raw] if frames else []) + [str(p) for p in spot_lists if not p.name.lower().endswith(TRUTH_SUFFIX)]
+        inputs += found or [raw]
+    return inputs, truth
+
+
 def telemetry_files(paths: list[str], *, fov_deg: float | None = None
                     ) -> Iterator[tuple[str, Sequence | None, TelemetryError | None]]:
-    """``(path, sequence, None)`` for each file that parses, ``(path, None, error)`` for each that does not.
+    """``(path, sequence, None)`` for each input that parses, ``(path, None, error)`` for each that does not.
 
-    An image file or a folder of frames is one pass (see :func:`_load`); ``fov_deg`` (the horizontal
-    field of view in degrees, known to +-5 %) gives its optics, over a sidecar's and the FITS header's.
-    A spot-list file carries its own camera, so with ``fov_deg`` it is refused (:data:`FOV_SPOT_LIST`).
+    ``paths`` are inputs as :func:`input_files` gives them.  An image file or a folder of frames is
+    one pass (see :func:`_load`); ``fov_deg`` (the horizontal field of view in degrees, known to
+    +-5 %) gives its optics, over a sidecar's and the FITS header's.  A spot-list file carries its
+    own camera, so with ``fov_deg`` it is refused (:data:`FOV_SPOT_LIST`).
     """
     for path in paths:
         try:
@@ -52,6 +92,8 @@ def _load(path: str, fov_deg: float | None) -> Sequence:
     from app.workflow.frames import frames_sequence_from_path, is_frames_path
 
     if not is_frames_path(path):
+        if Path(path).is_dir():
+            raise TelemetryError.at("folder", EMPTY_FOLDER, filename=path)
         if fov_deg is not None:
             raise TelemetryError.at("--fov-deg", FOV_SPOT_LIST, filename=path)
         return load_telemetry_file(path)

@@ -44,7 +44,8 @@ function render(doc) {
     el("p", {}, `version ${doc.version} · ${doc.operator || "anonymous"} · ${fmtTime(doc.created_at)}`),
     el("p", { class: "dim" }, `${doc.sequences_used} sequences, ${doc.stars_used} stars (${doc.stars_rejected} rejected); ` +
       `rms ${fmt(doc.rms_px_before, 2)} px with the declared camera → ${fmt(doc.rms_px_after, 2)} px`),
-    el("table", { class: "calibration" }, el("tbody", {}, rows)));
+    el("table", { class: "calibration" }, el("tbody", {}, rows)),
+    ...(doc.notes || []).map((note) => el("p", { class: "dim" }, note)));
   if (doc.residual_map) drawResiduals(canvas, doc.residual_map);
 }
 
