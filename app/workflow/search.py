@@ -195,21 +195,52 @@ def candidate_of(search: SearchRow, result: SearchResult, rank: int,
     return candidate
 
 
-def candidate_view(ctx: AppContext, seq_id: int, rank: int, mag: float) -> CandidateView:
-    """One candidate of the latest search with its sky section (see :mod:`app.workflow.skyview`)."""
+@dataclass(frozen=True, eq=False)
+class CandidateViewJob:
+    """What one candidate view needs, read from the archive (picklable: the sky section is computed in
+    the compute pool, as searches are, so that it does not hold the server's request threads)."""
+
+    seq_id: int
+    search_id: int
+    rank: int
+    mag: float
+    result: SearchResult
+    candidate: CandidateDocument
+    camera: object
+    time: object
+    velocity_km_s: object
+
+
+def prepare_candidate_view(ctx: AppContext, seq_id: int, rank: int, mag: float) -> CandidateViewJob:
+    """The job of one candidate view (NotFound for an unknown sequence, search or rank)."""
+    row = require_sequence(ctx, seq_id)
+    search, result = latest_search(ctx, seq_id)
+    candidate = candidate_of(search, result, rank)
+    sequence = loaded(ctx, row).sequence
+    return CandidateViewJob(seq_id=seq_id, search_id=search.id, rank=rank, mag=mag, result=result,
+                            candidate=candidate, camera=sequence.camera,
+                            time=sequence.snapshots[result.reference_snapshot].time,
+                            velocity_km_s=sequence.velocity_km_s)
+
+
+def candidate_view_job(job: CandidateViewJob, *, sky=None) -> CandidateView:
+    """One candidate of the latest search with its sky section (see :mod:`app.workflow.skyview`); a
+    compute-pool job (~8 ms of CPU: stars, names, constellations and planets of the section)."""
     from app.catalogue import load_catalogue, star_names
     from app.planets import planet_vectors
     from app.workflow.skyview import sky_section
 
-    row = require_sequence(ctx, seq_id)
-    search, result = latest_search(ctx, seq_id)
-    candidate = candidate_of(search, result, rank)
-    item = loaded(ctx, row)
-    t = item.sequence.snapshots[result.reference_snapshot].time
-    section = sky_section(rotation=candidate.rotation, camera=item.sequence.camera, t=t,
-                          catalogue=load_catalogue(), names=star_names(), mag_limit=mag,
-                          pattern=result.pattern, candidate=candidate, planets=planet_vectors(t),
-                          velocity_km_s=item.sequence.velocity_km_s)
-    return CandidateView(sequence=seq_id, search_id=search.id, status=result.status, rank=rank,
+    result = job.result
+    section = sky_section(rotation=job.candidate.rotation, camera=job.camera, t=job.time,
+                          catalogue=load_catalogue(), names=star_names(), mag_limit=job.mag,
+                          pattern=result.pattern, candidate=job.candidate, planets=planet_vectors(job.time),
+                          velocity_km_s=job.velocity_km_s)
+    return CandidateView(sequence=job.seq_id, search_id=job.search_id, status=result.status, rank=job.rank,
                          n_candidates=len(result.candidates), reference_snapshot=result.reference_snapshot,
-                         reference_time=result.reference_time, candidate=candidate, sky=section)
+                         reference_time=result.reference_time, candidate=job.candidate, sky=section)
+
+
+def candidate_view(ctx: AppContext, seq_id: int, rank: int, mag: float) -> CandidateView:
+    """One candidate of the latest search with its sky section, computed here (the API computes it in the
+    compute pool: :func:`prepare_candidate_view`, then :func:`candidate_view_job`)."""
+    return candidate_view_job(prepare_candidate_view(ctx, seq_id, rank, mag))

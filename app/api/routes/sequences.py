@@ -150,11 +150,14 @@ async def search(body: SearchRequest | None = Body(None), seq_id: int = SeqId,
 
 @router.get("/{seq_id}/candidates/{rank}", response_model=CandidateView,
             summary="One candidate of the latest search with its sky section")
-def get_candidate(seq_id: int = SeqId, rank: int = Path(**ID_LIMITS),
-                  mag: float = Query(6.0, ge=-2.0, le=7.0, allow_inf_nan=False,
-                                     description="faintest catalogue star shown (Hp)"),
-                  ctx: AppContext = Depends(get_context)):
-    return searching.candidate_view(ctx, seq_id, rank, mag)
+async def get_candidate(seq_id: int = SeqId, rank: int = Path(**ID_LIMITS),
+                        mag: float = Query(6.0, ge=-2.0, le=7.0, allow_inf_nan=False,
+                                           description="faintest catalogue star shown (Hp)"),
+                        ctx: AppContext = Depends(get_context)):
+    # The archive is read in a thread; the sky section (CPU) is computed in the compute pool, like a search.
+    deadline = work_deadline(ctx)
+    job = await run_in_threadpool(searching.prepare_candidate_view, ctx, seq_id, rank, mag)
+    return await compute_within(ctx, deadline, "the candidate view", searching.candidate_view_job, job)
 
 
 @router.post("/{seq_id}/confirm", status_code=201, response_model=AttitudeDocument,
