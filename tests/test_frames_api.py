@@ -63,6 +63,28 @@ def test_a_fits_pass_is_stored_once_as_an_ordinary_sequence_and_identified(api, 
     assert [v["version"] for v in hot.json()["history"]] == [1]
 
 
+def test_a_pass_can_ask_to_be_searched_right_away(tmp_path, sky, rendered):
+    """As ``POST /api/sequences?search=true``: the new pass is searched after the answer (the console's
+    "search new uploads automatically"); the same frames again are not searched twice."""
+    frames, times, _ = rendered
+    ctx = AppContext(storage=Storage.open(tmp_path / "auto.sqlite3"), sky=sky)
+    try:
+        client = TestClient(create_app(ctx))
+        upload = _fits_upload(frames, times, sequence_id="auto-pass")
+        r = client.post("/api/frames", params={"search": "true"}, **upload)  # TestClient runs the background task
+        assert r.status_code == 201, r.text
+        seq_id = r.json()["id"]
+        detail = client.get(f"/api/sequences/{seq_id}").json()
+        assert detail["status"] == "identified" and detail["search"]["method"] == "bright_pair"
+        again = client.post("/api/frames", params={"search": "true"}, **upload)
+        assert again.status_code == 200 and again.json()["id"] == seq_id
+        assert client.get(f"/api/sequences/{seq_id}").json()["search"]["search_id"] == detail["search"]["search_id"]
+        plain = client.post("/api/frames", **_fits_upload(frames[:3], times[:3], sequence_id="plain-pass"))
+        assert plain.status_code == 201 and client.get(f"/api/sequences/{plain.json()['id']}").json()["search"] is None
+    finally:
+        ctx.close()
+
+
 def test_a_png_set_with_its_sidecar_is_one_sequence(api, rendered):
     frames, times, _ = rendered
     names = [f"f{i}.png" for i in range(4)]

@@ -58,12 +58,22 @@ export const post = (path, body) => request("POST", path, body);
 // Upload one file as multipart/form-data with progress (fetch has no upload progress).
 // Resolves {status, body}; rejects with ApiError carrying the located problems.
 export function uploadFile(file, onProgress, { search = false } = {}) {
+  const form = new FormData();
+  form.append("file", file, file.name);
+  return uploadForm(search ? "/api/sequences?search=true" : "/api/sequences", form, onProgress);
+}
+
+// POST a multipart form with upload progress (fetch has none): resolves {status, body}; rejects with
+// an ApiError carrying the server's located problems. Spot lists (uploadFile) and passes of frames
+// (frames-upload.js) both go through here.
+export function uploadForm(path, form, onProgress) {
   return new Promise((resolve, reject) => {
     const xhr = new XMLHttpRequest();
-    xhr.open("POST", search ? "/api/sequences?search=true" : "/api/sequences");
+    xhr.open("POST", path);
     if (token) xhr.setRequestHeader("Authorization", `Bearer ${token}`);
     xhr.responseType = "json";
     xhr.upload.onprogress = (e) => { if (e.lengthComputable) onProgress(e.loaded / e.total); };
+    xhr.upload.onload = () => onProgress(1);
     xhr.onerror = () => reject(new ApiError(0, "the upload failed: the server cannot be reached"));
     xhr.onload = () => {
       const body = xhr.response;
@@ -74,8 +84,6 @@ export function uploadFile(file, onProgress, { search = false } = {}) {
         reject(new ApiError(xhr.status, detail, body && Array.isArray(body.problems) ? body.problems : []));
       }
     };
-    const form = new FormData();
-    form.append("file", file, file.name);
     xhr.send(form);
   });
 }

@@ -1,6 +1,7 @@
 // The work queue side of the console: uploads (searched automatically when asked), the sequence
 // list (filter, search, order: what needs an operator first), confirmed attitudes and the bulk AEM.
 import * as api from "./api.js";
+import { frameFields, isImage, isSidecar, uploadFrames } from "./frames-upload.js";
 import { $, el, toast, errorText, fmt, fmtTime, store, stored } from "./dom.js";
 import { state } from "./state.js";
 
@@ -52,42 +53,88 @@ async function uploadFiles(files) {
   if (!files.length) return;
   const list = $("upload-list");
   const search = $("auto-search").checked;
-  let lastStored = null, failures = 0, uploaded = 0;
   const skipped = files.filter((f) => f.name.toLowerCase().endsWith(TRUTH_SUFFIX));
-  for (const file of skipped) {
-    list.prepend(el("li", { class: "upload-item skipped", dataset: { file: file.name } },
-      el("div", { class: "name" }, file.name),
-      el("div", { class: "dim" }, "skipped: a simulator's truth file (the answer), not telemetry")));
-  }
+  // Images go together as one pass, with their sidecar; everything else is a spot list.
+  const images = files.filter((f) => !skipped.includes(f) && isImage(f));
+  const sidecars = files.filter((f) => !skipped.includes(f) && isSidecar(f));
+  const spotLists = files.filter((f) => !skipped.includes(f) && !images.includes(f) && !sidecars.includes(f));
+  for (const file of skipped) skippedLine(list, file.name, "skipped: a simulator's truth file (the answer), not telemetry");
+  const results = [];
   // One at a time: the server validates and extracts each; the list shows each result next to its file.
-  for (const file of files.filter((f) => !skipped.includes(f))) {
-    const bar = el("progress", { max: 1, value: 0 });
-    const result = el("div", {}, "uploading...");
-    list.prepend(el("li", { class: "upload-item", dataset: { file: file.name } },
-      el("div", { class: "name" }, file.name), bar, result));
-    try {
-      const { status, body } = await api.uploadFile(file, (f) => { bar.value = f; }, { search });
-      bar.value = 1;
-      uploaded++;
-      result.className = "ok";
-      result.textContent = status === 201
+  for (const file of spotLists) {
+    results.push(await uploadLine(list, { file: file.name }, file.name,
+      (progress) => api.uploadFile(file, progress, { search }),
+      (status, body) => status === 201
         ? `stored as #${body.id}: ${body.pattern.points.length} pattern points${search ? ", search queued" : ""}`
-        : `already stored as #${body.id}`;
-      lastStored = body.id;
-    } catch (err) {
-      failures++;
-      bar.remove();
-      result.className = "error";
-      result.replaceChildren(el("div", {}, err.detail),
-        err.problems.length ? el("ul", { class: "problems" },
-          err.problems.map((p) => el("li", {}, el("code", {}, p.location), ": ", p.message))) : null);
-    }
+        : `already stored as #${body.id}`));
   }
+  if (!images.length) {
+    for (const file of sidecars) skippedLine(list, file.name, "skipped: a frames sidecar, but no images were dropped with it");
+  } else {
+    results.push(await uploadPass(list, images, sidecars, search));
+  }
+  const done = results.filter((r) => r !== null), failures = results.length - done.length;
   const note = skipped.length ? `; ${skipped.length} truth file${skipped.length > 1 ? "s" : ""} skipped` : "";
-  toast(failures ? `${uploaded} of ${uploaded + failures} files uploaded${note}; see the errors next to the files`
-    : `${uploaded} file${uploaded === 1 ? "" : "s"} uploaded${note}`, failures ? "error" : "ok");
+  // A pass of frames counts as one upload, beside the spot-list files.
+  const unit = images.length ? "upload" : "file";
+  toast(failures ? `${done.length} of ${results.length} ${unit}s uploaded${note}; see the errors next to the files`
+    : `${done.length} ${unit}${done.length === 1 ? "" : "s"} uploaded${note}`, failures ? "error" : "ok");
   await Promise.all([loadSequences(), loadSpacecraft()]);
-  if (lastStored !== null) await onSelect(lastStored);
+  if (done.length) await onSelect(done.at(-1).id);
+}
+
+function skippedLine(list, name, why) {
+  list.prepend(el("li", { class: "upload-item skipped", dataset: { file: name } },
+    el("div", { class: "name" }, name), el("div", { class: "dim" }, why)));
+}
+
+// One line of the upload list: the name, a progress bar, then the result or the error with its
+// located problems. send(progress) resolves {status, body}; resolves {id, created} or null (failed).
+async function uploadLine(list, dataset, name, send, describe, waiting = null) {
+  const bar = el("progress", { max: 1, value: 0 });
+  const result = el("div", {}, "uploading...");
+  list.prepend(el("li", { class: "upload-item", dataset }, el("div", { class: "name", title: name }, name), bar, result));
+  try {
+    const { status, body } = await send((f) => {
+      bar.value = f;
+      if (f >= 1 && waiting) result.textContent = waiting;
+    });
+    bar.value = 1;
+    result.className = "ok";
+    result.textContent = describe(status, body);
+    return { id: body.id, created: status === 201 };
+  } catch (err) {
+    bar.remove();
+    result.className = "error";
+    result.replaceChildren(el("div", {}, err.detail),
+      err.problems.length ? el("ul", { class: "problems" },
+        err.problems.map((p) => el("li", {}, el("code", {}, p.location), ": ", p.message))) : null);
+    return null;
+  }
+}
+
+// The images of one drop as one pass (POST /api/frames), with their sidecar and the card's fields.
+async function uploadPass(list, images, sidecars, search) {
+  const names = images.map((f) => f.name);
+  const shown = names.length > 3 ? [...names.slice(0, 2), `${names.length - 2} more`] : names;
+  const label = `${images.length} image${images.length === 1 ? "" : "s"}: ${shown.join(", ")}` +
+    (sidecars.length ? ` + ${sidecars.map((f) => f.name).join(", ")}` : "");
+  const fields = frameFields();
+  const check = fields instanceof api.ApiError ? fields
+    : sidecars.length > 1 ? new api.ApiError(422, "several sidecars: drop the frames of one pass at a time",
+      sidecars.map((f) => ({ location: f.name, message: "one frames.json per pass" })))
+    : null;
+  const outcome = await uploadLine(list, { file: names[0], kind: "frames" }, label,
+    (progress) => check ? Promise.reject(check) : uploadFrames(images, sidecars[0] || null, fields, progress, { search }),
+    (status, body) => {
+      const frames = body.sequence.n_snapshots ?? images.length;
+      const sources = body.extraction.sources.reduce((n, s) => n + s.length, 0);
+      const name = `#${body.id} ${body.sequence.sequence_id || ""}`.trim();
+      return status === 201
+        ? `${frames} frame${frames === 1 ? "" : "s"} → ${name}, ${sources} sources${search ? ", search queued" : ""}`
+        : `already stored as ${name}`;
+    }, "reading the frames and detecting the stars...");
+  return outcome;
 }
 
 // ---------------------------------------------------------------- sequence list

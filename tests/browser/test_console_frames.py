@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import json
 import re
+from pathlib import Path
 
 import httpx
 import numpy as np
 
 from app.camera import CAMERAS
-from app.simulate import frames_fits_bytes, simulate_frames
+from app.simulate import frame_png_bytes, frames_fits_bytes, frames_sidecar, simulate_frames
 
 TIMEOUT_MS = 20_000
 CAMERA = CAMERAS["tubsat-752x582-20deg"]
@@ -170,10 +171,81 @@ def test_the_frame_panel_fits_1024_pixel_screens_and_stays_away_from_spot_lists(
     assert page.evaluate("document.documentElement.scrollWidth") <= 1024
     watched.screenshot("frames-04-1024px", full_page=True)
     # A spot-list upload has no frame panel.
-    from pathlib import Path
-
     sample = Path(__file__).resolve().parents[2] / "sample_telemetry" / "01-clean.json"
     spot = api("/api/sequences", "POST", raw=sample.read_bytes())
     open_sequence(page, spot["id"], spot["sequence"]["sequence_id"])
     assert page.locator("#frame-card").is_hidden()
     assert not watched.errors, watched.errors
+
+
+def all_sequences(api) -> list[dict]:
+    return api("/api/sequences?limit=1000&order=newest")["items"]
+
+
+def test_dropped_frames_and_their_sidecar_are_one_pass(server, api, new_page, tmp_path):
+    """Images dropped on the upload box go as one pass (POST /api/frames) with their frames.json; a
+    spot list in the same drop still goes on its own, and the sidecar is never taken for one."""
+    frames, times, _ = simulate_frames(np.random.default_rng(517), CAMERA, n_frames=2, trail=True)
+    names = ["frame-00.png", "frame-01.png"]
+    paths = []
+    for name, frame in zip(names, frames):
+        (tmp_path / name).write_bytes(frame_png_bytes(frame))
+        paths.append(tmp_path / name)
+    sidecar = tmp_path / "frames.json"
+    sidecar.write_text(json.dumps(frames_sidecar(names, times, CAMERA, sequence_id="frames-dropped",
+                                                 spacecraft="DROP-SAT")))
+    spot = Path(__file__).resolve().parents[2] / "sample_telemetry" / "01-clean.json"
+    before = {s["id"] for s in all_sequences(api)}
+
+    watched = open_console(new_page, server)
+    page = watched.page
+    assert page.locator("#upload-fov").is_visible()
+    page.set_input_files("#file-input", [str(p) for p in paths] + [str(sidecar), str(spot)])
+    item = page.locator(".upload-item[data-kind='frames']")
+    expect_text(item, r"2 frames → #\d+ frames-dropped, \d+ sources")
+    assert item.count() == 1 and "frames.json" in item.locator(".name").inner_text()
+    expect_text(page.locator(f".upload-item[data-file='{spot.name}']"), r"(stored|already stored) as #\d+")
+    # The sidecar has no line of its own: it went with the images, not as a spot list.
+    assert page.locator(".upload-item[data-file='frames.json']").count() == 0
+    seq_id = int(re.search(r"#(\d+)", item.inner_text()).group(1))
+
+    spot_ids = {s["id"] for s in all_sequences(api) if s["filename"] == spot.name}
+    new = [s for s in all_sequences(api) if s["id"] not in before and s["id"] not in spot_ids]
+    assert [s["id"] for s in new] == [seq_id]
+    assert new[0]["sequence_id"] == "frames-dropped" and new[0]["n_snapshots"] == 2
+    assert new[0]["spacecraft"] == "DROP-SAT"
+    assert not any((s["filename"] or "").endswith("frames.json") for s in all_sequences(api))
+    assert len(api(f"/api/sequences/{seq_id}/frames")["frames"]) == 2
+
+    # The pass is opened (the last upload of the drop), with its frame panel.
+    expect_text(page.locator("#seq-title"), "frames-dropped")
+    assert page.locator("#frame-card").is_visible()
+    wait_for_frame(page, int(page.locator("#frame-canvas").get_attribute("data-snapshot")))
+    page.evaluate("window.scrollTo(0, 0)")
+    shot = watched.screenshot("frames-05-upload")  # makes the folder; the card alone replaces the page
+    page.locator("#upload-card").screenshot(path=str(shot))
+    assert not watched.errors, watched.errors
+
+
+def test_a_frame_without_optics_gives_the_located_error_and_stores_nothing(server, api, new_page, tmp_path):
+    frames, _, _ = simulate_frames(np.random.default_rng(518), CAMERA, n_frames=1)
+    png = tmp_path / "lonely.png"
+    png.write_bytes(frame_png_bytes(frames[0]))
+    before = len(all_sequences(api))
+
+    watched = open_console(new_page, server)
+    page = watched.page
+    assert page.locator("#upload-fov").input_value() == ""
+    page.set_input_files("#file-input", [str(png)])
+    item = page.locator(".upload-item[data-kind='frames']")
+    expect_text(item, "lonely.png")
+    problems = item.locator(".problems li")
+    problems.first.wait_for(timeout=TIMEOUT_MS)
+    assert item.locator(".error").count() == 1
+    locations = [problems.nth(k).locator("code").inner_text() for k in range(problems.count())]
+    # Located on the file: it has no time (and no optics), and no sidecar or field of view gives them.
+    assert any(loc.startswith("lonely.png") for loc in locations), locations
+    watched.screenshot("frames-06-upload-error")
+    assert len(all_sequences(api)) == before
+    # The only console error allowed is Chromium's own report of the refused (422) request.
+    assert [e for e in watched.errors if "status of 422" not in e] == []

@@ -8,7 +8,7 @@ import math
 import time
 import unicodedata
 
-from fastapi import APIRouter, Depends, Path, Query, Request
+from fastapi import APIRouter, BackgroundTasks, Depends, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
@@ -16,7 +16,7 @@ from starlette.datastructures import UploadFile
 from app.api.errors import ApiError
 from app.api.routes.common import ID_LIMITS, get_context, read_body_limited, replay_request, writer
 from app.frames import FrameLimits
-from app.workflow import AppContext
+from app.workflow import AppContext, queue
 from app.workflow import frames as framing
 from app.workflow.compute import BULK
 from app.workflow.documents import FramePreviewsDocument, UploadDocument
@@ -90,8 +90,10 @@ def _fov(form) -> float | None:
 
 @router.post("/api/frames", status_code=201, openapi_extra=_UPLOAD_BODY, response_model=UploadDocument,
              summary="Upload the frames of one pass (201 created, 200 if the same frames were stored)")
-async def upload_frames(request: Request, _operator: str | None = Depends(writer),
-                        ctx: AppContext = Depends(get_context)):
+async def upload_frames(request: Request, background: BackgroundTasks,
+                        search: bool = Query(False, description="true: search a new pass (bright pairs) right "
+                                                                "after answering, as the console's work queue does"),
+                        _operator: str | None = Depends(writer), ctx: AppContext = Depends(get_context)):
     limits = FrameLimits()
     media_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if media_type != "multipart/form-data":
@@ -132,7 +134,10 @@ async def upload_frames(request: Request, _operator: str | None = Depends(writer
         raise Busy(f"the frames were not read and detected within {deadline:.0f} s (the server is busy); "
                    "try again") from None
     doc = await run_in_threadpool(framing.store_frames, ctx, prepared, result)
-    return JSONResponse(doc.model_dump(mode="json"), status_code=201 if doc.created else 200)
+    if search and doc.created:
+        background.add_task(queue.search_new_upload, ctx, doc.id)  # after the response, as for spot lists
+    return JSONResponse(doc.model_dump(mode="json"), status_code=201 if doc.created else 200,
+                        background=background)
 
 
 @router.get("/api/frames/hot-pixels", response_model=framing.HotPixelMapDocument,
