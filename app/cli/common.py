@@ -4,31 +4,17 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import sys
 from typing import Callable
 
+from app.cli.upload import fov_deg  # the one parser (upload.py needs only the standard library)
 from app.workflow.documents import Document
 from app.workflow.files import input_files, telemetry_files
 
 
-#: ``--fov-deg`` bounds, as the API's ``fov_deg`` field and the sidecar's (degrees).
-FOV_MIN_DEG, FOV_MAX_DEG = 0.1, 120.0
 FOV_HELP = ("horizontal field of view of image files and folders of frames, degrees (0.1 to 120, known to "
             "+-5 %%); wins over a sidecar's camera or fov_deg and the FITS header's optics. Refused for "
             "spot-list files, which carry their own camera (that file is reported invalid)")
-
-
-def fov_deg(text: str) -> float:
-    """``--fov-deg``: a finite number of degrees from :data:`FOV_MIN_DEG` to :data:`FOV_MAX_DEG`."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not math.isfinite(value) or not FOV_MIN_DEG <= value <= FOV_MAX_DEG:
-        raise argparse.ArgumentTypeError(f"must be a number from {FOV_MIN_DEG:g} to {FOV_MAX_DEG:g} degrees, "
-                                         f"got {text!r}")
-    return value
 
 
 def add_fov_argument(p: argparse.ArgumentParser, help_text: str = FOV_HELP) -> None:

@@ -66,7 +66,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def fov_deg(text: str) -> float:
-    """``--fov-deg``: a finite number of degrees from 0.1 to 120 (as ``app.cli.common.fov_deg``)."""
+    """``--fov-deg`` of ``upload``, ``extract`` and ``solve``: a finite number of degrees from 0.1 to 120."""
     try:
         value = float(text)
     except ValueError:
