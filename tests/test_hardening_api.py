@@ -241,3 +241,52 @@ def test_bulk_aem_times_off_the_calendar_are_422_at_their_parameter(api, query):
     r = client.get(f"/api/attitudes/aem?spacecraft=SAT&{query}")
     assert r.status_code == 422, r.text
     assert r.json()["problems"][0]["location"] == "query." + query.split("=")[0]
+
+
+def test_a_body_that_is_not_utf8_is_a_located_422(api, sample_dir):
+    """FastAPI answers 400 "There was an error parsing the body" for bytes it cannot decode; ours is the
+    same located 422 as any other unreadable body, and nothing changes."""
+    client, _ = api
+    sid = _upload(client, (sample_dir / "02-ghosts-hot-pixels.json").read_bytes()).json()["id"]
+    body = '{"operator": "ann", "comment": "caf\u00e9"}'.encode("latin-1")  # é as one byte: not UTF-8
+    for method, path in (("POST", f"/api/sequences/{sid}/search"), ("PUT", f"/api/sequences/{sid}/pattern"),
+                         ("POST", f"/api/sequences/{sid}/confirm")):
+        r = client.request(method, path, content=body, headers={"Content-Type": "application/json"})
+        assert r.status_code == 422, (path, r.text)
+        assert r.json()["problems"] == [{"location": "body",
+                                         "message": "the body is not valid JSON (it is not UTF-8 text)"}]
+    assert client.get(f"/api/sequences/{sid}").json()["pattern"]["version"] == 1
+
+
+def test_messages_of_our_own_validators_carry_no_pydantic_prefix(api, sample_dir):
+    client, _ = api
+    sid = _upload(client, (sample_dir / "02-ghosts-hot-pixels.json").read_bytes()).json()["id"]
+    r = client.post(f"/api/sequences/{sid}/confirm", json={"rank": 1, "operator": "ann\x00", "comment": "ok"})
+    assert r.status_code == 422
+    assert r.json()["problems"] == [{"location": "body.operator",
+                                     "message": "must not contain a NUL character (U+0000)"}]
+
+
+def test_a_nul_in_a_spacecraft_name_is_refused_at_the_path(api):
+    client, _ = api
+    for path in ("/api/spacecraft/%00/camera", "/api/spacecraft/sat%00/calibrations"):
+        r = client.get(path)
+        assert r.status_code == 422, r.text
+        assert r.json()["problems"][0]["location"] == "path.name"
+    assert client.get("/api/spacecraft/sat-1/calibrations").json() == []
+
+
+def test_an_integer_too_long_to_convert_is_located_in_the_upload(api, sample_dir):
+    client, _ = api
+    text = (sample_dir / "02-ghosts-hot-pixels.json").read_text()
+    doc = json.loads(text)
+    lines = json.dumps(doc, indent=1).splitlines()
+    at = next(i for i, line in enumerate(lines) if '"x":' in line)
+    indent = lines[at].index('"x"')
+    lines[at] = lines[at][:indent] + '"x": ' + "7" * 5000 + ","
+    r = _upload(client, "\n".join(lines).encode())
+    assert r.status_code == 422
+    message = r.json()["problems"][0]["message"]
+    assert message == (f"not valid JSON: a number of 5000 digits (line {at + 1}, column {indent + 6}); "
+                       "numbers have at most 4300")
+    assert _stored_count(client) == 0

@@ -75,10 +75,16 @@ def _not_finite(value) -> bool:
     return False
 
 
+#: FastAPI's detail when a request body cannot be decoded at all.
+BODY_NOT_PARSED = "There was an error parsing the body"
+
+
 def validation_problems(errors) -> list[dict]:
     problems = []
     for error in errors:
         message = str(error.get("msg", "invalid value"))
+        if error.get("type") == "value_error":
+            message = message.removeprefix("Value error, ")  # pydantic's prefix for our own validators' words
         if error.get("type") == "json_invalid":
             message = "the body is not valid JSON" + (f" ({error['ctx']['error']})"
                                                        if error.get("ctx", {}).get("error") else "")
@@ -119,6 +125,11 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
         detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+        if exc.status_code == 400 and detail == BODY_NOT_PARSED:
+            # FastAPI's words when the body cannot even be decoded (not UTF-8): a located 422 like any
+            # other unreadable body.
+            problems = [{"location": "body", "message": "the body is not valid JSON (it is not UTF-8 text)"}]
+            return JSONResponse(error_body(summary_of(problems), problems), status_code=422)
         if exc.status_code == 404 and detail == "Not Found":
             detail = "no such endpoint; the API is described at /docs"
         elif exc.status_code == 405:

@@ -31,6 +31,7 @@ import json
 import math
 import os
 import re
+import sys
 import unicodedata
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -575,13 +576,26 @@ def _load_json(text: str, problems: ProblemCollector) -> Any:
                                 ) from None
     except RecursionError:
         raise TelemetryError.at("file", f"JSON nested deeper than {MAX_JSON_DEPTH} levels") from None
-    except ValueError as err:  # e.g. an integer with more than 4300 digits
-        raise TelemetryError.at("file", f"not valid JSON: {err}") from None
+    except ValueError as err:  # an integer with more than 4300 digits (Python's guard) or the like
+        raise TelemetryError.at("file", _json_value_error(text, err)) from None
     for key in duplicates:
         problems.add("file", f"duplicate key {key!r} in a JSON object")
     if _nesting_depth(doc, MAX_JSON_DEPTH) > MAX_JSON_DEPTH:
         raise TelemetryError.at("file", f"JSON nested deeper than {MAX_JSON_DEPTH} levels")
     return doc
+
+
+def _json_value_error(text: str, err: ValueError) -> str:
+    """The message of a JSON value Python refuses to convert, located when it is an over-long integer."""
+    limit = sys.get_int_max_str_digits()
+    # An integer: a run of digits not part of a fraction or an exponent (floats have no such limit).
+    long_number = re.search(r"(?<![\d.eE])\d{%d,}(?![\d.eE])" % (limit + 1), text) if limit else None
+    if long_number is None:
+        return f"not valid JSON: {err}"
+    line = text.count("\n", 0, long_number.start()) + 1
+    column = long_number.start() - text.rfind("\n", 0, long_number.start())
+    return (f"not valid JSON: a number of {len(long_number.group())} digits (line {line}, column {column}); "
+            f"numbers have at most {limit}")
 
 
 def _nesting_depth(value: Any, limit: int) -> int:
