@@ -140,3 +140,32 @@ def test_a_prior_outside_the_apis_bounds_is_refused(prior, sample_dir):
     done = _run_cli("solve", str(sample_dir / "07-single.json"), f"--prior={prior}")
     assert done.returncode == 2
     assert "argument --prior: RA must be within [0, 360)" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_batch_names_a_missing_input_before_starting_a_cluster(tmp_path, sample_dir, capsys, monkeypatch):
+    from app.workflow import batch
+
+    def no_cluster(*args, **kwargs):
+        raise AssertionError("a cluster was started for an input that does not exist")
+
+    monkeypatch.setattr(batch, "start_cluster", no_cluster)
+    missing = str(tmp_path / "nope.json")
+    assert cli_main(["batch", str(sample_dir / "01-clean.json"), missing, "--out", str(tmp_path / "o.jsonl")]) == 2
+    assert capsys.readouterr().err.strip() == f"batch: no such file or directory: {missing}"
+
+
+def test_batch_names_an_invalid_file_once(tmp_path):
+    from app.workflow.batch import BatchReport
+
+    report = BatchReport(mode="files to JSON lines")
+    report.add("/d/a.json", "invalid", "/d/a.json: invalid telemetry: file: not valid JSON")
+    report.add("/d/b.json", "failed", "KilledWorker: gone")
+    assert report.errors == ["/d/a.json: invalid telemetry: file: not valid JSON", "/d/b.json: KilledWorker: gone"]
+
+
+def test_simulate_into_an_unwritable_place_says_so_without_an_errno(tmp_path, capsys):
+    target = tmp_path / "a-file"
+    target.write_text("not a folder")
+    assert cli_main(["simulate", str(target / "sub"), "--n", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"error: cannot write {target}") and "Errno" not in err, err

@@ -77,6 +77,11 @@ def run(args: argparse.Namespace) -> int:
     if args.scheduler and args.workers:
         print("batch: --workers is for the local cluster; an existing cluster has its own workers", file=sys.stderr)
         return 2
+    missing = [p for p in args.paths if not os.path.exists(p)]
+    if missing:  # before a cluster starts for nothing (the workers read the paths the driver sees)
+        print(f"batch: no such file or directory: {', '.join(missing[:5])}{' ...' if len(missing) > 5 else ''}",
+              file=sys.stderr)
+        return 2
     paths = [str(p) for p in telemetry_files(args.paths)] if args.paths else None
     if paths is not None and not paths:
         print("batch: no .json or .csv files found", file=sys.stderr)
@@ -84,7 +89,6 @@ def run(args: argparse.Namespace) -> int:
 
     from app.storage import StorageError
     from app.workflow import batch
-
 
     interactive = sys.stderr.isatty()
 

@@ -120,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
         print("error: the CSV writer (app.telemetry.formats.dump_csv) is not available", file=sys.stderr)
         return 2
     except (OSError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {_message(exc)}", file=sys.stderr)
         return 2
     for path in paths:
         print(path)
@@ -140,8 +140,15 @@ def _run_frames(args: argparse.Namespace) -> int:
                              n_frames=args.frames_per_pass, name=args.name, start_time=args.start_time,
                              trail=args.trail, focal_error=args.focal_error, k1=args.k1)
     except (OSError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {_message(exc)}", file=sys.stderr)
         return 2
     for path in paths:
         print(path)
     return 0
+
+
+def _message(exc: Exception) -> str:
+    """What went wrong, for the operator: an OS error as "cannot write PATH: reason", without its errno."""
+    if isinstance(exc, OSError) and exc.strerror:
+        return f"cannot write {exc.filename}: {exc.strerror}" if exc.filename else exc.strerror
+    return str(exc)

@@ -327,8 +327,8 @@ class BatchReport:
             self.skipped += 1
         else:
             setattr(self, kind, getattr(self, kind) + 1)
-            if len(self.errors) < 20:
-                self.errors.append(f"{label}: {detail}")
+            if len(self.errors) < 20:  # a file's own message names it already
+                self.errors.append(detail if str(detail).startswith(f"{label}: ") else f"{label}: {detail}")
 
     def to_json(self) -> dict:
         return {"mode": self.mode, "total": self.total, "processed": self.processed, "skipped": self.skipped,
