@@ -210,3 +210,27 @@ def test_the_server_stops_cleanly_and_logs_its_setup(tmp_path):
     assert f"database: {tmp_path / 'db.sqlite3'}" in text
     assert "default camera (files without a camera block): liebe-576x604-30deg (576x604 px" in text
     assert textwrap.dedent("magnitude limit 4.5") in text
+
+
+def test_a_stop_sent_to_every_process_is_not_taken_for_crashed_workers(tmp_path):
+    """SIGTERM to the server and its workers at once (Ctrl-C in a terminal, a service manager stopping
+    the control group): exit status 0, and no worker reported dead or replaced while stopping."""
+    marker = uuid.uuid4().hex
+    log = tmp_path / "server.log"
+    port = free_port()
+    server = start_server(tmp_path / "db.sqlite3", port, log, ("--no-viewer",), env={MARKER: marker})
+    try:
+        wait_ready(port, server, log)
+        everyone = marked_processes(marker)
+        assert len(everyone) >= 4  # the server, 2 + 1 workers (and the tracker)
+    finally:
+        for pid in marked_processes(marker):
+            try:
+                os.kill(pid, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+        status = server.wait(60)
+    text = log.read_text()
+    assert status == 0, text[-3000:]
+    assert "starting another" not in text and "Traceback" not in text, text[-3000:]
+    assert not wait_until_gone(marker)

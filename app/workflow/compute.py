@@ -168,6 +168,11 @@ def _worker_main(conn, server_pid: int, load_sky: bool, niceness: int) -> None:
     """A worker's life: set up, say ready, then run one job at a time until told to stop or orphaned."""
     global worker_context
     _die_with_server(server_pid)
+    # A Ctrl-C or a service manager's SIGTERM reaches the whole process group, workers included: the
+    # server alone decides, and stops its workers (or they die with it), so that a stop is not taken for
+    # a worker's crash (a warning and a replacement started while shutting down).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     if niceness:
         _lower_priority(niceness)
     sky = None
