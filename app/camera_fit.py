@@ -303,7 +303,8 @@ class Observation:
     """Matched stars of one snapshot (or of any set of stars seen with one attitude).
 
     ``sequence`` optionally names the sequence it comes from, so that a
-    calibration can say how many sequences it used.
+    calibration can say how many sequences it used, and ``snapshot`` the
+    snapshot's position in it.
     """
 
     xy: np.ndarray            # (n, 2) measured pixels
@@ -311,6 +312,7 @@ class Observation:
     rotation: np.ndarray      # (3, 3) initial ICRS -> camera rotation
     sigma_px: float           # centroid noise, pixels
     sequence: str | None = None
+    snapshot: int | None = None
 
 
 @dataclass

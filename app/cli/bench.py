@@ -14,6 +14,9 @@ from 20, 50 and 200 sequences, see :mod:`app.bench.camera`).  ``batch``
 (issue 14: sequences per second of ``python -m app batch`` with 1 and 2 Dask
 workers, see :mod:`app.bench.batch`); ``load`` also takes ``--servers 2
 --database postgresql://...`` (two servers on one shared archive).
+``calibration`` (the pulls of many calibrations: are the stated sigmas
+honest and the fit centred? ``--n`` trials of 20 sequences, default 60; see
+:mod:`app.bench.calibration`).
 Every figure is measured now, on this machine, in one process (the load
 suite adds the server's), from simulated sequences drawn with ``--seed``.
 """
@@ -27,7 +30,8 @@ import logging
 import sys
 import time
 
-SUITES = ("extraction", "identification", "sequence", "load", "seeds", "camera", "peer", "frames", "batch")
+SUITES = ("extraction", "identification", "sequence", "load", "seeds", "camera", "peer", "frames", "batch",
+          "calibration")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -33,7 +33,8 @@ from app.identification.optics import ADOPT_PROBABILITY, HINT_PROBABILITY, depar
 from app.identification.options import SearchOptions
 from app.identification.result import (AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, PlanetMatch, Solution,
                                        StarMatch)
-from app.identification.sightings import identified_sightings, observations, sighting_noise_px
+from app.identification.sightings import (identified_sightings, observations, sighting_noise_px,
+                                          source_match_tolerance_rad, stars_at)
 from app.identification.sky import Sky
 from app.telemetry import Sequence
 
@@ -139,10 +140,6 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
                           sequence_fits=fits)
 
 
-#: A reported source is that star when it lies within max(this, 5 sigma) pixels of it.
-SOURCE_MATCH_PX = 2.0
-
-
 def source_stars(solved: SolvedSequence, sky: Sky, rank: int = 1,
                  mag_margin: float = SearchOptions().mag_margin) -> list[list[int | None]] | None:
     """HIP number (or None) of every reported source, by the attitude of candidate ``rank``.
@@ -159,8 +156,7 @@ def source_stars(solved: SolvedSequence, sky: Sky, rank: int = 1,
     camera = candidate.camera or sequence.camera
     t_ref = solved.reference_time
     fit = solved.sequence_fits.get(rank)
-    noise = extraction.noise_px if math.isfinite(extraction.noise_px) else DEFAULT_SIGHTING_SIGMA_PX
-    tol = max(SOURCE_MATCH_PX, 5 * noise) * camera.pixel_scale_rad
+    tolerance = source_match_tolerance_rad(camera, extraction)
     field = sky.field(t_ref, min(camera.limiting_magnitude + mag_margin, sky.index.mag_limit),
                       sequence.velocity_km_s)
     out: list[list[int | None]] = []
@@ -173,12 +169,8 @@ def source_stars(solved: SolvedSequence, sky: Sky, rank: int = 1,
         else:
             out.append([None] * snap.n_sources)
             continue
-        if snap.n_sources == 0:
-            out.append([])
-            continue
-        d, idx = field.tree.query(camera.pixels_to_vectors(snap.xy) @ R, k=1)
-        out.append([int(sky.index.hip[field.rows[i]]) if 2 * np.arcsin(min(1.0, di / 2)) <= tol else None
-                    for di, i in zip(d, idx)])
+        out.append([int(sky.index.hip[field.rows[k]]) if k >= 0 else None
+                    for k in stars_at(snap.xy, camera, R, field, tolerance).tolist()])
     return out
 
 

@@ -19,9 +19,12 @@ import numpy as np
 from app.attitude import propagate
 from app.camera_fit import Observation
 from app.extraction import DEFAULT_SIGHTING_SIGMA_PX
+from app.identification.verify import StarField, chord
 
 #: A snapshot needs this many identified sightings to fix its own attitude robustly.
 MIN_SIGHTINGS = 3
+#: A reported source is that star when it lies within max(this, 5 sigma) pixels of it.
+SOURCE_MATCH_PX = 2.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,6 +60,32 @@ def sighting_noise_px(extraction) -> float:
     return extraction.noise_px if math.isfinite(extraction.noise_px) else DEFAULT_SIGHTING_SIGMA_PX
 
 
+def source_match_tolerance_rad(camera, extraction) -> float:
+    """How far (angle) a reported source may lie from a star to be that star: max(:data:`SOURCE_MATCH_PX`,
+    5 sigma of one sighting) pixels."""
+    return max(SOURCE_MATCH_PX, 5 * sighting_noise_px(extraction)) * camera.pixel_scale_rad
+
+
+def stars_at(xy: np.ndarray, camera, rotation: np.ndarray, field: StarField, tolerance_rad: float) -> np.ndarray:
+    """(n,) position in ``field`` of the star each pixel sees within ``tolerance_rad``, else -1.
+
+    The pixels go through ``camera`` into the camera frame and through
+    ``rotation`` (ICRS to camera) back to the sky; each takes its nearest
+    star.  Two pixels may name the same star (:func:`claimed_once` tells).
+    """
+    if len(xy) == 0:
+        return np.zeros(0, dtype=int)
+    distance, nearest = field.tree.query(camera.pixels_to_vectors(np.asarray(xy, dtype=float)) @ rotation, k=1)
+    return np.where(distance <= chord(tolerance_rad), nearest, -1)
+
+
+def claimed_once(stars: np.ndarray) -> np.ndarray:
+    """(n,) True where ``stars`` (from :func:`stars_at`) names a star that no other entry names."""
+    named = stars >= 0
+    counts = np.bincount(stars[named], minlength=1) if np.any(named) else np.zeros(1, dtype=int)
+    return named & (counts[np.where(named, stars, 0)] == 1)
+
+
 def observations(sightings: list[SnapshotSightings], extraction, rotation_ref: np.ndarray,
                  rate_rad_s: np.ndarray | None, label: str | None = None) -> list[Observation]:
     """The sightings as :class:`app.camera_fit.Observation` (one per snapshot) with starting attitudes.
@@ -75,5 +104,5 @@ def observations(sightings: list[SnapshotSightings], extraction, rotation_ref: n
         else:
             continue
         out.append(Observation(xy=s.xy, star_vectors=s.star_vectors, rotation=rotation, sigma_px=noise,
-                               sequence=label))
+                               sequence=label, snapshot=s.position))
     return out
