@@ -129,8 +129,18 @@ async function selectSequence(id) {
   });
 }
 
+// How often loadDetail reads again when the sequence and its verdicts name different searches.
+const CONSISTENT_READS = 5;
+
 async function loadDetail(id, { fresh = false } = {}) {
-  const [detail, review] = await Promise.all([api.get(`/api/sequences/${id}`), api.get(`/api/sequences/${id}/review`)]);
+  // The two reads are one state only when they name the same search: a search finishing between them
+  // (an upload's queued search) would pair its candidates with the verdicts of none, and the view
+  // polling would see nothing left to change. Read both again until they agree.
+  let detail, review;
+  for (let read = 0; read < CONSISTENT_READS; read++) {
+    [detail, review] = await Promise.all([api.get(`/api/sequences/${id}`), api.get(`/api/sequences/${id}/review`)]);
+    if ((detail.search?.search_id ?? null) === (review.search_id ?? null)) break;
+  }
   state.detail = detail;
   state.review = review;
   $("empty-hint").hidden = true;
