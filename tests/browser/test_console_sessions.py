@@ -226,6 +226,34 @@ def test_no_valid_attitude_is_recorded_with_its_reason(server, api, new_page, tm
     assert watched.errors == []
 
 
+def test_a_search_finishing_between_the_two_reads_of_a_sequence_still_shows_its_verdicts(server, api, new_page,
+                                                                                        tmp_path):
+    """The console reads a sequence and its verdicts in parallel; an upload's queued search can finish
+    between the two.  Here the first verdicts read are made to predate the search (as the server answered
+    them a moment before it was stored): the console must read again rather than show the new candidates
+    with no verdict, which the view polling would never repair (nothing changes afterwards)."""
+    seq_id, search = upload_and_search(api, fresh_copy("01-clean.json", "race", tmp_path))
+    assert search["status"] == "identified"
+    watched, _ = console(new_page, server)
+    page = watched.page
+    stale = {"served": 0}
+
+    def before_the_search(route):
+        if stale["served"]:
+            route.continue_()
+            return
+        stale["served"] += 1
+        review = route.fetch().json()
+        review.update(search_id=None, search_status=None, method=None, search_pattern_version=None, candidates=[])
+        route.fulfill(json=review)
+
+    page.route(f"**/api/sequences/{seq_id}/review", before_the_search)
+    open_sequence(page, seq_id, "01-clean-race")
+    expect_text(page.locator("#cand-verdict"), "Rank 1 is credible")
+    assert stale["served"] == 1
+    assert watched.errors == []
+
+
 def test_the_work_queue_puts_what_needs_an_operator_first(server, api, new_page, tmp_path):
     ambiguous = make_ambiguous(api, "06-sparse.json", "queue", tmp_path)
     upload_and_search(api, fresh_copy("05-earth.json", "queue", tmp_path))
