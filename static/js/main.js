@@ -388,11 +388,24 @@ async function stepCandidate(delta) {
   await goToRank(rank);
 }
 
-// After this console's confirmation or rejection: the verdict, the lists and the 3D view agree.
+// After this console's confirmation or rejection (or its refusal): the verdict, the lists and the 3D
+// view agree. A refusal can mean another console's search replaced the candidates before the view
+// polling noticed; then the new search is shown from rank 1, announced as the polling would have.
 async function afterVerdict() {
   const d = state.detail;
-  await loadDetail(d.id);
-  renderCandidates();
+  const shownSearch = d.search?.search_id ?? null;
+  const detail = await loadDetail(d.id);
+  const newSearch = detail.search?.search_id ?? null;
+  if (newSearch !== shownSearch) {
+    state.rank = detail.search?.candidates.length ? 1 : null;
+    $("change-notice").textContent = `Changed by another console: a new search (#${newSearch}) replaced the ` +
+      `candidates shown; back at rank ${state.rank ?? "-"}.`;
+    $("change-notice").hidden = false;
+    await writeView({ sequence: d.id, rank: state.rank });
+    await showCandidate();
+  } else {
+    renderCandidates();
+  }
   await Promise.all([loadAttitudes(), loadSequences()]);
 }
 

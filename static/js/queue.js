@@ -106,9 +106,9 @@ async function uploadLine(list, dataset, name, send, describe, waiting = null) {
   } catch (err) {
     bar.remove();
     result.className = "error";
-    result.replaceChildren(el("div", {}, err.detail),
-      err.problems.length ? el("ul", { class: "problems" },
-        err.problems.map((p) => el("li", {}, el("code", {}, p.location), ": ", p.message))) : null);
+    // (replaceChildren would print a null as the text "null": only the nodes there are.)
+    result.replaceChildren(el("div", {}, err.detail), ...(err.problems.length ? [el("ul", { class: "problems" },
+      err.problems.map((p) => el("li", {}, el("code", {}, p.location), ": ", p.message)))] : []));
     return null;
   }
 }

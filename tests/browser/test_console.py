@@ -102,6 +102,24 @@ def test_invalid_upload_shows_located_problems(server, new_page, tmp_path):
     assert unexpected == []
 
 
+def test_an_upload_refused_without_located_problems_shows_the_reason_alone(server, new_page, tmp_path):
+    """A file over the size limit is refused whole (413, no problem list): the line next to the file
+    says why, and nothing else (it once printed a stray "null" under the reason)."""
+    from app.config import Settings
+
+    watched = new_page()
+    page = watched.page
+    huge = tmp_path / "huge.json"
+    huge.write_bytes(b" " * (Settings().max_upload_bytes + 1))
+    page.goto(server + "/")
+    page.set_input_files("#file-input", [str(huge)])
+    item = page.locator(".upload-item[data-file='huge.json']")
+    expect_text(item, "larger than the limit")
+    assert item.locator(".error").inner_text().strip() == item.locator(".error > div").inner_text().strip()
+    assert "null" not in item.inner_text()
+    assert [e for e in watched.errors if "status of 413" not in e] == []
+
+
 def test_operator_flow(server, api, new_page):
     watched = new_page()
     page = watched.page

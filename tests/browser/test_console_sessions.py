@@ -254,6 +254,43 @@ def test_a_search_finishing_between_the_two_reads_of_a_sequence_still_shows_its_
     assert watched.errors == []
 
 
+def test_a_confirmation_refused_for_a_replaced_search_shows_the_new_search_whole(server, api, new_page, tmp_path):
+    """Another console's search replaces the candidates before this console's polling has noticed (its
+    reads of the view are held back here), and this console presses Confirm: the server refuses (409),
+    and the console must then show the new search whole, from rank 1, with the change announced, not the
+    new table under the old rank and figures."""
+    seq_id, first = upload_and_search(api, fresh_copy("10-narrow-12deg-ghosts.json", "replaced", tmp_path))
+    assert first["status"] == "identified" and len(first["candidates"]) >= 3
+    watched, session = console(new_page, server)
+    page = watched.page
+    page.fill("#operator", "Stale Tester")
+    open_sequence(page, seq_id, "10-narrow-12deg-ghosts-replaced")
+    page.locator("#candidate-rows tr[data-rank='3']").click()
+    expect_text(page.locator("#cand-rank"), f"rank 3 of {len(first['candidates'])}")
+    # From here on the console's polling is answered with the view as it is now, so it learns nothing of
+    # the next search; its own writes still go through.
+    seen = api(f"/api/view?session={session}")
+    assert seen["rank"] == 3
+    page.route("**/api/view?*", lambda route: route.fulfill(json=seen) if route.request.method == "GET"
+               else route.continue_())
+    second = api(f"/api/sequences/{seq_id}/search", "POST", body={"method": "tf"})
+    assert second["search_id"] != first["search_id"]
+    page.click("#confirm")
+    expect_visible(page.locator("#override-step"))  # rank 3 is not the credible best: the second step
+    page.fill("#override-reason", "checked by eye")
+    page.click("#confirm-override")
+    expect_text(page.locator("#toast"), "replaced by search")
+    n_new = len(second["candidates"])
+    expect_text(page.locator("#cand-rank"), f"rank 1 of {n_new}")
+    expect_text(page.locator("#change-notice"), f"a new search \\(#{second['search_id']}\\) replaced the candidates")
+    assert page.locator("#candidate-rows tr").count() == n_new
+    assert page.locator("#candidate-rows tr.selected").get_attribute("data-rank") == "1"
+    expect_text(page.locator("#cand-facts"), f"1 of {n_new}")
+    review = api(f"/api/sequences/{seq_id}/review")
+    assert review["confirmation"] is None and review["search_id"] == second["search_id"]
+    assert [e for e in watched.errors if "status of 409" not in e] == []
+
+
 def test_the_work_queue_puts_what_needs_an_operator_first(server, api, new_page, tmp_path):
     ambiguous = make_ambiguous(api, "06-sparse.json", "queue", tmp_path)
     upload_and_search(api, fresh_copy("05-earth.json", "queue", tmp_path))
