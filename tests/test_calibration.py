@@ -183,3 +183,18 @@ def test_reassociation_gives_every_source_its_true_star_and_adds_the_ones_identi
         assert all(tuple(xy) in kept for xy in before.xy)
         added += len(o.xy) - len(before.xy)
     assert added > 0
+
+
+def test_the_pull_benchmark_judges_both_fits_against_the_simulated_truth():
+    """`bench --suite calibration` on two trials: every pull (fitted - true) / sigma of both fits is that
+    of a working calibration (within 5 sigma), and the table prints both rows."""
+    from app.bench import calibration
+
+    result = calibration.run(n_sequences=2, seed=5)
+    assert [row["way"] for row in result["rows"]] == list(calibration.WAYS)
+    for row in result["rows"]:
+        assert row["trials"] == 2
+        for name in calibration.PARAMETERS:
+            assert 0 < row[name]["rms"] < 5, (row["way"], name, row[name])
+    table = calibration.format_table(result)
+    assert "identified tracks" in table and "re-associated" in table
