@@ -174,7 +174,10 @@ async function sendConfirmation(secondStep) {
       : `Rank ${c.rank} was confirmed already (attitude #${c.id}); nothing new stored`);
   } catch (err) {
     toast(`The confirmation failed: ${errorText(err)}`, "error");
-    if (err.status === 409) await hooks.afterVerdict();   // someone else's verdict or search: show it
+    if (err.status === 409) {   // someone else's verdict or search: the step asked about what was; show what is
+      cancelSteps();
+      await hooks.afterVerdict();
+    }
   } finally {
     state.busy--;
   }
@@ -208,6 +211,10 @@ async function sendRejection() {
       : `"No valid attitude" was recorded already by ${r.operator}`);
   } catch (err) {
     toast(`Recording "no valid attitude" failed: ${errorText(err)}`, "error");
+    if (err.status === 409) {   // another console's verdict came first: show it, to decide again knowing it
+      cancelSteps();
+      await hooks.afterVerdict();
+    }
   } finally {
     state.busy--;
   }

@@ -401,6 +401,7 @@ async function afterVerdict() {
     $("change-notice").textContent = `Changed by another console: a new search (#${newSearch}) replaced the ` +
       `candidates shown; back at rank ${state.rank ?? "-"}.`;
     $("change-notice").hidden = false;
+    cancelSteps();
     await writeView({ sequence: d.id, rank: state.rank });
     await showCandidate();
   } else {

@@ -89,6 +89,18 @@ def press(page, key: str) -> None:
     page.keyboard.press(key)
 
 
+def hold_back_polling(page) -> None:
+    """From now on the console's once-a-second reads of its view fail (as with a network hiccup), so it
+    learns of changes made elsewhere only through its own actions; its writes still go through."""
+    page.route("**/api/view?*", lambda route: route.abort() if route.request.method == "GET" else route.continue_())
+
+
+def unexpected_errors(watched) -> list[str]:
+    """The page's console errors but Chromium's reports of refused (409) requests and of the reads
+    :func:`hold_back_polling` failed."""
+    return [e for e in watched.errors if "status of 409" not in e and "net::ERR_FAILED" not in e]
+
+
 def boxes_overlap(a: dict, b: dict) -> bool:
     return a["x"] < b["x"] + b["width"] and b["x"] < a["x"] + a["width"] \
         and a["y"] < b["y"] + b["height"] and b["y"] < a["y"] + a["height"]
@@ -261,18 +273,13 @@ def test_a_confirmation_refused_for_a_replaced_search_shows_the_new_search_whole
     new table under the old rank and figures."""
     seq_id, first = upload_and_search(api, fresh_copy("10-narrow-12deg-ghosts.json", "replaced", tmp_path))
     assert first["status"] == "identified" and len(first["candidates"]) >= 3
-    watched, session = console(new_page, server)
+    watched, _ = console(new_page, server)
     page = watched.page
     page.fill("#operator", "Stale Tester")
     open_sequence(page, seq_id, "10-narrow-12deg-ghosts-replaced")
     page.locator("#candidate-rows tr[data-rank='3']").click()
     expect_text(page.locator("#cand-rank"), f"rank 3 of {len(first['candidates'])}")
-    # From here on the console's polling is answered with the view as it is now, so it learns nothing of
-    # the next search; its own writes still go through.
-    seen = api(f"/api/view?session={session}")
-    assert seen["rank"] == 3
-    page.route("**/api/view?*", lambda route: route.fulfill(json=seen) if route.request.method == "GET"
-               else route.continue_())
+    hold_back_polling(page)
     second = api(f"/api/sequences/{seq_id}/search", "POST", body={"method": "tf"})
     assert second["search_id"] != first["search_id"]
     page.click("#confirm")
@@ -280,15 +287,45 @@ def test_a_confirmation_refused_for_a_replaced_search_shows_the_new_search_whole
     page.fill("#override-reason", "checked by eye")
     page.click("#confirm-override")
     expect_text(page.locator("#toast"), "replaced by search")
+    # The second step asked about rank 3 of the old search: it must not stay to confirm the new rank 1.
+    expect_visible(page.locator("#override-step"), False)
     n_new = len(second["candidates"])
     expect_text(page.locator("#cand-rank"), f"rank 1 of {n_new}")
     expect_text(page.locator("#change-notice"), f"a new search \\(#{second['search_id']}\\) replaced the candidates")
     assert page.locator("#candidate-rows tr").count() == n_new
     assert page.locator("#candidate-rows tr.selected").get_attribute("data-rank") == "1"
     expect_text(page.locator("#cand-facts"), f"1 of {n_new}")
+    watched.screenshot("16-refused-for-a-replaced-search")
     review = api(f"/api/sequences/{seq_id}/review")
     assert review["confirmation"] is None and review["search_id"] == second["search_id"]
-    assert [e for e in watched.errors if "status of 409" not in e] == []
+    assert unexpected_errors(watched) == []
+
+
+def test_no_valid_attitude_refused_after_another_verdict_shows_that_verdict(server, api, new_page, tmp_path):
+    """This console opens "no valid attitude" while another operator confirms the sequence through the API
+    and before this console's polling has noticed (its reads of the view are answered with the view as it
+    was): the server refuses the rejection (409, it would replace a verdict unasked), and the console must
+    close the step and show the other operator's confirmation."""
+    seq_id, search = upload_and_search(api, fresh_copy("01-clean.json", "late-reject", tmp_path))
+    assert search["status"] == "identified"
+    watched, _ = console(new_page, server)
+    page = watched.page
+    page.fill("#operator", "Late Rejecter")
+    open_sequence(page, seq_id, "01-clean-late-reject")
+    expect_text(page.locator("#cand-verdict"), "Rank 1 is credible")
+    hold_back_polling(page)
+    press(page, "r")
+    expect_visible(page.locator("#reject-step"))
+    page.fill("#reject-reason", "looks like a ghost pattern")
+    confirmed = api(f"/api/sequences/{seq_id}/confirm", "POST",
+                    body={"rank": 1, "operator": "Other Operator", "search_id": search["search_id"]})
+    page.click("#reject-confirm")
+    expect_text(page.locator("#toast"), "failed")
+    expect_visible(page.locator("#reject-step"), False)
+    expect_text(page.locator("#confirmed"), "Other Operator")
+    review = api(f"/api/sequences/{seq_id}/review")
+    assert review["rejection"] is None and review["confirmation"]["id"] == confirmed["id"]
+    assert unexpected_errors(watched) == []
 
 
 def test_the_work_queue_puts_what_needs_an_operator_first(server, api, new_page, tmp_path):
