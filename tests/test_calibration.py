@@ -137,6 +137,14 @@ def test_a_source_is_the_star_it_falls_on_within_the_tolerance_and_claimed_once(
     assert stars.tolist() == [0, -1, 1]
     assert claimed_once(np.array([2, 2, 5, -1, 0])).tolist() == [False, False, True, False, True]
     assert claimed_once(np.array([-1, -1])).tolist() == [False, False]
+    # Per snapshot: the same star seen once in each of two snapshots is claimed once in each.
+    assert claimed_once(np.array([2, 2, 5, 5, -1]), groups=np.array([0, 1, 1, 1, 1])).tolist() == \
+        [True, True, False, False, False]
+    # Several rotations, one per pixel: the second pixel seen through a 10 px turn about the y axis.
+    turned = np.array([[np.cos(ten_px), 0.0, -np.sin(ten_px)], [0.0, 1.0, 0.0], [np.sin(ten_px), 0.0, np.cos(ten_px)]])
+    both = stars_at(np.array([[CAMERA.cx, CAMERA.cy]] * 2), CAMERA, np.array([np.eye(3), turned]), field,
+                    2 * CAMERA.pixel_scale_rad)
+    assert both.tolist() == [0, 1]
 
 
 def test_reassociation_gives_every_source_its_true_star_and_adds_the_ones_identification_dropped(sky):

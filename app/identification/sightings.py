@@ -70,20 +70,29 @@ def stars_at(xy: np.ndarray, camera, rotation: np.ndarray, field: StarField, tol
     """(n,) position in ``field`` of the star each pixel sees within ``tolerance_rad``, else -1.
 
     The pixels go through ``camera`` into the camera frame and through
-    ``rotation`` (ICRS to camera) back to the sky; each takes its nearest
-    star.  Two pixels may name the same star (:func:`claimed_once` tells).
+    ``rotation`` (ICRS to camera: (3, 3), or (n, 3, 3) one per pixel, e.g.
+    the attitudes of the snapshots they were seen in) back to the sky; each
+    takes its nearest star.  Two pixels may name the same star
+    (:func:`claimed_once` tells).
     """
     if len(xy) == 0:
         return np.zeros(0, dtype=int)
-    distance, nearest = field.tree.query(camera.pixels_to_vectors(np.asarray(xy, dtype=float)) @ rotation, k=1)
+    body = camera.pixels_to_vectors(np.asarray(xy, dtype=float))
+    rotation = np.asarray(rotation, dtype=float)
+    directions = body @ rotation if rotation.ndim == 2 else np.einsum("ni,nij->nj", body, rotation)  # R^T v
+    distance, nearest = field.tree.query(directions, k=1)
     return np.where(distance <= chord(tolerance_rad), nearest, -1)
 
 
-def claimed_once(stars: np.ndarray) -> np.ndarray:
-    """(n,) True where ``stars`` (from :func:`stars_at`) names a star that no other entry names."""
+def claimed_once(stars: np.ndarray, groups: np.ndarray | None = None) -> np.ndarray:
+    """(n,) True where ``stars`` (from :func:`stars_at`) names a star that no other entry names (of the
+    same group, when ``groups`` (n,) non-negative ints are given: e.g. the snapshot each entry is from)."""
     named = stars >= 0
-    counts = np.bincount(stars[named], minlength=1) if np.any(named) else np.zeros(1, dtype=int)
-    return named & (counts[np.where(named, stars, 0)] == 1)
+    if not np.any(named):
+        return named
+    key = stars if groups is None else np.asarray(groups) * (int(stars.max()) + 1) + stars
+    counts = np.bincount(key[named])
+    return named & (counts[np.where(named, key, 0)] == 1)
 
 
 def observations(sightings: list[SnapshotSightings], extraction, rotation_ref: np.ndarray,

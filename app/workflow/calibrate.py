@@ -136,29 +136,39 @@ def reassociated(identified: list[IdentifiedSequence], first: list[Observation],
     A source is a star's when it lies within the tolerance of
     :func:`app.identification.sightings.source_match_tolerance_rad` of it
     (2 px, or 5 sigma of the sighting noise) and no other source of the
-    snapshot lies as near that star; snapshots left with fewer than
+    snapshot is that star's too; snapshots left with fewer than
     :data:`MIN_SIGHTINGS` such sources leave out.  The stars are the ones
     down to the camera's limiting magnitude plus the search's margin, at the
     sequence's reference time (as :func:`candidate_observations`).
     """
-    by_label = {item.label: item for item in identified}
+    at = {(o.sequence, o.snapshot): (o, rotation) for o, rotation in zip(first, result.rotations)
+          if rotation is not None}  # the snapshots that took part, with their fitted attitudes
     margin = SearchOptions().mag_margin
     out = []
-    for observation, rotation in zip(first, result.rotations):
-        if rotation is None:
-            continue  # the first fit left this snapshot out
-        item = by_label[observation.sequence]
+    for item in identified:
         sequence, extraction = item.sequence, item.extraction
+        taking_part = [at[item.label, position] for position in range(len(sequence.snapshots))
+                       if (item.label, position) in at]
+        if not taking_part:
+            continue
         field = sky.field(sequence.snapshots[extraction.reference].time,
                           min(sequence.camera.limiting_magnitude + margin, sky.index.mag_limit),
                           sequence.velocity_km_s)
-        xy = sequence.snapshots[observation.snapshot].xy
-        stars = stars_at(xy, result.camera, rotation, field, source_match_tolerance_rad(result.camera, extraction))
-        kept = claimed_once(stars)
-        if kept.sum() >= MIN_SIGHTINGS:
-            out.append(Observation(xy=xy[kept], star_vectors=field.vectors[stars[kept]], rotation=rotation,
-                                   sigma_px=observation.sigma_px, sequence=observation.sequence,
-                                   snapshot=observation.snapshot))
+        # All the sequence's sources at once (one query, one pass through the optics), each with the
+        # attitude of its snapshot.
+        xy = [sequence.snapshots[o.snapshot].xy for o, _ in taking_part]
+        owner = np.repeat(np.arange(len(xy)), [len(a) for a in xy])
+        rotations = np.array([rotation for _, rotation in taking_part])
+        all_xy = np.concatenate(xy)
+        stars = stars_at(all_xy, result.camera, rotations[owner], field,
+                         source_match_tolerance_rad(result.camera, extraction))
+        kept = claimed_once(stars, owner)
+        for k, (observation, rotation) in enumerate(taking_part):
+            mine = kept & (owner == k)
+            if mine.sum() >= MIN_SIGHTINGS:
+                out.append(Observation(xy=all_xy[mine], star_vectors=field.vectors[stars[mine]], rotation=rotation,
+                                       sigma_px=observation.sigma_px, sequence=observation.sequence,
+                                       snapshot=observation.snapshot))
     return out
 
 
