@@ -168,10 +168,10 @@ def test_reassociation_gives_every_source_its_true_star_and_adds_the_ones_identi
         identified.append(IdentifiedSequence(str(i), sequence, solved.extraction,
                                              CandidateDocument.of(best, solved.sequence_fits.get(best.rank))))
         truths[str(i)] = truth
-    result, final = fit(identified, CAMERA, sky)
+    fitted = fit(identified, CAMERA, sky)
     first = [o for item in identified for o in item.observations(sky)]
-    again = reassociated(identified, first, result, sky)
-    assert [(o.sequence, o.snapshot) for o in final] == [(o.sequence, o.snapshot) for o in again]
+    again = reassociated(identified, first, fitted.first, sky)
+    assert [(o.sequence, o.snapshot) for o in fitted.observations] == [(o.sequence, o.snapshot) for o in again]
 
     by_label = {item.label: item for item in identified}
     added = 0

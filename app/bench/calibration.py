@@ -26,7 +26,7 @@ import numpy as np
 
 from app.bench.camera import CORNER_DISTORTION, _true_camera
 from app.camera import CAMERAS
-from app.camera_fit import calibrate as fit_camera, parameter_names
+from app.camera_fit import parameter_names
 from app.identification import IDENTIFIED, SearchOptions, Sky, solve_sequence
 from app.simulate import simulate_sequence
 from app.workflow.calibrate import DEFAULT_PARAMETERS, IdentifiedSequence, fit
@@ -58,10 +58,10 @@ def run_trial(sky: Sky, trial: int, seed: int) -> dict[str, dict[str, float]] | 
             identified.append(IdentifiedSequence(str(i), sequence, solved.extraction,
                                                  CandidateDocument.of(best, solved.sequence_fits.get(best.rank))))
     try:
-        final, _ = fit(identified, camera, sky)
+        fitted = fit(identified, camera, sky)
     except Invalid:
         return None
-    first = fit_camera([o for item in identified for o in item.observations(sky)], camera, parameters=PARAMETERS)
+    first, final = fitted.first, fitted.calibration
     return {WAYS[0]: _pulls(first.camera, first.sigma, truth), WAYS[1]: _pulls(final.camera, final.sigma, truth)}
 
 

@@ -137,7 +137,7 @@ def reassociated(identified: list[IdentifiedSequence], first: list[Observation],
     :func:`app.identification.sightings.source_match_tolerance_rad` of it
     (2 px, or 5 sigma of the sighting noise) and no other source of the
     snapshot is that star's too; snapshots left with fewer than
-    :data:`MIN_SIGHTINGS` such sources leave out.  The stars are the ones
+    :data:`MIN_SIGHTINGS` such sources are left out.  The stars are the ones
     down to the camera's limiting magnitude plus the search's margin, at the
     sequence's reference time (as :func:`candidate_observations`).
     """
@@ -172,10 +172,20 @@ def reassociated(identified: list[IdentifiedSequence], first: list[Observation],
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class Fitted:
+    """What :func:`fit` made: the calibration, the observations of its final fit, and the first fit (the
+    identified tracks alone, before the re-association: what ``bench --suite calibration`` compares)."""
+
+    calibration: Calibration
+    observations: list[Observation]
+    first: Calibration
+
+
 def fit(identified: list[IdentifiedSequence], camera: Camera, sky,
-        parameters: Iterable[str] | None = None) -> tuple[Calibration, list[Observation]]:
-    """The camera fitted over the identified sequences (module doc, steps 2-4), with the observations of
-    the final fit (Invalid when they cannot fix it)."""
+        parameters: Iterable[str] | None = None) -> Fitted:
+    """The camera fitted over the identified sequences (module doc, steps 2-4; Invalid when they cannot
+    fix it)."""
     names = parameter_names(parameters or DEFAULT_PARAMETERS)
     first = [o for item in identified for o in item.observations(sky)]
     n_sequences = len({o.sequence for o in first})
@@ -186,8 +196,8 @@ def fit(identified: list[IdentifiedSequence], camera: Camera, sky,
         result = fit_camera(first, camera, parameters=names)
         again = reassociated(identified, first, result, sky)
         if len({o.sequence for o in again}) < MIN_SEQUENCES:
-            return result, first
-        return fit_camera(again, camera, parameters=names), again
+            return Fitted(result, first, result)
+        return Fitted(fit_camera(again, camera, parameters=names), again, result)
     except ValueError as exc:
         raise Invalid(f"the camera cannot be calibrated from these sequences: {exc}", location="sequences") from None
 
@@ -220,8 +230,9 @@ def calibrate_files(files: Iterable[tuple[str, object]], sky, options,
         identified.append(item)
     if camera is None:
         raise Invalid("no telemetry file to calibrate from", location="files")
-    result, observations = fit(identified, camera, sky, parameters)
-    return CalibrationDocument.of(result, residual_map(observations, result, camera)), report
+    fitted = fit(identified, camera, sky, parameters)
+    result = fitted.calibration
+    return CalibrationDocument.of(result, residual_map(fitted.observations, result, camera)), report
 
 
 # ---------------------------------------------------------------------------
@@ -275,7 +286,8 @@ def calibrate_spacecraft(ctx: AppContext, spacecraft: str, operator: str | None 
     identified, camera, other_sensors = archive_sequences(ctx, spacecraft)
     if camera is None:
         raise NotFound(f"no identified or confirmed sequence of spacecraft {spacecraft!r} to calibrate from")
-    result, observations = fit(identified, camera, ctx.sky, parameters)
+    fitted = fit(identified, camera, ctx.sky, parameters)
+    result, observations = fitted.calibration, fitted.observations
     notes = [f"{n} identified or confirmed sequence{'s' * (n != 1)} of another sensor size ({sensor}) left out: "
              f"a calibration is of one camera, the {camera.width}x{camera.height} sensor of the newest sequence"
              for sensor, n in sorted(other_sensors.items())]
