@@ -67,23 +67,24 @@ def test_calibration_through_the_api_is_stored_versioned_and_given_to_later_uplo
     db = tmp_path / "cal.sqlite3"
     ctx = AppContext(storage=Storage.open(db), sky=sky)
     api = TestClient(create_app(ctx))
-    # An older sequence of another sensor under the same name: left out, and the calibration says so.
+    for path in paths[:6]:
+        seq = api.post("/api/sequences", files={"file": (path.name, path.read_bytes())}).json()["id"]
+        assert api.post(f"/api/sequences/{seq}/search").json()["status"] == "identified"
+    # The newest sequence under the same name is of another sensor (as when a folder of mixed samples is
+    # uploaded): left out, the camera with the most sequences calibrated, and the calibration says so.
     other = json.loads((sample_dir / "09-wide-30deg.json").read_text())
     other["spacecraft"] = "OPTICS-SAT"
     seq = api.post("/api/sequences", files={"file": ("other.json", json.dumps(other).encode())}).json()["id"]
     assert api.post(f"/api/sequences/{seq}/search").json()["status"] == "identified"
-    for path in paths[:6]:
-        seq = api.post("/api/sequences", files={"file": (path.name, path.read_bytes())}).json()["id"]
-        assert api.post(f"/api/sequences/{seq}/search").json()["status"] == "identified"
     assert api.get("/api/spacecraft/OPTICS-SAT/camera").status_code == 404
     r = api.post("/api/spacecraft/OPTICS-SAT/calibrate", json={"operator": "cal"})
     assert r.status_code == 201, r.text
     first = r.json()
     assert first["version"] == 1 and first["operator"] == "cal" and len(first["sequences"]) == 6
     width, height = other["camera"]["width"], other["camera"]["height"]
-    assert first["notes"] == [f"1 identified or confirmed sequence of another sensor size ({width}x{height}) left "
-                              f"out: a calibration is of one camera, the {CAMERA.width}x{CAMERA.height} sensor of "
-                              "the newest sequence"]
+    assert first["notes"] == [f"1 usable sequence of another sensor size ({width}x{height}) left out: a "
+                              f"calibration is of one camera, the {CAMERA.width}x{CAMERA.height} sensor, which has "
+                              "the most usable sequences"]
     assert abs(first["camera"]["focal_length_px"] - true_camera.focal_length_px) < 4 * first["sigma"]["focal_length_px"]
     second = api.post("/api/spacecraft/OPTICS-SAT/calibrate", json={"parameters": ["f", "k1"]}).json()
     assert second["version"] == 2 and set(second["sigma"]) == {"focal_length_px", "k1"}
@@ -115,8 +116,22 @@ def test_a_calibration_needs_enough_identified_sequences(tmp_path, sky, sample_d
     assert api.post("/api/spacecraft/NOBODY/calibrate").status_code == 404
     seq = api.post("/api/sequences", files={"file": ("01.json", (sample_dir / "01-clean.json").read_bytes())}).json()
     api.post(f"/api/sequences/{seq['id']}/search")
-    r = api.post(f"/api/spacecraft/{seq['sequence']['spacecraft']}/calibrate")
-    assert r.status_code == 422 and "at least 3 sequences" in r.json()["detail"]
+    spacecraft = seq["sequence"]["spacecraft"]
+    r = api.post(f"/api/spacecraft/{spacecraft}/calibrate")
+    assert r.status_code == 422 and r.json()["detail"] == ("a calibration needs identified stars from at least "
+                                                          "3 sequences; 1 usable")
+    # With a newer sequence of a second sensor too (one each: the tie goes to the newest), the refusal says
+    # what was left out and why.
+    other = json.loads((sample_dir / "09-wide-30deg.json").read_text())
+    other["spacecraft"] = spacecraft
+    more = api.post("/api/sequences", files={"file": ("09.json", json.dumps(other).encode())}).json()
+    assert api.post(f"/api/sequences/{more['id']}/search").json()["status"] == "identified"
+    r = api.post(f"/api/spacecraft/{spacecraft}/calibrate")
+    width, height = other["camera"]["width"], other["camera"]["height"]
+    assert r.status_code == 422 and r.json()["detail"] == (
+        "a calibration needs identified stars from at least 3 sequences; 1 usable (1 usable sequence of another "
+        f"sensor size ({CAMERA.width}x{CAMERA.height}) left out: a calibration is of one camera, the "
+        f"{width}x{height} sensor, which has as many usable sequences as any and the newest)")
     assert api.post("/api/spacecraft/X/calibrate", json={"parameters": ["zoom"]}).status_code == 422
     ctx.close()
 

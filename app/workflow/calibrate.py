@@ -6,8 +6,8 @@ frame (:func:`app.camera_fit.calibrate`).  The workflow:
 
 1. choose the sequences: every sequence of the spacecraft with a current
    confirmation (its confirmed candidate), else whose latest search is
-   ``identified`` (its first candidate); from files, every file that
-   identifies;
+   ``identified`` (its first candidate), of the sensor size with the most of
+   them (:func:`archive_sequences`); from files, every file that identifies;
 2. turn each into observations (:func:`candidate_observations`): per
    snapshot, the pixels where the candidate's identified tracks were seen,
    the apparent places of their stars, and a starting attitude (the
@@ -241,15 +241,23 @@ def calibrate_files(files: Iterable[tuple[str, object]], sky, options,
 
 def archive_sequences(ctx: AppContext, spacecraft: str
                       ) -> tuple[list[IdentifiedSequence], Camera | None, dict[str, int]]:
-    """The newest usable sequences of ``spacecraft`` (at most :data:`MAX_SEQUENCES`, each with 3 or more
-    identified stars in some snapshot), their camera (the newest usable sequence's sensor), and how many
-    usable sequences of other sensor sizes ("WxH") were left out."""
+    """The usable sequences of ``spacecraft`` for one camera, newest first, their camera, and how many
+    usable sequences of other sensor sizes ("WxH") were left out.
+
+    Usable: confirmed (the confirmed candidate) or identified (the first
+    candidate), with 3 or more identified stars in some snapshot.  A
+    spacecraft name may cover several sensors (a second camera, a renamed
+    test article); a calibration is of one, the sensor with the most usable
+    sequences (on a tie, the newest sequence's), and uses at most
+    :data:`MAX_SEQUENCES` of them.  The camera is None when the spacecraft
+    has no confirmed or identified sequence at all.
+    """
     from app.workflow.documents import SearchResult
 
-    identified, camera = [], None
-    other_sensors: dict[str, int] = {}
+    by_sensor: dict[tuple[int, int], list[IdentifiedSequence]] = {}
+    cameras: dict[tuple[int, int], Camera] = {}  # each sensor's newest declared camera, newest sensor first
     offset = 0
-    while len(identified) < MAX_SEQUENCES:
+    while all(len(found) < MAX_SEQUENCES for found in by_sensor.values()):
         rows, total = ctx.storage.list_sequences(offset, 200, spacecraft=spacecraft)
         for light in rows:
             candidate = None
@@ -263,21 +271,20 @@ def archive_sequences(ctx: AppContext, spacecraft: str
             if candidate is None:
                 continue
             item = loaded(ctx, require_sequence(ctx, light.id))
-            declared = item.sequence.camera
-            if camera is None:
-                camera = declared
-            elif (declared.width, declared.height) != (camera.width, camera.height):
-                # Another sensor under the same spacecraft name: not this camera.
-                sensor = f"{declared.width}x{declared.height}"
-                other_sensors[sensor] = other_sensors.get(sensor, 0) + 1
-                continue
+            sensor = (item.sequence.camera.width, item.sequence.camera.height)
+            cameras.setdefault(sensor, item.sequence.camera)
+            found = by_sensor.setdefault(sensor, [])
             usable = IdentifiedSequence(str(light.id), item.sequence, item.extraction, candidate)
-            if usable.observations(ctx.sky) and len(identified) < MAX_SEQUENCES:
-                identified.append(usable)
+            if len(found) < MAX_SEQUENCES and usable.observations(ctx.sky):
+                found.append(usable)
         offset += len(rows)
         if not rows or offset >= total:
             break
-    return identified, camera, other_sensors
+    if not cameras:
+        return [], None, {}
+    chosen = max(cameras, key=lambda sensor: len(by_sensor[sensor]))  # max keeps the first (newest) on a tie
+    others = {f"{w}x{h}": len(found) for (w, h), found in by_sensor.items() if (w, h) != chosen and found}
+    return by_sensor[chosen], cameras[chosen], others
 
 
 def calibrate_spacecraft(ctx: AppContext, spacecraft: str, operator: str | None = None,
@@ -286,11 +293,19 @@ def calibrate_spacecraft(ctx: AppContext, spacecraft: str, operator: str | None 
     identified, camera, other_sensors = archive_sequences(ctx, spacecraft)
     if camera is None:
         raise NotFound(f"no identified or confirmed sequence of spacecraft {spacecraft!r} to calibrate from")
-    fitted = fit(identified, camera, ctx.sky, parameters)
+    left_out = [f"{n} usable sequence{'s' * (n != 1)} of another sensor size ({sensor})"
+                for sensor, n in sorted(other_sensors.items())]
+    tie = any(n == len(identified) for n in other_sensors.values())
+    why = (f"left out: a calibration is of one camera, the {camera.width}x{camera.height} sensor, which has "
+           + ("as many usable sequences as any and the newest" if tie else "the most usable sequences"))
+    try:
+        fitted = fit(identified, camera, ctx.sky, parameters)
+    except Invalid as exc:
+        if not left_out:
+            raise
+        raise Invalid(f"{exc.detail} ({', '.join(left_out)} {why})", location="sequences") from None
     result, observations = fitted.calibration, fitted.observations
-    notes = [f"{n} identified or confirmed sequence{'s' * (n != 1)} of another sensor size ({sensor}) left out: "
-             f"a calibration is of one camera, the {camera.width}x{camera.height} sensor of the newest sequence"
-             for sensor, n in sorted(other_sensors.items())]
+    notes = [f"{entry} {why}" for entry in left_out]
     document = CalibrationDocument.of(result, residual_map(observations, result, camera), notes=notes)
     used_ids = sorted({int(o.sequence) for o, inlier in zip(observations, result.inliers) if np.any(inlier)})
     row = ctx.storage.add_calibration(spacecraft, camera=document.camera, result=document.model_dump(mode="json"),
