@@ -221,3 +221,21 @@ def test_the_pull_benchmark_judges_both_fits_against_the_simulated_truth():
             assert 0 < row[name]["rms"] < 5, (row["way"], name, row[name])
     table = calibration.format_table(result)
     assert "identified tracks" in table and "re-associated" in table
+
+
+def test_calibrating_files_takes_the_sensor_most_files_have(wrong_optics_files, sample_dir, sky):
+    """A folder whose first file is of another sensor: that file is left out, saying why, and the camera of
+    the other files is calibrated (it was the first file's sensor that decided)."""
+    from app.identification import SearchOptions
+    from app.telemetry import load_telemetry_file
+    from app.workflow.calibrate import calibrate_files
+
+    paths, true_camera = wrong_optics_files
+    first = sample_dir / "09-wide-30deg.json"
+    files = [(str(p), load_telemetry_file(p)) for p in [first, *paths[:4]]]
+    document, report = calibrate_files(files, sky, SearchOptions())
+    other = files[0][1].camera
+    assert report[0] == (str(first), f"left out: another sensor size ({other.width}x{other.height}) than most "
+                                     f"files' ({CAMERA.width}x{CAMERA.height})")
+    assert document.sequences_used == 4
+    assert abs(document.camera["focal_length_px"] - true_camera.focal_length_px) < 4 * document.sigma["focal_length_px"]

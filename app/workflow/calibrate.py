@@ -40,6 +40,7 @@ focal length, and fitting it quadruples k1's uncertainty
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -207,17 +208,26 @@ def calibrate_files(files: Iterable[tuple[str, object]], sky, options,
     """Solve every ``(path, sequence)`` and fit one camera over those that identify.
 
     Returns the calibration and ``(path, what happened)`` per file: the
-    status, and why a file was left out.  All files must come from sensors
-    of one size (the first file's camera is the declared one).
+    status, and why a file was left out.  A calibration is of one camera:
+    the files of the sensor size most of them have (the first file's on a
+    tie) take part, with the first such file's camera as the declared one.
     """
     from app.identification import IDENTIFIED, solve_sequence
 
-    identified, report, camera = [], [], None
+    files = list(files)
+    if not files:
+        raise Invalid("no telemetry file to calibrate from", location="files")
+    sizes = Counter((sequence.camera.width, sequence.camera.height) for _, sequence in files)
+    chosen = max(sizes, key=sizes.__getitem__)  # a Counter keeps the files' order: the first file's on a tie
+    camera = next(sequence.camera for _, sequence in files
+                  if (sequence.camera.width, sequence.camera.height) == chosen)
+    identified, report = [], []
     for path, sequence in files:
-        if camera is not None and (sequence.camera.width, sequence.camera.height) != (camera.width, camera.height):
-            report.append((path, "left out: another sensor size than the first file's"))
+        size = (sequence.camera.width, sequence.camera.height)
+        if size != chosen:
+            report.append((path, f"left out: another sensor size ({size[0]}x{size[1]}) than most files' "
+                                 f"({chosen[0]}x{chosen[1]})"))
             continue
-        camera = camera or sequence.camera
         solved = solve_sequence(sequence, sky, options=options)
         if solved.solution.status != IDENTIFIED:
             report.append((path, f"left out: {solved.solution.status}"))
@@ -228,8 +238,6 @@ def calibrate_files(files: Iterable[tuple[str, object]], sky, options,
         report.append((path, f"identified, {len(item.observations(sky))} snapshot(s) with 3 or more "
                              "identified stars"))
         identified.append(item)
-    if camera is None:
-        raise Invalid("no telemetry file to calibrate from", location="files")
     fitted = fit(identified, camera, sky, parameters)
     result = fitted.calibration
     return CalibrationDocument.of(result, residual_map(fitted.observations, result, camera)), report
