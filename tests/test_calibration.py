@@ -170,7 +170,6 @@ def test_reassociation_gives_every_source_its_true_star_and_adds_the_ones_identi
     optics: the cause of the calibration's bias, module doc of app.workflow.calibrate)."""
     from app.identification import IDENTIFIED, solve_sequence
     from app.workflow.calibrate import IdentifiedSequence, fit, reassociated
-    from app.workflow.documents import CandidateDocument
 
     true_camera = true_optics(CAMERA, focal_error=0.03, k1=0.01 / CAMERA.corner_radius ** 2)
     identified, truths = [], {}
@@ -179,12 +178,10 @@ def test_reassociation_gives_every_source_its_true_star_and_adds_the_ones_identi
                                             true_camera=true_camera)
         solved = solve_sequence(sequence, sky)
         assert solved.solution.status == IDENTIFIED
-        best = solved.solution.candidates[0]
-        identified.append(IdentifiedSequence(str(i), sequence, solved.extraction,
-                                             CandidateDocument.of(best, solved.sequence_fits.get(best.rank))))
+        identified.append(IdentifiedSequence.from_solved(str(i), solved, sky))
         truths[str(i)] = truth
     fitted = fit(identified, CAMERA, sky)
-    first = [o for item in identified for o in item.observations(sky)]
+    first = [o for item in identified for o in item.observations]
     again = reassociated(identified, first, fitted.first, sky)
     assert [(o.sequence, o.snapshot) for o in fitted.observations] == [(o.sequence, o.snapshot) for o in again]
 

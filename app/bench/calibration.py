@@ -30,7 +30,6 @@ from app.camera_fit import parameter_names
 from app.identification import IDENTIFIED, SearchOptions, Sky, solve_sequence
 from app.simulate import simulate_sequence
 from app.workflow.calibrate import DEFAULT_PARAMETERS, IdentifiedSequence, fit
-from app.workflow.documents import CandidateDocument
 from app.workflow.errors import Invalid
 
 SEQUENCES_PER_TRIAL = 20
@@ -54,9 +53,7 @@ def run_trial(sky: Sky, trial: int, seed: int) -> dict[str, dict[str, float]] | 
         sequence, _ = simulate_sequence(rng, camera, "nominal", true_camera=truth)
         solved = solve_sequence(sequence, sky, options=SearchOptions())
         if solved.solution.status == IDENTIFIED:
-            best = solved.solution.candidates[0]
-            identified.append(IdentifiedSequence(str(i), sequence, solved.extraction,
-                                                 CandidateDocument.of(best, solved.sequence_fits.get(best.rank))))
+            identified.append(IdentifiedSequence.from_solved(str(i), solved, sky))
     try:
         fitted = fit(identified, camera, sky)
     except Invalid:

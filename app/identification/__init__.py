@@ -34,7 +34,7 @@ from app.identification.options import SearchOptions
 from app.identification.result import (AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, PlanetMatch, Solution,
                                        StarMatch)
 from app.identification.sightings import (identified_sightings, observations, sighting_noise_px,
-                                          source_match_tolerance_rad, stars_at)
+                                          source_match_tolerance_rad, sources_field, stars_at)
 from app.identification.sky import Sky
 from app.telemetry import Sequence
 
@@ -157,8 +157,7 @@ def source_stars(solved: SolvedSequence, sky: Sky, rank: int = 1,
     t_ref = solved.reference_time
     fit = solved.sequence_fits.get(rank)
     tolerance = source_match_tolerance_rad(camera, extraction)
-    field = sky.field(t_ref, min(camera.limiting_magnitude + mag_margin, sky.index.mag_limit),
-                      sequence.velocity_km_s)
+    field = sources_field(sky, sequence, t_ref, camera, mag_margin)
     out: list[list[int | None]] = []
     for pos, snap in enumerate(sequence.snapshots):
         dt = (snap.time - t_ref).total_seconds()

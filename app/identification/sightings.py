@@ -19,6 +19,7 @@ import numpy as np
 from app.attitude import propagate
 from app.camera_fit import Observation
 from app.extraction import DEFAULT_SIGHTING_SIGMA_PX
+from app.identification.options import SearchOptions
 from app.identification.verify import StarField, chord
 
 #: A snapshot needs this many identified sightings to fix its own attitude robustly.
@@ -64,6 +65,13 @@ def source_match_tolerance_rad(camera, extraction) -> float:
     """How far (angle) a reported source may lie from a star to be that star: max(:data:`SOURCE_MATCH_PX`,
     5 sigma of one sighting) pixels."""
     return max(SOURCE_MATCH_PX, 5 * sighting_noise_px(extraction)) * camera.pixel_scale_rad
+
+
+def sources_field(sky, sequence, t_ref, camera, mag_margin: float = SearchOptions().mag_margin) -> StarField:
+    """The stars a reported source of ``sequence`` may be: those down to ``camera``'s limiting magnitude
+    plus the search's margin, at their apparent places at ``t_ref`` (the reference snapshot's time)."""
+    return sky.field(t_ref, min(camera.limiting_magnitude + mag_margin, sky.index.mag_limit),
+                     sequence.velocity_km_s)
 
 
 def stars_at(xy: np.ndarray, camera, rotation: np.ndarray, field: StarField, tolerance_rad: float) -> np.ndarray:

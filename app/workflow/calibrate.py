@@ -49,9 +49,8 @@ import numpy as np
 from app.camera import Camera
 from app.camera_fit import Calibration, Observation, calibrate as fit_camera, parameter_names, residual_vectors
 from app.extraction import Extraction
-from app.identification.options import SearchOptions
 from app.identification.sightings import (MIN_SIGHTINGS, claimed_once, identified_sightings, observations,
-                                          source_match_tolerance_rad, stars_at)
+                                          source_match_tolerance_rad, sources_field, stars_at)
 from app.telemetry import Sequence
 from app.workflow.archive import loaded, require_sequence
 from app.workflow.context import AppContext
@@ -71,15 +70,24 @@ MAX_SEQUENCES = 300
 
 @dataclass(frozen=True, eq=False)
 class IdentifiedSequence:
-    """A sequence a calibration is made from: what was reported, tracked and identified."""
+    """A sequence a calibration is made from: what was reported and tracked, and the observations of its
+    identified candidate (:func:`candidate_observations`, made once)."""
 
     label: str  # how the calibration names it (archive id or file path)
     sequence: Sequence
     extraction: Extraction
-    candidate: CandidateDocument
+    observations: list[Observation]
 
-    def observations(self, sky) -> list[Observation]:
-        return candidate_observations(self.sequence, self.extraction, self.candidate, sky, self.label)
+    @classmethod
+    def of(cls, label: str, sequence, extraction, candidate: CandidateDocument, sky) -> IdentifiedSequence:
+        return cls(label, sequence, extraction, candidate_observations(sequence, extraction, candidate, sky, label))
+
+    @classmethod
+    def from_solved(cls, label: str, solved, sky) -> IdentifiedSequence:
+        """Of a solved sequence's best candidate (with its sequence fit)."""
+        best = solved.solution.candidates[0]
+        return cls.of(label, solved.sequence, solved.extraction,
+                      CandidateDocument.of(best, solved.sequence_fits.get(best.rank)), sky)
 
 
 def candidate_observations(sequence, extraction, candidate: CandidateDocument, sky, label: str) -> list[Observation]:
@@ -144,7 +152,6 @@ def reassociated(identified: list[IdentifiedSequence], first: list[Observation],
     """
     at = {(o.sequence, o.snapshot): (o, rotation) for o, rotation in zip(first, result.rotations)
           if rotation is not None}  # the snapshots that took part, with their fitted attitudes
-    margin = SearchOptions().mag_margin
     out = []
     for item in identified:
         sequence, extraction = item.sequence, item.extraction
@@ -152,9 +159,7 @@ def reassociated(identified: list[IdentifiedSequence], first: list[Observation],
                        if (item.label, position) in at]
         if not taking_part:
             continue
-        field = sky.field(sequence.snapshots[extraction.reference].time,
-                          min(sequence.camera.limiting_magnitude + margin, sky.index.mag_limit),
-                          sequence.velocity_km_s)
+        field = sources_field(sky, sequence, sequence.snapshots[extraction.reference].time, sequence.camera)
         # All the sequence's sources at once (one query, one pass through the optics), each with the
         # attitude of its snapshot.
         xy = [sequence.snapshots[o.snapshot].xy for o, _ in taking_part]
@@ -188,7 +193,7 @@ def fit(identified: list[IdentifiedSequence], camera: Camera, sky,
     """The camera fitted over the identified sequences (module doc, steps 2-4; Invalid when they cannot
     fix it)."""
     names = parameter_names(parameters or DEFAULT_PARAMETERS)
-    first = [o for item in identified for o in item.observations(sky)]
+    first = [o for item in identified for o in item.observations]
     n_sequences = len({o.sequence for o in first})
     if n_sequences < MIN_SEQUENCES:
         raise Invalid(f"a calibration needs identified stars from at least {MIN_SEQUENCES} sequences; "
@@ -232,10 +237,8 @@ def calibrate_files(files: Iterable[tuple[str, object]], sky, options,
         if solved.solution.status != IDENTIFIED:
             report.append((path, f"left out: {solved.solution.status}"))
             continue
-        best = solved.solution.candidates[0]
-        item = IdentifiedSequence(path, sequence, solved.extraction,
-                                  CandidateDocument.of(best, solved.sequence_fits.get(best.rank)))
-        report.append((path, f"identified, {len(item.observations(sky))} snapshot(s) with 3 or more "
+        item = IdentifiedSequence.from_solved(path, solved, sky)
+        report.append((path, f"identified, {len(item.observations)} snapshot(s) with 3 or more "
                              "identified stars"))
         identified.append(item)
     fitted = fit(identified, camera, sky, parameters)
@@ -282,9 +285,10 @@ def archive_sequences(ctx: AppContext, spacecraft: str
             sensor = (item.sequence.camera.width, item.sequence.camera.height)
             cameras.setdefault(sensor, item.sequence.camera)
             found = by_sensor.setdefault(sensor, [])
-            usable = IdentifiedSequence(str(light.id), item.sequence, item.extraction, candidate)
-            if len(found) < MAX_SEQUENCES and usable.observations(ctx.sky):
-                found.append(usable)
+            if len(found) < MAX_SEQUENCES:
+                usable = IdentifiedSequence.of(str(light.id), item.sequence, item.extraction, candidate, ctx.sky)
+                if usable.observations:
+                    found.append(usable)
         offset += len(rows)
         if not rows or offset >= total:
             break

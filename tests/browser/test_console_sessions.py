@@ -83,6 +83,14 @@ def open_sequence(page, seq_id: int, name: str) -> None:
     expect_text(page.locator("#seq-title"), re.escape(name))
 
 
+def operator_on(new_page, server, operator: str, seq_id: int, name: str):
+    """A console with ``operator`` typed in, showing sequence ``seq_id`` (named ``name``); its page."""
+    watched, _ = console(new_page, server)
+    watched.page.fill("#operator", operator)
+    open_sequence(watched.page, seq_id, name)
+    return watched
+
+
 def press(page, key: str) -> None:
     """A key pressed with no text field focused, as an operator's shortcut is."""
     page.evaluate("document.activeElement && document.activeElement.blur()")
@@ -151,10 +159,8 @@ def test_two_consoles_keep_their_own_sequences_while_both_click_around(server, a
 def test_a_non_credible_candidate_is_confirmed_only_after_a_second_step_with_a_reason(server, api, new_page, tmp_path):
     seq_id, search = upload_and_search(api, fresh_copy("10-narrow-12deg-ghosts.json", "guard", tmp_path))
     assert search["status"] == "identified" and len(search["candidates"]) >= 2
-    watched, _ = console(new_page, server)
+    watched = operator_on(new_page, server, "Guard Tester", seq_id, "10-narrow-12deg-ghosts-guard")
     page = watched.page
-    page.fill("#operator", "Guard Tester")
-    open_sequence(page, seq_id, "10-narrow-12deg-ghosts-guard")
     expect_text(page.locator("#cand-verdict"), "Rank 1 is credible")
     expect_text(page.locator("#confirm"), r"^Confirm rank 1$")
 
@@ -273,10 +279,8 @@ def test_a_confirmation_refused_for_a_replaced_search_shows_the_new_search_whole
     new table under the old rank and figures."""
     seq_id, first = upload_and_search(api, fresh_copy("10-narrow-12deg-ghosts.json", "replaced", tmp_path))
     assert first["status"] == "identified" and len(first["candidates"]) >= 3
-    watched, _ = console(new_page, server)
+    watched = operator_on(new_page, server, "Stale Tester", seq_id, "10-narrow-12deg-ghosts-replaced")
     page = watched.page
-    page.fill("#operator", "Stale Tester")
-    open_sequence(page, seq_id, "10-narrow-12deg-ghosts-replaced")
     page.locator("#candidate-rows tr[data-rank='3']").click()
     expect_text(page.locator("#cand-rank"), f"rank 3 of {len(first['candidates'])}")
     hold_back_polling(page)
@@ -308,10 +312,8 @@ def test_no_valid_attitude_refused_after_another_verdict_shows_that_verdict(serv
     close the step and show the other operator's confirmation."""
     seq_id, search = upload_and_search(api, fresh_copy("01-clean.json", "late-reject", tmp_path))
     assert search["status"] == "identified"
-    watched, _ = console(new_page, server)
+    watched = operator_on(new_page, server, "Late Rejecter", seq_id, "01-clean-late-reject")
     page = watched.page
-    page.fill("#operator", "Late Rejecter")
-    open_sequence(page, seq_id, "01-clean-late-reject")
     expect_text(page.locator("#cand-verdict"), "Rank 1 is credible")
     hold_back_polling(page)
     press(page, "r")
