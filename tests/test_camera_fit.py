@@ -167,6 +167,19 @@ def test_projection_is_the_camera_model_and_jacobians_match_finite_differences()
         np.testing.assert_allclose((moved - xy) / h, j_cam[:, :, k], rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.parametrize("corner_fraction", [0.01, 0.2, -0.1])
+def test_pixels_to_vectors_inverts_the_projection_to_rounding(corner_fraction):
+    """Undistortion is the projection's exact inverse, also for strong barrel or pincushion distortion
+    (a lens moving its corner by 20 %): every pixel of the sensor, its corners and the principal point."""
+    half_diagonal = math.hypot(DECLARED.width / 2, DECLARED.height / 2)
+    camera = DECLARED.with_optics(k1=corner_fraction / (half_diagonal / DECLARED.focal_length_px) ** 2)
+    xy = np.vstack([np.random.default_rng(14).uniform([-0.5, -0.5], [751.5, 581.5], (2000, 2)),
+                    [[-0.5, -0.5], [751.5, 581.5], [DECLARED.cx, DECLARED.cy]]])
+    back, front = camera.vectors_to_pixels(camera.pixels_to_vectors(xy))
+    assert front.all()
+    assert np.abs(back - xy).max() < 1e-10
+
+
 def test_parameter_choice_by_star_count_and_names():
     assert parameters_for(2) == ()
     assert parameters_for(3) == parameters_for(5) == ("focal_length_px",)
