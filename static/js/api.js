@@ -9,6 +9,15 @@ export class ApiError extends Error {
     this.detail = detail;
     this.problems = problems;
   }
+
+  // The reason without the one located problem it quotes ("f.json: invalid telemetry: LOCATION: MESSAGE"),
+  // for showing above the list of problems, where that one is listed already.
+  get headline() {
+    if (this.problems.length !== 1 || typeof this.detail !== "string") return this.detail;
+    const only = `${this.problems[0].location}: ${this.problems[0].message}`;
+    const rest = this.detail.endsWith(only) ? this.detail.slice(0, -only.length).replace(/[\s:]+$/, "") : "";
+    return rest || this.detail;
+  }
 }
 
 let token = "";

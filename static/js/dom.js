@@ -40,7 +40,7 @@ export function toast(message, kind = "ok") {
 
 export function errorText(err) {
   if (!err) return "unknown error";
-  const lines = [err.detail || err.message || String(err)];
+  const lines = [err.headline || err.detail || err.message || String(err)];
   for (const p of err.problems || []) lines.push(`${p.location}: ${p.message}`);
   return lines.join("\n");
 }

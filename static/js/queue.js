@@ -107,7 +107,7 @@ async function uploadLine(list, dataset, name, send, describe, waiting = null) {
     bar.remove();
     result.className = "error";
     // (replaceChildren would print a null as the text "null": only the nodes there are.)
-    result.replaceChildren(el("div", {}, err.detail), ...(err.problems.length ? [el("ul", { class: "problems" },
+    result.replaceChildren(el("div", {}, err.headline ?? err.detail), ...(err.problems.length ? [el("ul", { class: "problems" },
       err.problems.map((p) => el("li", {}, el("code", {}, p.location), ": ", p.message)))] : []));
     return null;
   }

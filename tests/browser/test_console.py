@@ -102,6 +102,29 @@ def test_invalid_upload_shows_located_problems(server, new_page, tmp_path):
     assert unexpected == []
 
 
+def test_a_single_located_problem_is_shown_once(server, new_page, tmp_path):
+    """The server's reason quotes a lone problem ("f.json: invalid telemetry: LOCATION: MESSAGE") and
+    lists it too: the console says which file and what kind of refusal, then the problem, once."""
+    watched = new_page()
+    page = watched.page
+    bad = tmp_path / "one-problem.json"
+    bad.write_text(json.dumps({"format": "tubsat-snapshots/1", "sequence_id": "one", "camera": "tubsat-752x582-20deg",
+                               "snapshots": [{"index": 0, "time": "2026-01-01T00:00:00Z",
+                                              "sources": [{"x": 812, "y": 20, "brightness": 5}]}]}))
+    page.goto(server + "/")
+    page.set_input_files("#file-input", [str(bad)])
+    item = page.locator(".upload-item[data-file='one-problem.json']")
+    expect_text(item.locator(".problems"), "outside the sensor")
+    problem = item.locator(".problems li")
+    assert problem.count() == 1
+    text = item.locator(".error").inner_text()
+    assert text.count("outside the sensor") == 1, text
+    assert "invalid telemetry" in item.locator(".error > div").inner_text()
+    assert problem.locator("code").inner_text() == "snapshots[0].sources[0].x"
+    watched.screenshot("00-upload-one-problem")
+    assert [e for e in watched.errors if "status of 422" not in e] == []
+
+
 def test_an_upload_refused_without_located_problems_shows_the_reason_alone(server, new_page, tmp_path):
     """A file over the size limit is refused whole (413, no problem list): the line next to the file
     says why, and nothing else (it once printed a stray "null" under the reason)."""
