@@ -388,6 +388,16 @@ async function stepCandidate(delta) {
   await goToRank(rank);
 }
 
+// What another console changed, above the candidates; any step this console had open is closed (it was
+// about what was shown before). The notice is brought into view: the step was further down the page.
+function announceChange(what) {
+  const notice = $("change-notice");
+  notice.textContent = `Changed by another console: ${what}.`;
+  notice.hidden = false;
+  cancelSteps();
+  notice.scrollIntoView({ block: "nearest" });
+}
+
 // After this console's confirmation or rejection (or its refusal): the verdict, the lists and the 3D
 // view agree. A refusal can mean another console's search replaced the candidates before the view
 // polling noticed; then the new search is shown from rank 1, announced as the polling would have.
@@ -398,10 +408,7 @@ async function afterVerdict() {
   const newSearch = detail.search?.search_id ?? null;
   if (newSearch !== shownSearch) {
     state.rank = detail.search?.candidates.length ? 1 : null;
-    $("change-notice").textContent = `Changed by another console: a new search (#${newSearch}) replaced the ` +
-      `candidates shown; back at rank ${state.rank ?? "-"}.`;
-    $("change-notice").hidden = false;
-    cancelSteps();
+    announceChange(`a new search (#${newSearch}) replaced the candidates shown; back at rank ${state.rank ?? "-"}`);
     await writeView({ sequence: d.id, rank: state.rank });
     await showCandidate();
   } else {
@@ -523,11 +530,7 @@ async function pollView() {
     else if (searchChanged) notes.push(`a new search (#${doc.search_id}) replaced the candidates shown; back at rank ${state.rank ?? "-"}`);
     if (patternChanged && !searchChanged) notes.push(`the pattern changed elsewhere (version ${doc.pattern_version}): the candidates are stale until a new search`);
     if (verdictChanged) notes.push(`the sequence's verdict changed: ${verdictSummary()}`);
-    if (notes.length) {
-      $("change-notice").textContent = `Changed by another console: ${notes.join("; ")}.`;
-      $("change-notice").hidden = false;
-      cancelSteps();
-    }
+    if (notes.length) announceChange(notes.join("; "));
     await showCandidate();
     if (verdictChanged || searchChanged) await Promise.all([loadAttitudes(), loadSequences()]);
   });

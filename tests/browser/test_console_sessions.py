@@ -28,6 +28,12 @@ def expect_text(locator, pattern: str, timeout: int = TIMEOUT_MS) -> None:
     expect(locator).to_contain_text(re.compile(pattern), timeout=timeout)
 
 
+def expect_in_viewport(locator, timeout: int = TIMEOUT_MS) -> None:
+    from playwright.sync_api import expect
+
+    expect(locator).to_be_in_viewport(timeout=timeout)
+
+
 def expect_visible(locator, visible: bool = True, timeout: int = TIMEOUT_MS) -> None:
     from playwright.sync_api import expect
 
@@ -296,6 +302,11 @@ def test_a_confirmation_refused_for_a_replaced_search_shows_the_new_search_whole
     n_new = len(second["candidates"])
     expect_text(page.locator("#cand-rank"), f"rank 1 of {n_new}")
     expect_text(page.locator("#change-notice"), f"a new search \\(#{second['search_id']}\\) replaced the candidates")
+    # The notice sits at the top of the workspace, the Confirm step further down: it is brought into view.
+    expect_in_viewport(page.locator("#change-notice"))
+    # ... and not under the sticky top bar.
+    assert page.locator("#change-notice").bounding_box()["y"] >= sum(
+        page.locator(".topbar").bounding_box()[k] for k in ("y", "height"))
     assert page.locator("#candidate-rows tr").count() == n_new
     assert page.locator("#candidate-rows tr.selected").get_attribute("data-rank") == "1"
     expect_text(page.locator("#cand-facts"), f"1 of {n_new}")
