@@ -388,6 +388,12 @@ async function stepCandidate(delta) {
   await goToRank(rank);
 }
 
+// The words for another console's search replacing the candidates shown (state.rank already set).
+function replacedBy(searchId) {
+  return `a new search (#${searchId}) replaced the candidates shown; ` +
+    (state.rank ? `back at rank ${state.rank}` : "it found no candidates");
+}
+
 // What another console changed, above the candidates; any step this console had open is closed (it was
 // about what was shown before). The notice is brought into view: the step was further down the page.
 function announceChange(what) {
@@ -395,7 +401,10 @@ function announceChange(what) {
   notice.textContent = `Changed by another console: ${what}.`;
   notice.hidden = false;
   cancelSteps();
-  notice.scrollIntoView({ block: "nearest" });
+  // Into view just below the sticky top bar, whose height grows while an error shows there.
+  const below = document.querySelector(".topbar").getBoundingClientRect().bottom + 8;
+  const top = notice.getBoundingClientRect().top;
+  if (top < below || top + notice.offsetHeight > window.innerHeight) window.scrollBy(0, top - below);
 }
 
 // After this console's confirmation or rejection (or its refusal): the verdict, the lists and the 3D
@@ -408,7 +417,7 @@ async function afterVerdict() {
   const newSearch = detail.search?.search_id ?? null;
   if (newSearch !== shownSearch) {
     state.rank = detail.search?.candidates.length ? 1 : null;
-    announceChange(`a new search (#${newSearch}) replaced the candidates shown; back at rank ${state.rank ?? "-"}`);
+    announceChange(replacedBy(newSearch));
     await writeView({ sequence: d.id, rank: state.rank });
     await showCandidate();
   } else {
@@ -527,7 +536,7 @@ async function pollView() {
     // Announce what changed elsewhere rather than swap it silently.
     const notes = [];
     if (searchChanged && !d?.search) toast(`${d?.sequence_id || "The sequence"} was searched: ${statusText(doc.status)}`);
-    else if (searchChanged) notes.push(`a new search (#${doc.search_id}) replaced the candidates shown; back at rank ${state.rank ?? "-"}`);
+    else if (searchChanged) notes.push(replacedBy(doc.search_id));
     if (patternChanged && !searchChanged) notes.push(`the pattern changed elsewhere (version ${doc.pattern_version}): the candidates are stale until a new search`);
     if (verdictChanged) notes.push(`the sequence's verdict changed: ${verdictSummary()}`);
     if (notes.length) announceChange(notes.join("; "));

@@ -297,6 +297,8 @@ def test_a_confirmation_refused_for_a_replaced_search_shows_the_new_search_whole
     page.fill("#override-reason", "checked by eye")
     page.click("#confirm-override")
     expect_text(page.locator("#toast"), "replaced by search")
+    # The refusal is read whole in the status line, not cut to one line with the rest in a tooltip.
+    assert page.locator("#toast").evaluate("e => e.scrollWidth <= e.clientWidth && e.scrollHeight <= e.clientHeight")
     # The second step asked about rank 3 of the old search: it must not stay to confirm the new rank 1.
     expect_visible(page.locator("#override-step"), False)
     n_new = len(second["candidates"])
@@ -313,6 +315,22 @@ def test_a_confirmation_refused_for_a_replaced_search_shows_the_new_search_whole
     watched.screenshot("16-refused-for-a-replaced-search")
     review = api(f"/api/sequences/{seq_id}/review")
     assert review["confirmation"] is None and review["search_id"] == second["search_id"]
+    assert unexpected_errors(watched) == []
+
+
+def test_a_replacing_search_without_candidates_is_announced_in_words(server, api, new_page, tmp_path):
+    """Another console searches again with a method that finds nothing (triangle features on a sparse
+    field): the notice says so, not "back at rank -"."""
+    seq_id, first = upload_and_search(api, fresh_copy("06-sparse.json", "emptied", tmp_path))
+    assert first["candidates"]
+    watched = operator_on(new_page, server, "Sparse Watcher", seq_id, "06-sparse-emptied")
+    page = watched.page
+    expect_text(page.locator("#cand-rank"), f"rank 1 of {len(first['candidates'])}")
+    second = api(f"/api/sequences/{seq_id}/search", "POST", body={"method": "tf"})
+    assert second["candidates"] == []
+    expect_text(page.locator("#change-notice"), f"a new search \\(#{second['search_id']}\\) replaced the "
+                                                 "candidates shown; it found no candidates")
+    assert "rank -" not in page.locator("#change-notice").inner_text()
     assert unexpected_errors(watched) == []
 
 
