@@ -41,7 +41,8 @@ export function toast(message, kind = "ok") {
 export function errorText(err) {
   if (!err) return "unknown error";
   const lines = [err.headline || err.detail || err.message || String(err)];
-  for (const p of err.problems || []) lines.push(`${p.location}: ${p.message}`);
+  // A problem the reason already says (a refusal whose reason is its one problem) is not said twice.
+  for (const p of err.problems || []) if (!lines[0].includes(p.message)) lines.push(`${p.location}: ${p.message}`);
   return lines.join("\n");
 }
 

@@ -11,7 +11,7 @@ import numpy as np
 from app.camera import CAMERAS
 from app.simulate import simulate_sequence, true_optics
 from conftest import SCREENSHOTS
-from test_console_sessions import console, expect_text, expect_visible, open_sequence, wait_for
+from test_console_sessions import SAMPLES, console, expect_text, expect_visible, open_sequence, wait_for
 
 CAMERA = CAMERAS["tubsat-752x582-20deg"]
 
@@ -56,3 +56,22 @@ def test_calibrating_from_the_console_shows_the_fitted_camera_and_the_residual_m
     SCREENSHOTS.mkdir(parents=True, exist_ok=True)
     page.locator("#calibration-card").screenshot(path=str(SCREENSHOTS / "30-calibration-card.png"))
     watched.screenshot("31-console-with-calibration")
+
+
+def test_a_refused_calibration_says_why_once(server, api, new_page, tmp_path):
+    """Too few identified sequences: the refusal's reason is shown whole, and once (its one located
+    problem repeats the reason word for word, which the console does not print again)."""
+    doc = json.loads((SAMPLES / "01-clean.json").read_text())
+    doc.update(sequence_id="too-few-for-a-calibration", spacecraft="TOO-FEW-SAT")
+    seq_id = api("/api/sequences", "POST", raw=json.dumps(doc).encode())["id"]
+    assert api(f"/api/sequences/{seq_id}/search", "POST", body={})["status"] == "identified"
+    watched, _ = console(new_page, server)
+    page = watched.page
+    open_sequence(page, seq_id, "too-few-for-a-calibration")
+    expect_visible(page.locator("#calibration-card"))
+    page.locator("#calibrate-button").click()
+    expect_text(page.locator("#toast"), "at least 3 sequences")
+    said = page.locator("#toast").get_attribute("title")
+    assert said.count("at least 3 sequences") == 1, said
+    assert page.locator("#toast").evaluate("e => e.scrollWidth <= e.clientWidth && e.scrollHeight <= e.clientHeight")
+    assert [e for e in watched.errors if "status of 422" not in e] == []
