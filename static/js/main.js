@@ -568,13 +568,21 @@ async function follow3D() {
 }
 
 function setup3D() {
+  // Each tab keeps its own scroll position: the 3D view opens at its top (not at the depth the operator
+  // had scrolled to in the sequence tab, where it showed an empty panel), and coming back finds the
+  // sequence tab where it was left.
+  const scrolled = {};
   const open = async (panelId) => {
+    const from = document.querySelector(".tab.active")?.dataset.panel;
+    if (from === panelId) return;
+    if (from) scrolled[from] = window.scrollY;
     for (const tab of document.querySelectorAll(".tab")) {
       const active = tab.dataset.panel === panelId;
       tab.classList.toggle("active", active);
       tab.setAttribute("aria-selected", active);
       $(tab.dataset.panel).hidden = !active;
     }
+    window.scrollTo(0, scrolled[panelId] ?? 0);
     if (panelId !== "panel-3d") return;
     try {
       const info = await api.get("/api/viewer");
