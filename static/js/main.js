@@ -192,6 +192,10 @@ function renderPattern() {
       el("td", {}, `◆ hand ${k + 1}`), el("td", {}, `snap. ${m.snapshot + 1}`), el("td", {}, `${fmt(m.x, 1)}, ${fmt(m.y, 1)}`), el("td", {}, "")));
   });
   $("pattern-rows").replaceChildren(...rows);
+  const wrap = $("pattern-wrap");
+  const hiddenRows = rows.filter((r) => r.offsetTop + r.offsetHeight > wrap.scrollTop + wrap.clientHeight + 1).length;
+  $("pattern-more").hidden = !hiddenRows;
+  $("pattern-more").textContent = `${rows.length} rows: scroll the table for ${hiddenRows} more`;
   $("pattern-caption").textContent = `version ${pattern.version ?? "-"} (${pattern.kind}${pattern.operator ? `, ${pattern.operator}` : ""}): ` +
     `${pattern.points.length} points, reference snapshot ${pattern.reference_snapshot + 1}`;
 }

@@ -334,6 +334,31 @@ def test_a_replacing_search_without_candidates_is_announced_in_words(server, api
     assert unexpected_errors(watched) == []
 
 
+def test_the_pattern_table_shows_a_whole_pattern(server, api, new_page, tmp_path):
+    """A pattern of a dozen points is listed whole: the table does not hide its last rows in a box that
+    scrolls without showing a scrollbar (headless and overlay scrollbars show none)."""
+    seq_id, _ = upload_and_search(api, fresh_copy("10-narrow-12deg-ghosts.json", "rows", tmp_path))
+    n_rows = len(api(f"/api/sequences/{seq_id}")["extraction"]["pattern"])
+    assert n_rows >= 12
+    watched, _ = console(new_page, server)
+    page = watched.page
+    open_sequence(page, seq_id, "10-narrow-12deg-ghosts-rows")
+    rows = page.locator("#pattern-rows tr")
+    assert rows.count() == n_rows
+    wrap = page.locator("#pattern-wrap").bounding_box()
+    last = rows.nth(n_rows - 1).bounding_box()
+    assert last["y"] + last["height"] <= wrap["y"] + wrap["height"] + 1
+    expect_visible(page.locator("#pattern-more"), False)
+
+    # Ten points picked by hand besides: longer than the table, which then says that it scrolls.
+    picked = [{"snapshot": 0, "x": 40.0 + 60 * k, "y": 50.0} for k in range(10)]
+    api(f"/api/sequences/{seq_id}/pattern", "PUT", body={"manual_points": picked})
+    page.reload()
+    page.wait_for_selector("body[data-ready='1']")
+    open_sequence(page, seq_id, "10-narrow-12deg-ghosts-rows")
+    expect_text(page.locator("#pattern-more"), rf"{n_rows + 10} rows: scroll the table for \d+ more")
+
+
 def test_no_valid_attitude_refused_after_another_verdict_shows_that_verdict(server, api, new_page, tmp_path):
     """This console opens "no valid attitude" while another operator confirms the sequence through the API
     and before this console's polling has noticed (its reads of the view are answered with the view as it
