@@ -166,6 +166,7 @@ async function sendConfirmation(secondStep) {
   state.busy++;
   try {
     const { status, body: c } = await api.requestWithStatus("POST", `/api/sequences/${d.id}/confirm`, body);
+    $("comment").value = "";   // stored with this confirmation; not to be carried into a later one
     cancelSteps();
     await hooks.afterVerdict();
     $("confirmed").scrollIntoView({ block: "nearest" });

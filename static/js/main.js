@@ -141,6 +141,8 @@ async function loadDetail(id, { fresh = false } = {}) {
     [detail, review] = await Promise.all([api.get(`/api/sequences/${id}`), api.get(`/api/sequences/${id}/review`)]);
     if ((detail.search?.search_id ?? null) === (review.search_id ?? null)) break;
   }
+  // A comment is about the sequence it was typed for: another sequence starts without it.
+  if (state.detail?.id !== detail.id) $("comment").value = "";
   state.detail = detail;
   state.review = review;
   $("empty-hint").hidden = true;

@@ -234,6 +234,9 @@ def test_operator_flow(server, api, new_page):
     expect_text(page.locator("#confirmed"), r"Confirmed: attitude #\d+")
     expect_text(page.locator("#seq-status"), "confirmed")
     attitude_id = int(re.search(r"attitude #(\d+)", page.locator("#confirmed").inner_text()).group(1))
+    assert api(f"/api/sequences/{seq_id}/review")["confirmation"]["comment"] == "browser test"
+    # Stored with this confirmation: the field is empty again, not carried into a later one.
+    assert page.locator("#comment").input_value() == ""
 
     # The attitude list has it, with the operator, and its APM downloads.
     row = page.locator(f"#attitude-list tr[data-id='{attitude_id}']")

@@ -359,6 +359,19 @@ def test_the_pattern_table_shows_a_whole_pattern(server, api, new_page, tmp_path
     expect_text(page.locator("#pattern-more"), rf"{n_rows + 10} rows: scroll the table for \d+ more")
 
 
+def test_a_comment_stays_with_its_sequence(server, api, new_page, tmp_path):
+    """A comment typed for one sequence is not carried to the next one opened (where Confirm would have
+    stored it with the wrong attitude)."""
+    first, _ = upload_and_search(api, fresh_copy("01-clean.json", "comment-a", tmp_path))
+    second, _ = upload_and_search(api, fresh_copy("03-jupiter.json", "comment-b", tmp_path))
+    watched = operator_on(new_page, server, "Commenter", first, "01-clean-comment-a")
+    page = watched.page
+    page.fill("#comment", "about the first sequence")
+    open_sequence(page, second, "03-jupiter-comment-b")
+    assert page.locator("#comment").input_value() == ""
+    assert unexpected_errors(watched) == []
+
+
 def test_no_valid_attitude_refused_after_another_verdict_shows_that_verdict(server, api, new_page, tmp_path):
     """This console opens "no valid attitude" while another operator confirms the sequence through the API
     and before this console's polling has noticed (its reads of the view are answered with the view as it
