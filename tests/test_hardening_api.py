@@ -234,6 +234,44 @@ def test_upload_command_says_when_the_url_is_wrong(live_server, sample_dir, caps
     assert "invalid" not in err
 
 
+
+def test_upload_command_says_when_a_sequence_is_stored_again_in_other_bytes(live_server, sample_dir, tmp_path,
+                                                                            capsys):
+    """The operator trial: the same pass with CRLF line endings was stored twice without a word."""
+    folder = tmp_path / "pass"
+    folder.mkdir()
+    data = (sample_dir / "01-clean.json").read_bytes()
+    (folder / "a-lf.json").write_bytes(data)
+    (folder / "b-crlf.json").write_bytes(data.replace(b"\n", b"\r\n"))
+    status = cli_main(["upload", str(folder), "--server", live_server])
+    out = capsys.readouterr().out.splitlines()
+    assert status == 0
+    assert out[0].endswith("a-lf.json: created id=1 sequence_id=01-clean")
+    assert out[1].endswith("b-crlf.json: created id=2 sequence_id=01-clean")
+    assert out[2] == ("  note: another stored upload (#1) has the same spacecraft and sequence id; its telemetry "
+                      "differs in bytes (line endings, byte-order mark or content)")
+    assert len(out) == 3
+
+
+def test_upload_command_says_how_many_truth_files_it_skipped(live_server, sample_dir, tmp_path, capsys):
+    folder = tmp_path / "pass"
+    folder.mkdir()
+    for name in ("01-clean.json", "01-clean.truth.json", "08-csv.csv", "08-csv.truth.json"):
+        (folder / name).write_bytes((sample_dir / name).read_bytes())
+    status = cli_main(["upload", str(folder), "--server", live_server])
+    captured = capsys.readouterr()
+    assert status == 0
+    assert len(captured.out.splitlines()) == 2  # the two telemetry files, nothing sent of the truth files
+    assert "skipped 2 truth files (*.truth.json): the simulator's answers, not telemetry" in captured.err.splitlines()
+    (folder / "08-csv.truth.json").unlink()
+    cli_main(["upload", str(folder), "--server", live_server])
+    assert "skipped 1 truth file (*.truth.json): the simulator's answers, not telemetry" in \
+        capsys.readouterr().err.splitlines()
+    (folder / "01-clean.truth.json").unlink()
+    cli_main(["upload", str(folder), "--server", live_server])
+    assert "truth" not in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("query", ["end=0001-01-01T00:00:00%2B00:01", "start=9999-12-31T23:59:59-00:01"])
 def test_bulk_aem_times_off_the_calendar_are_422_at_their_parameter(api, query):
     """Found by the long schema fuzz run: the conversion to UTC overflowed (a 500)."""

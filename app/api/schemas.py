@@ -9,11 +9,12 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StringConstraints
 
 from app.identification import METHODS
 from app.workflow.documents import ManualPointDefinition, PatternDefinition
 from app.workflow.search import PriorRequest
+from app.workflow.text import NUL_MESSAGE, comment_problem, operator_name_problem
 from app.workflow.view_state import SESSION_PATTERN
 
 #: Largest list an edit may carry (a sequence has at most 64 x 64 sources).
@@ -23,20 +24,51 @@ MAX_OPERATOR = 100
 MAX_COMMENT = 2000
 #: Ids and ranks fit a 64-bit database integer.
 MAX_ID = 2**63 - 1
+#: Longest spacecraft name and search term.
+MAX_NAME = 128
 
 
 def _without_nul(text: str | None) -> str | None:
     if text is not None and "\x00" in text:
-        raise ValueError("must not contain a NUL character (U+0000)")
+        raise ValueError(NUL_MESSAGE)
     return text
 
 
-#: Free text a client sends (names, comments, reasons, search terms): any character but U+0000.
-#: PostgreSQL's text cannot hold U+0000 and SQLite can; refusing it here gives the same located 422
-#: on both backends instead of a stored row on one and a failed write on the other.  As a query
-#: parameter write ``Annotated[Text, Query(...)]``: with ``= Query(...)`` as the default FastAPI drops
-#: the validator.
-Text = Annotated[str, AfterValidator(_without_nul)]
+def _operator_name(text: str | None) -> str | None:
+    problem = None if text is None else operator_name_problem(text)
+    if problem:
+        raise ValueError(problem)
+    return text
+
+
+def _comment(text: str | None) -> str | None:
+    problem = None if text is None else comment_problem(text)
+    if problem:
+        raise ValueError(problem)
+    return text
+
+
+# Free text a client sends.  U+0000 is refused everywhere: PostgreSQL's text cannot hold it and SQLite
+# can; refusing it here gives the same located 422 on both backends instead of a stored row on one and a
+# failed write on the other.  What an audit record keeps (names, comments, reasons) refuses control and
+# bidirectional control characters too (app.workflow.text says which and why).
+#
+# Each length limit is a StringConstraints inside the type, before the validator: a Field(max_length=...)
+# beside an AfterValidator is checked after it as a generic length, and pydantic then words it for a list
+# ("Value should have at most 100 items after validation") instead of "String should have at most 100
+# characters".  As a query or path parameter write ``Annotated[ShortText, Query(...)]`` without a length
+# in Query: with ``= Query(...)`` as the default FastAPI drops the validator.
+
+#: An operator's name (audit records): one line of plain text, at most MAX_OPERATOR characters.
+OperatorName = Annotated[str, StringConstraints(max_length=MAX_OPERATOR), AfterValidator(_operator_name)]
+#: A comment or an override reason: lines of text (newline and tab allowed), at most MAX_COMMENT characters.
+Comment = Annotated[str, StringConstraints(max_length=MAX_COMMENT), AfterValidator(_comment)]
+#: The reason of a "no valid attitude" verdict: as a comment, and not empty.
+Reason = Annotated[str, StringConstraints(min_length=1, max_length=MAX_COMMENT), AfterValidator(_comment)]
+#: A search term or a spacecraft filter: any character but U+0000, at most MAX_NAME characters.
+ShortText = Annotated[str, StringConstraints(max_length=MAX_NAME), AfterValidator(_without_nul)]
+#: A spacecraft's name as its telemetry files give it: 1 to MAX_NAME characters, any but U+0000.
+SpacecraftName = Annotated[str, StringConstraints(min_length=1, max_length=MAX_NAME), AfterValidator(_without_nul)]
 
 #: A track id as the extraction numbers them (0..tracks-1; bounded so nothing overflows).
 TrackId = Annotated[int, Field(ge=0, le=1_000_000)]
@@ -60,7 +92,7 @@ class PatternEdit(_Strict):
     exclude_tracks: list[TrackId] = Field(default_factory=list, max_length=MAX_LIST)
     include_tracks: list[TrackId] | None = Field(default=None, max_length=MAX_LIST)
     manual_points: list[ManualPoint] = Field(default_factory=list, max_length=256)
-    operator: Text | None = Field(default=None, max_length=MAX_OPERATOR)
+    operator: OperatorName | None = None
 
     def location_of(self, field: str, key: int) -> str:
         """Where ``key`` (a track id, or a manual point's position) is in this request, for a located problem."""
@@ -80,7 +112,7 @@ class PatternEdit(_Strict):
 
 
 class PatternReset(_Strict):
-    operator: Text | None = Field(default=None, max_length=MAX_OPERATOR)
+    operator: OperatorName | None = None
 
 
 class PriorAttitude(_Strict):
@@ -110,9 +142,9 @@ class ConfirmRequest(_Strict):
     ``search_id``: the search the operator looked at (refused if a newer one replaced it)."""
 
     rank: int = Field(ge=1, le=MAX_ID)
-    operator: Text | None = Field(default=None, max_length=MAX_OPERATOR)
-    comment: Text | None = Field(default=None, max_length=MAX_COMMENT)
-    override_reason: Text | None = Field(default=None, max_length=MAX_COMMENT)
+    operator: OperatorName | None = None
+    comment: Comment | None = None
+    override_reason: Comment | None = None
     supersede: bool = False
     search_id: int | None = Field(default=None, ge=1, le=MAX_ID)
 
@@ -120,8 +152,8 @@ class ConfirmRequest(_Strict):
 class RejectRequest(_Strict):
     """Record "no valid attitude" for a sequence, with the reason; ``supersede`` withdraws a confirmation."""
 
-    reason: Text = Field(min_length=1, max_length=MAX_COMMENT)
-    operator: Text | None = Field(default=None, max_length=MAX_OPERATOR)
+    reason: Reason
+    operator: OperatorName | None = None
     supersede: bool = False
 
 
@@ -146,6 +178,6 @@ class ViewEdit(_Strict):
 class CalibrateRequest(_Strict):
     """Who calibrates, and which optical parameters to fit (default focal length, principal point, k1)."""
 
-    operator: Text | None = Field(default=None, max_length=MAX_OPERATOR)
+    operator: OperatorName | None = None
     parameters: list[Literal["f", "focal_length_px", "cx", "cy", "k1", "k2"]] | None = Field(
         default=None, min_length=1, max_length=6)

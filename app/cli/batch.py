@@ -12,11 +12,11 @@ Extraction and identification of many sequences on Dask (issue 14; see
 * ``--archive``: every archived sequence is searched again.
 
 Directories are read (not recursively) for ``*.json`` and ``*.csv``,
-leaving out ``*.truth.json``.  A re-run skips what is done (files already in
-the output; sequences whose latest search would be reused); ``--redo``
-starts the JSON-lines output afresh.  By default a local cluster of
-``--workers`` processes (one per core) runs the work; ``--scheduler
-tcp://host:8786`` uses an existing Dask cluster, whose workers need this
+leaving out ``*.truth.json`` (stderr says how many).  A re-run skips what
+is done (files already in the output; sequences whose latest search would
+be reused); ``--redo`` starts the JSON-lines output afresh.  By default a
+local cluster of ``--workers`` processes (one per core) runs the work;
+``--scheduler tcp://host:8786`` uses an existing Dask cluster, whose workers need this
 package installed, the files at the same paths (shared storage) and, to
 store results, a ``postgresql://`` archive they can reach.  A progress bar goes to stderr, then the figures: how
 many were done and skipped, and sequences per second (start-up excluded).
@@ -33,7 +33,7 @@ import os
 import sys
 from pathlib import Path
 
-from app.cli.upload import BAR_WIDTH, progress_bar, telemetry_files
+from app.cli.upload import BAR_WIDTH, inputs, progress_bar, truth_note
 
 METHODS = ("bright_pair", "tf")
 
@@ -82,7 +82,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"batch: no such file or directory: {', '.join(missing[:5])}{' ...' if len(missing) > 5 else ''}",
               file=sys.stderr)
         return 2
-    paths = [str(p) for p in telemetry_files(args.paths)] if args.paths else None
+    paths = None
+    if args.paths:
+        files, truth = inputs(args.paths)
+        if truth:
+            print(f"batch: {truth_note(len(truth))}", file=sys.stderr)
+        paths = [str(p) for p in files]
     if paths is not None and not paths:
         print("batch: no .json or .csv files found", file=sys.stderr)
         return 2

@@ -1,8 +1,9 @@
 """`python -m app upload DIR_OR_FILES --server URL [--token T] [--fov-deg DEG]`: send telemetry to a server.
 
 Directories are searched (not recursively) for ``*.json`` and ``*.csv``
-files, leaving out ``*.truth.json`` (the simulator's truth files); files
-named explicitly are always sent.  Spot lists go to ``POST /api/sequences``.
+files, leaving out ``*.truth.json`` (the simulator's truth files; stderr
+says how many); files named explicitly are always sent.  Spot lists go to
+``POST /api/sequences``.
 Full frames (issue 15) go to ``POST /api/frames``, as ``solve`` reads them:
 an image file named explicitly (FITS, PNG, JPEG, TIFF) is one pass, with
 ``<stem>.frames.json`` beside it as its sidecar if there is one; a
@@ -12,9 +13,12 @@ directory holding images is one pass of all of them, with its
 the passes' ``fov_deg`` field; a spot-list file is refused with it, unsent
 (it carries its own camera), and the others go on.  A progress bar goes to stderr and one
 line per file to stdout: ``created``, ``duplicate``, ``invalid`` with the
-server's message, ``too large`` or ``error``.  The server is asked for its
-health first, which checks the URL (``--server`` is the server's base URL,
-without ``/api``) and gives the size limit, so that files above it are
+server's message, ``too large`` or ``error``; a stored file is followed by
+an indented ``note:`` line when other stored uploads have its spacecraft
+and sequence id (the same pass sent before in other bytes, e.g. CRLF line
+endings or a byte-order mark: uploads are told apart by their exact
+bytes).  The server is asked for its health first, which checks the URL
+(``--server`` is the server's base URL, without ``/api``) and gives the size limit, so that files above it are
 reported without being sent.  One file's failure never stops the folder;
 only a server that cannot be reached at all does.  Exit status 0 when every
 file was accepted, 2 when some were refused, 1 when the server could not
@@ -45,6 +49,8 @@ IMAGE_SUFFIXES = (".fits", ".fit", ".fts", ".fits.gz", ".fit.gz", ".png", ".jpg"
 #: A folder's sidecar, and a single image's (``<stem>.frames.json``).
 FOLDER_SIDECAR = "frames.json"
 SIDECAR_SUFFIX = ".frames.json"
+#: The simulator's answers beside its telemetry: left out of directories.
+TRUTH_SUFFIX = ".truth.json"
 #: --fov-deg's bounds (the API's fov_deg field).
 FOV_MIN_DEG, FOV_MAX_DEG = 0.1, 120.0
 #: A file answered 503 (the server was busy past its time-out; nothing was stored) is sent again this
@@ -100,13 +106,15 @@ class FramePass:
     sidecar: Path | None
 
 
-def telemetry_files(paths: list[str]) -> list[Path | FramePass]:
-    """Explicit files as given, then the telemetry files of each directory in name order.
+def inputs(paths: list[str]) -> tuple[list[Path | FramePass], list[Path]]:
+    """``(what to send, truth files left out)``: explicit files as given, then the telemetry files of each
+    directory in name order, leaving out its ``*.truth.json`` files.
 
     An explicit image file is a :class:`FramePass` of its own; a directory holding images gives one
     :class:`FramePass` of them all (its ``frames.json`` the sidecar), before its spot-list files.
     """
     files: list[Path | FramePass] = []
+    truth: list[Path] = []
     for raw in paths:
         path = Path(raw)
         if path.is_dir():
@@ -115,13 +123,20 @@ def telemetry_files(paths: list[str]) -> list[Path | FramePass]:
             sidecar = path / FOLDER_SIDECAR
             if images:
                 files.append(FramePass(path, images, sidecar if sidecar.is_file() else None))
-            files += [p for p in entries if p.suffix.lower() in SUFFIXES and not p.name.lower().endswith(".truth.json")
-                      and not (images and p.name == FOLDER_SIDECAR)]
+            spot_lists = [p for p in entries
+                          if p.suffix.lower() in SUFFIXES and not (images and p.name == FOLDER_SIDECAR)]
+            truth += [p for p in spot_lists if p.name.lower().endswith(TRUTH_SUFFIX)]
+            files += [p for p in spot_lists if not p.name.lower().endswith(TRUTH_SUFFIX)]
         elif is_image(path):
             files.append(FramePass(path, (path,), _image_sidecar(path)))
         else:
             files.append(path)
-    return files
+    return files, truth
+
+
+def truth_note(count: int) -> str:
+    """The line saying how many truth files a directory gave that were not sent."""
+    return f"skipped {count} truth file{'s' * (count != 1)} (*{TRUTH_SUFFIX}): the simulator's answers, not telemetry"
 
 
 def progress_bar(done: int, total: int, label: str = "") -> str:
@@ -131,11 +146,15 @@ def progress_bar(done: int, total: int, label: str = "") -> str:
 
 
 def summary_line(name: str, status: int | None, doc: dict | None, error: str | None = None) -> str:
-    """One line per file from the server's answer (status None: no answer)."""
+    """One line per file from the server's answer (status None: no answer); a stored file's note (other
+    uploads of its spacecraft and sequence id) follows on an indented line."""
     if status in (200, 201) and doc:
         seq = doc.get("sequence", {})
         kind = "created" if status == 201 else "duplicate"
-        return f"{name}: {kind} id={doc.get('id')} sequence_id={seq.get('sequence_id')}"
+        line = f"{name}: {kind} id={doc.get('id')} sequence_id={seq.get('sequence_id')}"
+        # The server's word on other stored uploads of this spacecraft and sequence id (the same pass in
+        # other bytes); an older server sends none.
+        return line + (f"\n  note: {doc['note']}" if isinstance(doc.get("note"), str) and doc["note"] else "")
     if status is None:
         return f"{name}: error: {error}"
     detail = (doc or {}).get("detail") or error or f"HTTP {status}"
@@ -267,7 +286,9 @@ def run(args: argparse.Namespace) -> int:
     if urllib.parse.urlparse(args.server).scheme not in ("http", "https"):
         print(f"upload: --server must be an http:// or https:// URL, not {args.server!r}", file=sys.stderr)
         return 2
-    files = telemetry_files(args.paths)
+    files, truth = inputs(args.paths)
+    if truth:
+        print(truth_note(len(truth)), file=sys.stderr)
     if not files:
         print("upload: no .json, .csv or image files found", file=sys.stderr)
         return 2

@@ -225,6 +225,30 @@ class Storage:
                                 [*params, limit, offset]).fetchall()
         return [_sequence_row(r, full=False) for r in rows], total
 
+    def same_sequence_ids(self, spacecraft: str | None, sequence_id: str | None, *,
+                          other_than: int | None = None) -> list[int]:
+        """Ids of the stored uploads of this spacecraft and sequence id, oldest first (None matches None),
+        leaving out ``other_than``.
+
+        Uploads are told apart by their exact content (:func:`content_sha256`), so the same telemetry
+        sent again with other line endings or a byte-order mark is a second sequence; this says which
+        sequences it shares its names with.  ``= ?`` rather than a null-safe ``IS ?``: an index serves
+        the equality on both backends, ``IS NOT DISTINCT FROM`` none on PostgreSQL.
+        """
+        where, params = [], []
+        for column, value in (("spacecraft", spacecraft), ("sequence_id", sequence_id)):
+            if value is None:
+                where.append(f"{column} IS NULL")
+            else:
+                where.append(f"{column} = ?")
+                params.append(value)
+        if other_than is not None:
+            where.append("id <> ?")
+            params.append(other_than)
+        with self._transaction(write=False) as conn:
+            rows = conn.execute(f"SELECT id FROM sequences WHERE {' AND '.join(where)} ORDER BY id", params).fetchall()
+        return [r[0] for r in rows]
+
     def spacecraft_names(self) -> list[tuple[str | None, int]]:
         """Every spacecraft name in the archive (None: files without one) with its number of sequences."""
         with self._transaction(write=False) as conn:

@@ -11,6 +11,7 @@ them imports another, and nothing here imports FastAPI or viser.
 * :mod:`.confirm` - confirmations and their CCSDS APM/AEM;
 * :mod:`.view` - the selection the console and the 3D view share;
 * :mod:`.files` - the same pipeline on telemetry files (``solve``, ``extract``);
+* :mod:`.text` - which characters operator names, comments and reasons may hold;
 * :mod:`.documents` - every document the program emits or stores (one serializer);
 * :mod:`.errors` - what the workflow refuses, by kind (the API maps kinds to statuses).
 """

@@ -10,7 +10,9 @@ Rules (issue 4):
 * Tokens come from ``STARID_TOKENS`` (``"token1=alice,token2=bob"``) and/or
   a file named by ``STARID_TOKENS_FILE`` (lines ``token operator``; blank
   lines and ``#`` comments ignored).  The token's operator is the one written
-  into audit records, whatever name a request body gives.
+  into audit records, whatever name a request body gives; so a name holding a
+  control or bidirectional control character (:mod:`app.workflow.text`) is
+  refused here as it is in a request body, and the server does not start.
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ import hmac
 import ipaddress
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from app.workflow.text import operator_name_problem
 
 
 class TokenConfigError(ValueError):
@@ -40,6 +44,9 @@ def _check_pair(token: str, operator: str, where: str) -> None:
         raise TokenConfigError(f"{where}: expected a token and an operator name")
     if any(ch.isspace() for ch in token):
         raise TokenConfigError(f"{where}: a token cannot contain blanks")
+    problem = operator_name_problem(operator)
+    if problem:
+        raise TokenConfigError(f"{where}: the operator name {problem}")
 
 
 def parse_token_list(text: str) -> dict[str, str]:

@@ -158,7 +158,7 @@ def hot_pixel_sources(ctx: AppContext, sequence: Sequence) -> tuple[int | None, 
 def stored_upload(ctx: AppContext, upload: ParsedUpload) -> UploadDocument | None:
     """The document of the stored sequence with the same content, if there is one."""
     row = ctx.storage.find_sequence(content_sha256(upload.raw_text))
-    return None if row is None else _upload_document(ctx, row, created=False)
+    return None if row is None else upload_document(ctx, row, created=False)
 
 
 def extraction_job(sequence: Sequence, known_hot=None, *, sky=None):
@@ -213,14 +213,33 @@ def store_upload(ctx: AppContext, upload: ParsedUpload, extraction) -> UploadDoc
     if created:
         ctx.cache.put(row.id, LoadedSequence(sequence, extraction))
         ctx.storage.add_pattern_version(row.id, automatic_definition().model_dump(), kind="automatic")
-    return _upload_document(ctx, row, created)
+    return upload_document(ctx, row, created)
 
 
-def _upload_document(ctx: AppContext, row: SequenceRow, created: bool) -> UploadDocument:
+def upload_document(ctx: AppContext, row: SequenceRow, created: bool) -> UploadDocument:
+    """The answer to an upload stored as ``row``, naming the other uploads of its spacecraft and sequence id."""
     item = loaded(ctx, row)
+    same = ctx.storage.same_sequence_ids(row.spacecraft, row.sequence_id, other_than=row.id)
     return UploadDocument(id=row.id, created=created, sequence=SequenceSummary.of(row),
                           extraction=ExtractionDocument.model_validate(row.extraction),
-                          pattern=pattern_document(item, ctx.storage.current_pattern(row.id)))
+                          pattern=pattern_document(item, ctx.storage.current_pattern(row.id)),
+                          same_sequence_id_as=same, note=same_sequence_note(same))
+
+
+def same_sequence_note(ids: list[int]) -> str | None:
+    """The operator's sentence about other stored uploads of the same spacecraft and sequence id (None: none).
+
+    Uploads are deduplicated by their exact bytes only: telemetry read the same but sent with other line
+    endings or a byte-order mark is a second sequence, and the work queue shows both.
+    """
+    if not ids:
+        return None
+    listed = ", ".join(f"#{i}" for i in ids)
+    if len(ids) == 1:
+        return (f"another stored upload ({listed}) has the same spacecraft and sequence id; its telemetry differs "
+                "in bytes (line endings, byte-order mark or content)")
+    return (f"other stored uploads ({listed}) have the same spacecraft and sequence id; their telemetry differs "
+            "in bytes (line endings, byte-order mark or content)")
 
 
 # ---------------------------------------------------------------------------

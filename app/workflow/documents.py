@@ -408,11 +408,27 @@ class SequencePage(Document):
 
 
 class UploadDocument(Document):
+    """The answer to an upload: the stored sequence, its extraction and current pattern.
+
+    Uploads are told apart by their exact bytes (``content_sha256``), so the same telemetry sent again
+    with CRLF line endings or a UTF-8 byte-order mark is stored as a second sequence.
+    ``same_sequence_id_as`` and ``note`` say so: the other stored uploads with this spacecraft and
+    sequence id, and a sentence for the operator (see :func:`app.workflow.archive.same_sequence_note`).
+    """
+
     id: int
     created: bool = Field(description="false: the same content was stored before")
     sequence: SequenceSummary
     extraction: ExtractionDocument
     pattern: PatternDocument
+    same_sequence_id_as: list[int] = Field(
+        default_factory=list,
+        description="archive ids of the other stored uploads with the same spacecraft and sequence id, oldest "
+                    "first (their telemetry differs in bytes: line endings, byte-order mark or content); empty "
+                    "when there are none")
+    note: str | None = Field(
+        default=None, description="for the operator, when same_sequence_id_as is not empty: which other uploads "
+                                  "have the same spacecraft and sequence id; null otherwise")
 
 
 class PatternUsed(Document):

@@ -44,8 +44,7 @@ from app.telemetry import Sequence
 from app.telemetry.errors import Problem, TelemetryError
 from app.workflow import archive
 from app.workflow.context import AppContext
-from app.workflow.documents import (Document, ExtractionDocument, FramePreviewInfo, FramePreviewsDocument,
-                                    SequenceSummary, UploadDocument)
+from app.workflow.documents import Document, FramePreviewInfo, FramePreviewsDocument, UploadDocument
 from app.workflow.errors import Busy, NotFound
 
 log = logging.getLogger(__name__)
@@ -457,11 +456,7 @@ def frame_preview_png(ctx: AppContext, seq_id: int, snapshot: int) -> bytes:
 
 
 def _stored_document(ctx: AppContext, seq_id: int) -> UploadDocument:
-    row = archive.require_sequence(ctx, seq_id)
-    item = archive.loaded(ctx, row)
-    return UploadDocument(id=row.id, created=False, sequence=SequenceSummary.of(row),
-                          extraction=ExtractionDocument.model_validate(row.extraction),
-                          pattern=archive.pattern_document(item, ctx.storage.current_pattern(row.id)))
+    return archive.upload_document(ctx, archive.require_sequence(ctx, seq_id), created=False)
 
 
 # ---------------------------------------------------------------------------

@@ -10,7 +10,7 @@ from fastapi.responses import PlainTextResponse
 
 from app.api.errors import ApiError
 from app.api.routes.common import ID_LIMITS, attachment, get_context
-from app.api.schemas import Text
+from app.api.schemas import SpacecraftName
 from app.workflow import AppContext, confirm as confirming
 from app.workflow.documents import AttitudeDocument, AttitudePage
 
@@ -44,7 +44,7 @@ def list_attitudes(offset: int = Query(0, ge=0, le=2**62), limit: int = Query(50
 @router.get("/aem", response_class=PlainTextResponse,
             summary="CCSDS AEM 2.0 (KVN) of a spacecraft's confirmed attitudes in a time range, one segment per "
                     "sequence as rendered at its confirmation")
-def bulk_aem(spacecraft: Annotated[Text, Query(min_length=1, max_length=128, description="the spacecraft name")],
+def bulk_aem(spacecraft: Annotated[SpacecraftName, Query(description="the spacecraft name")],
              start: datetime | None = Query(None, description="first reference epoch included (UTC, ISO 8601)"),
              end: datetime | None = Query(None, description="reference epochs before this one (UTC, ISO 8601)"),
              ctx: AppContext = Depends(get_context)):

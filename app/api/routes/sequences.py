@@ -12,7 +12,7 @@ from starlette.datastructures import UploadFile
 from app.api.errors import ApiError
 from app.api.routes.common import (ID_LIMITS, attachment, compute_within, get_context, operator_name,
                                    read_body_limited, replay_request, too_large, work_deadline, writer)
-from app.api.schemas import ConfirmRequest, PatternEdit, PatternReset, SearchRequest, Text
+from app.api.schemas import ConfirmRequest, PatternEdit, PatternReset, SearchRequest, ShortText
 from app.storage import SEQUENCE_ORDERS
 from app.workflow import AppContext, archive, confirm as confirming, queue, search as searching
 from app.workflow.documents import (AttitudeDocument, CandidateView, PatternDocument, SearchDocument, SequenceDetail,
@@ -96,10 +96,10 @@ async def upload(request: Request, background: BackgroundTasks,
 @router.get("", response_model=SequencePage,
             summary="A page of sequences (newest first, or as the work queue: ambiguous and no match first)")
 def list_sequences(offset: int = Query(0, ge=0, le=2**62), limit: int = Query(50, ge=1, le=1000),
-                   spacecraft: Annotated[Text | None, Query(max_length=128)] = None,
+                   spacecraft: Annotated[ShortText | None, Query()] = None,
                    status: Literal["new", "identified", "ambiguous", "no_match", "confirmed", "rejected"] | None = None,
-                   search: Annotated[Text | None, Query(max_length=128, description="part of the sequence id or "
-                                                                                    "file name, or the archive id")] = None,
+                   search: Annotated[ShortText | None, Query(description="part of the sequence id or file name, "
+                                                                         "or the archive id")] = None,
                    order: Literal[tuple(SEQUENCE_ORDERS)] = Query(  # type: ignore[valid-type]
                        "newest", description="newest | oldest | queue (what needs an operator first) | time "
                                              "(snapshot time, newest first) | time_asc | spacecraft"),

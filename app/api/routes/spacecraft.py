@@ -7,14 +7,14 @@ from typing import Annotated
 from fastapi import APIRouter, Body, Depends, Path
 
 from app.api.routes.common import get_context, operator_name, writer
-from app.api.schemas import CalibrateRequest, Text
+from app.api.schemas import CalibrateRequest, SpacecraftName
 from app.workflow import AppContext, calibrate
 from app.workflow.documents import StoredCalibration
 
 router = APIRouter(prefix="/api/spacecraft", tags=["spacecraft"])
-# Annotated, so that Text's check (no NUL) runs on the path too: FastAPI drops it from `name: Text = Path(...)`.
-Spacecraft = Annotated[Text, Path(description="the spacecraft name of its telemetry files", min_length=1,
-                                  max_length=128)]
+# Annotated, so that the name's check (no NUL) runs on the path too: FastAPI drops it from
+# `name: SpacecraftName = Path(...)`.
+Spacecraft = Annotated[SpacecraftName, Path(description="the spacecraft name of its telemetry files")]
 
 
 @router.post("/{name}/calibrate", status_code=201, response_model=StoredCalibration,

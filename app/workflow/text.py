@@ -1,0 +1,62 @@
+"""Which characters an operator's free text may hold: names one line of plain text, comments a few lines.
+
+Operator names, comments and reasons end up in audit records, JSON
+documents, CCSDS messages and consoles.  A terminal escape sequence (ESC)
+in a name recolours or clears the terminal that prints it, and a
+bidirectional override (U+202E) makes a name read as another one; the
+CCSDS export replaces such characters with '?', every other reader gets
+them raw.  So they are refused where the text comes in (the API's request
+bodies, the server's token list), with the character named as U+XXXX:
+
+* an operator name: no control character at all (Unicode category Cc:
+  U+0000-U+001F, U+007F-U+009F, which includes ESC, newline and tab) and no
+  bidirectional embedding, override or isolate control (U+202A-U+202E,
+  U+2066-U+2069);
+* a comment or a reason: the same, except that newline and tab are allowed.
+
+Everything else is accepted: accents, CJK, right-to-left scripts, emoji.
+U+0000 has its own sentence (PostgreSQL's text cannot hold it at all).
+"""
+
+from __future__ import annotations
+
+import unicodedata
+
+#: Bidirectional embedding, override and isolate controls (the implicit marks U+200E/U+200F are harmless).
+BIDI_CONTROLS = frozenset(chr(c) for c in (*range(0x202A, 0x202F), *range(0x2066, 0x206A)))
+#: Control characters a comment or a reason may hold: its lines and their indentation.
+LAYOUT = frozenset("\n\t")
+
+NUL_MESSAGE = "must not contain a NUL character (U+0000)"
+#: Why the rest is refused, as the end of the message.
+NAME_RULE = "an operator name is one line of plain text"
+COMMENT_RULE = "line breaks and tabs are allowed"
+
+
+def refused_character(text: str, allowed: frozenset[str] = frozenset()) -> str | None:
+    """The first control or bidirectional control character of ``text`` not in ``allowed``, else None."""
+    for ch in text:
+        if ch in allowed:
+            continue
+        if ch in BIDI_CONTROLS or unicodedata.category(ch) == "Cc":
+            return ch
+    return None
+
+
+def _problem(ch: str, rule: str) -> str:
+    if ch == "\x00":
+        return NUL_MESSAGE
+    kind = "bidirectional control" if ch in BIDI_CONTROLS else "control character"
+    return f"must not contain the {kind} U+{ord(ch):04X} ({rule})"
+
+
+def operator_name_problem(name: str) -> str | None:
+    """Why ``name`` cannot be an operator's name ("must not contain ..."), None when it can."""
+    ch = refused_character(name)
+    return None if ch is None else _problem(ch, NAME_RULE)
+
+
+def comment_problem(text: str) -> str | None:
+    """Why ``text`` cannot be a comment or a reason ("must not contain ..."), None when it can."""
+    ch = refused_character(text, LAYOUT)
+    return None if ch is None else _problem(ch, COMMENT_RULE)
