@@ -296,5 +296,14 @@ def test_an_upload_can_ask_to_be_searched_right_away(tmp_path, sky, sample_dir):
         assert detail["status"] == "identified" and detail["search"]["method"] == "bright_pair"
         plain = client.post("/api/sequences", content=(sample_dir / "06-sparse.json").read_bytes())
         assert client.get(f"/api/sequences/{plain.json()['id']}").json()["search"] is None
+        # The same file again, now asking for the search: stored already (200) but never searched, so
+        # it is searched now; a third time it keeps that search.
+        again = client.post("/api/sequences", params={"search": "true"},
+                            content=(sample_dir / "06-sparse.json").read_bytes())
+        assert again.status_code == 200 and again.json()["id"] == plain.json()["id"]
+        searched = client.get(f"/api/sequences/{plain.json()['id']}").json()["search"]
+        assert searched is not None and searched["method"] == "bright_pair"
+        client.post("/api/sequences", params={"search": "true"}, content=(sample_dir / "06-sparse.json").read_bytes())
+        assert client.get(f"/api/sequences/{plain.json()['id']}").json()["search"]["search_id"] == searched["search_id"]
     finally:
         ctx.close()

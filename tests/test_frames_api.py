@@ -81,6 +81,11 @@ def test_a_pass_can_ask_to_be_searched_right_away(tmp_path, sky, rendered):
         assert client.get(f"/api/sequences/{seq_id}").json()["search"]["search_id"] == detail["search"]["search_id"]
         plain = client.post("/api/frames", **_fits_upload(frames[:3], times[:3], sequence_id="plain-pass"))
         assert plain.status_code == 201 and client.get(f"/api/sequences/{plain.json()['id']}").json()["search"] is None
+        # The same frames again, asking for the search: stored (200) but never searched, so searched now.
+        late = client.post("/api/frames", params={"search": "true"},
+                           **_fits_upload(frames[:3], times[:3], sequence_id="plain-pass"))
+        assert late.status_code == 200 and late.json()["id"] == plain.json()["id"]
+        assert client.get(f"/api/sequences/{plain.json()['id']}").json()["search"]["method"] == "bright_pair"
     finally:
         ctx.close()
 

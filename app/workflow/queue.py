@@ -15,7 +15,7 @@ import logging
 
 from app.workflow import search as searching
 from app.workflow.context import AppContext
-from app.workflow.documents import SearchDocument, SequencePage, SequenceSummary, SpacecraftDocument
+from app.workflow.documents import SearchDocument, SequencePage, SequenceSummary, SpacecraftDocument, UploadDocument
 from app.workflow.errors import WorkflowError
 
 log = logging.getLogger(__name__)
@@ -24,6 +24,13 @@ log = logging.getLogger(__name__)
 AUTO_SEARCH_METHOD = "bright_pair"
 #: Wall-clock time an automatic search may wait for a worker on top of its own budget.
 AUTO_SEARCH_GRACE_S = 60.0
+
+
+def wants_automatic_search(doc: UploadDocument) -> bool:
+    """Whether an upload that asked to be searched right away (the console's "search new uploads
+    automatically") gets a search: a new sequence, and also one stored before but never searched (an
+    earlier upload without the flag, or whose search could not run); a searched one keeps its search."""
+    return doc.created or doc.sequence.status == "new"
 
 
 def search_new_upload(ctx: AppContext, seq_id: int) -> SearchDocument | None:

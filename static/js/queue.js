@@ -65,8 +65,8 @@ async function uploadFiles(files) {
     results.push(await uploadLine(list, { file: file.name }, file.name,
       (progress) => api.uploadFile(file, progress, { search }),
       (status, body) => status === 201
-        ? `stored as #${body.id}: ${body.pattern.points.length} pattern points${search ? ", search queued" : ""}`
-        : `already stored as #${body.id}`));
+        ? `stored as #${body.id}: ${body.pattern.points.length} pattern points${queued(search, status, body)}`
+        : `already stored as #${body.id}${queued(search, status, body)}`));
   }
   if (!images.length) {
     for (const file of sidecars) skippedLine(list, file.name, "skipped: a frames sidecar, but no images were dropped with it");
@@ -88,6 +88,13 @@ function skippedLine(list, name, why) {
     el("div", { class: "name" }, name), el("div", { class: "dim" }, why)));
 }
 
+// Whether the server queued a search of this upload (asked for, and the sequence new or never searched).
+function queued(search, status, body) {
+  if (!search) return "";
+  if (status === 201) return ", search queued";
+  return body.sequence.status === "new" ? ", never searched: search queued" : "";
+}
+
 // One line of the upload list: the name, a progress bar, then the result or the error with its
 // located problems. send(progress) resolves {status, body}; resolves {id, created} or null (failed).
 async function uploadLine(list, dataset, name, send, describe, waiting = null) {
@@ -102,6 +109,9 @@ async function uploadLine(list, dataset, name, send, describe, waiting = null) {
     bar.value = 1;
     result.className = "ok";
     result.textContent = describe(status, body);
+    // The server's word on other stored uploads of the same spacecraft and sequence id (the same telemetry
+    // in other bytes, or a re-downlink): worth a look before two operators work on two copies.
+    if (body.note) result.after(el("div", { class: "upload-note" }, body.note));
     return { id: body.id, created: status === 201 };
   } catch (err) {
     bar.remove();
@@ -131,8 +141,8 @@ async function uploadPass(list, images, sidecars, search) {
       const sources = body.extraction.sources.reduce((n, s) => n + s.length, 0);
       const name = `#${body.id} ${body.sequence.sequence_id || ""}`.trim();
       return status === 201
-        ? `${frames} frame${frames === 1 ? "" : "s"} → ${name}, ${sources} sources${search ? ", search queued" : ""}`
-        : `already stored as ${name}`;
+        ? `${frames} frame${frames === 1 ? "" : "s"} → ${name}, ${sources} sources${queued(search, status, body)}`
+        : `already stored as ${name}${queued(search, status, body)}`;
     }, "reading the frames and detecting the stars...");
   return outcome;
 }

@@ -125,6 +125,39 @@ def test_a_single_located_problem_is_shown_once(server, new_page, tmp_path):
     assert [e for e in watched.errors if "status of 422" not in e] == []
 
 
+def test_uploads_of_the_same_sequence_are_told_apart(server, api, new_page, tmp_path):
+    """The same CSV in other line endings is a second sequence: its upload line says which stored upload
+    has the same spacecraft and sequence id.  A file stored before without a search, dropped again with
+    "search new uploads automatically" ticked, is searched now."""
+    text = (SAMPLES / "08-csv.csv").read_text()
+    assert "# sequence_id: 08-csv\n" in text
+    text = text.replace("# sequence_id: 08-csv\n", "# sequence_id: told-apart\n")
+    unix, dos = tmp_path / "told-apart.csv", tmp_path / "told-apart-crlf.csv"
+    unix.write_text(text)
+    dos.write_bytes(text.replace("\n", "\r\n").encode())
+    watched = new_page()
+    page = watched.page
+    page.goto(server + "/")
+    page.wait_for_selector("body[data-ready='1']")
+    page.uncheck("#auto-search")
+    page.set_input_files("#file-input", [str(unix)])
+    first = page.locator(".upload-item[data-file='told-apart.csv']")
+    expect_text(first, r"stored as #\d+")
+    first_id = int(re.search(r"#(\d+)", first.inner_text()).group(1))
+    assert "search queued" not in first.inner_text()
+    page.check("#auto-search")
+    page.set_input_files("#file-input", [str(dos)])
+    second = page.locator(".upload-item[data-file='told-apart-crlf.csv']")
+    expect_text(second.locator(".upload-note"), rf"another stored upload \(#{first_id}\) has the same spacecraft "
+                                                 "and sequence id")
+    page.set_input_files("#file-input", [str(unix)])
+    expect_text(page.locator(".upload-item[data-file='told-apart.csv']").first,
+                rf"already stored as #{first_id}, never searched: search queued")
+    assert wait_for_state(lambda: api(f"/api/sequences/{first_id}")["search"] is not None, True) is True
+    watched.screenshot("00-upload-same-sequence")
+    assert watched.errors == []
+
+
 def test_an_upload_refused_without_located_problems_shows_the_reason_alone(server, new_page, tmp_path):
     """A file over the size limit is refused whole (413, no problem list): the line next to the file
     says why, and nothing else (it once printed a stray "null" under the reason)."""

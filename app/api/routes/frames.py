@@ -121,8 +121,10 @@ async def upload_frames(request: Request, background: BackgroundTasks,
     finally:
         await form.close()
     prepared = await run_in_threadpool(framing.prepare_frames, ctx, files, sidecar_bytes, sequence_id, spacecraft, fov)
-    if isinstance(prepared, UploadDocument):
-        return JSONResponse(prepared.model_dump(mode="json"), status_code=200)
+    if isinstance(prepared, UploadDocument):  # the same frames were stored before
+        if search and queue.wants_automatic_search(prepared):
+            background.add_task(queue.search_new_upload, ctx, prepared.id)
+        return JSONResponse(prepared.model_dump(mode="json"), status_code=200, background=background)
     deadline = limits.timeout_s + FRAMES_GRACE_S
     # The bulk lane: whole frames are heavy, and must never hold up the ordinary searches; a job still
     # queued when its answer is due is dropped, not started.
@@ -134,7 +136,7 @@ async def upload_frames(request: Request, background: BackgroundTasks,
         raise Busy(f"the frames were not read and detected within {deadline:.0f} s (the server is busy); "
                    "try again") from None
     doc = await run_in_threadpool(framing.store_frames, ctx, prepared, result)
-    if search and doc.created:
+    if search and queue.wants_automatic_search(doc):
         background.add_task(queue.search_new_upload, ctx, doc.id)  # after the response, as for spot lists
     return JSONResponse(doc.model_dump(mode="json"), status_code=201 if doc.created else 200,
                         background=background)

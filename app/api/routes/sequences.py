@@ -81,13 +81,15 @@ async def upload(request: Request, background: BackgroundTasks,
     upload = await run_in_threadpool(archive.parse_upload, ctx, data, form_name or filename)
     stored = await run_in_threadpool(archive.stored_upload, ctx, upload)
     if stored is not None:
-        return JSONResponse(stored.model_dump(mode="json"), status_code=200)
+        if search and queue.wants_automatic_search(stored):
+            background.add_task(queue.search_new_upload, ctx, stored.id)
+        return JSONResponse(stored.model_dump(mode="json"), status_code=200, background=background)
     # Extraction is CPU-bound: in the compute pool, large files on their own lane.  Nothing is stored
     # before it is done, so an upload that times out leaves nothing behind.
     extraction = await compute_within(ctx, deadline, "the upload's extraction", archive.extraction_job,
                                       upload.sequence, upload.known_hot, lane=archive.extraction_lane(upload.sequence))
     doc = await run_in_threadpool(archive.store_upload, ctx, upload, extraction)
-    if search and doc.created:
+    if search and queue.wants_automatic_search(doc):
         background.add_task(queue.search_new_upload, ctx, doc.id)  # after the response: the queue shows "new"
     return JSONResponse(doc.model_dump(mode="json"), status_code=201 if doc.created else 200,
                         background=background)
