@@ -180,3 +180,17 @@ def test_a_static_grid_of_sources_no_longer_crashes_the_noise_estimate():
                                            "snapshots": snapshots}))
     extraction = extract(sequence)
     assert len(extraction.tracks) == 64 and all(t.n_sightings == 8 for t in extraction.tracks)
+
+
+@pytest.mark.parametrize("field", ["sequence_id", "spacecraft"])
+def test_a_bidirectional_override_in_a_telemetry_name_is_refused_at_its_field(field):
+    """U+202E in a name would make it read as another one in the console and CCSDS files: refused, named."""
+    doc = {"format": "tubsat-snapshots/1", "sequence_id": "seq", "spacecraft": "SAT", "camera": "tubsat-752x582-20deg",
+           "snapshots": [{"index": 0, "time": "2026-01-01T00:00:00Z", "sources": [{"x": 10, "y": 20, "brightness": 5}]}]}
+    doc[field] = "SAT\u202e1-TUBSAT"
+    with pytest.raises(TelemetryError) as refused:
+        parse_telemetry(json.dumps(doc))
+    assert [(p.location, p.message) for p in refused.value.problems] == [
+        (field, "must not contain the bidirectional control U+202E")]
+    doc[field] = "שמש-1 ☀"  # a right-to-left script and an emoji are names like any other
+    assert parse_telemetry(json.dumps(doc)) is not None

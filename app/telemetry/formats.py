@@ -44,6 +44,7 @@ from app.camera import CAMERAS, Camera
 from app.config import MAX_SNAPSHOTS, MAX_SOURCES_PER_SNAPSHOT, settings
 from app.telemetry.errors import Problem, ProblemCollector, TelemetryError
 from app.telemetry.model import FORMAT_NAME, Sequence, Snapshot
+from app.text import described, refused_character
 from app.timefmt import utc_text
 
 # --- limits ------------------------------------------------------------------
@@ -304,6 +305,11 @@ def _as_text(value: Any, loc: str, problems: ProblemCollector) -> str | None:
     # cannot be stored as UTF-8.
     if any(unicodedata.category(c) in ("Cc", "Cs") for c in text):
         problems.add(loc, "must not contain control characters or lone surrogates")
+        return None
+    # A bidirectional override would make the name read as another one in consoles and CCSDS files.
+    refused = refused_character(text)
+    if refused is not None:
+        problems.add(loc, f"must not contain {described(refused)}")
         return None
     return text
 

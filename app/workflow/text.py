@@ -6,7 +6,8 @@ in a name recolours or clears the terminal that prints it, and a
 bidirectional override (U+202E) makes a name read as another one; the
 CCSDS export replaces such characters with '?', every other reader gets
 them raw.  So they are refused where the text comes in (the API's request
-bodies, the server's token list), with the character named as U+XXXX:
+bodies, the server's token list), with the character named as U+XXXX
+(:mod:`app.text` holds the rule, which telemetry names follow too):
 
 * an operator name: no control character at all (Unicode category Cc:
   U+0000-U+001F, U+007F-U+009F, which includes ESC, newline and tab) and no
@@ -20,10 +21,8 @@ U+0000 has its own sentence (PostgreSQL's text cannot hold it at all).
 
 from __future__ import annotations
 
-import unicodedata
+from app.text import described, refused_character
 
-#: Bidirectional embedding, override and isolate controls (the implicit marks U+200E/U+200F are harmless).
-BIDI_CONTROLS = frozenset(chr(c) for c in (*range(0x202A, 0x202F), *range(0x2066, 0x206A)))
 #: Control characters a comment or a reason may hold: its lines and their indentation.
 LAYOUT = frozenset("\n\t")
 
@@ -33,21 +32,8 @@ NAME_RULE = "an operator name is one line of plain text"
 COMMENT_RULE = "line breaks and tabs are allowed"
 
 
-def refused_character(text: str, allowed: frozenset[str] = frozenset()) -> str | None:
-    """The first control or bidirectional control character of ``text`` not in ``allowed``, else None."""
-    for ch in text:
-        if ch in allowed:
-            continue
-        if ch in BIDI_CONTROLS or unicodedata.category(ch) == "Cc":
-            return ch
-    return None
-
-
 def _problem(ch: str, rule: str) -> str:
-    if ch == "\x00":
-        return NUL_MESSAGE
-    kind = "bidirectional control" if ch in BIDI_CONTROLS else "control character"
-    return f"must not contain the {kind} U+{ord(ch):04X} ({rule})"
+    return NUL_MESSAGE if ch == "\x00" else f"must not contain {described(ch)} ({rule})"
 
 
 def operator_name_problem(name: str) -> str | None:
