@@ -173,6 +173,21 @@ def test_token_operator_names_with_control_characters_are_refused():
     assert parse_token_list("t1=Zoë Ångström,t2=山田") == {"t1": "Zoë Ångström", "t2": "山田"}
 
 
+def test_token_operator_names_are_as_long_as_the_api_allows():
+    """The API refuses operator names over 100 characters; a token's name is held to the same."""
+    assert parse_token_list("t1=" + "a" * 100) == {"t1": "a" * 100}
+    with pytest.raises(TokenConfigError) as refused:
+        parse_token_list("t1=" + "a" * 101)
+    assert str(refused.value) == "STARID_TOKENS item 1: the operator name must be at most 100 characters, got 101"
+
+
+def test_the_hot_pixel_map_refuses_a_nul_in_the_spacecraft_name(api):
+    client, _ = api
+    r = client.get("/api/frames/hot-pixels", params={"spacecraft": "SAT\x00", "sensor": "752x582"})
+    assert r.status_code == 422
+    assert r.json()["problems"] == [{"location": "query.spacecraft", "message": "must not contain a NUL character (U+0000)"}]
+
+
 def test_serve_refuses_a_token_file_with_a_control_character_in_a_name(tmp_path):
     """The command-line path of an operator name: ``serve`` reads them from STARID_TOKENS(_FILE)."""
     tokens = tmp_path / "tokens"

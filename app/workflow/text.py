@@ -26,6 +26,9 @@ from app.text import described, refused_character
 #: Control characters a comment or a reason may hold: its lines and their indentation.
 LAYOUT = frozenset("\n\t")
 
+#: Longest operator name, in characters (the API refuses longer ones; so does the server's token list).
+MAX_OPERATOR = 100
+
 NUL_MESSAGE = "must not contain a NUL character (U+0000)"
 #: Why the rest is refused, as the end of the message.
 NAME_RULE = "an operator name is one line of plain text"
@@ -38,6 +41,8 @@ def _problem(ch: str, rule: str) -> str:
 
 def operator_name_problem(name: str) -> str | None:
     """Why ``name`` cannot be an operator's name ("must not contain ..."), None when it can."""
+    if len(name) > MAX_OPERATOR:
+        return f"must be at most {MAX_OPERATOR} characters, got {len(name)}"
     ch = refused_character(name)
     return None if ch is None else _problem(ch, NAME_RULE)
 

@@ -7,6 +7,7 @@ import asyncio
 import math
 import time
 import unicodedata
+from typing import Annotated
 
 from fastapi import APIRouter, BackgroundTasks, Depends, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
@@ -15,6 +16,7 @@ from starlette.datastructures import UploadFile
 
 from app.api.errors import ApiError
 from app.api.routes.common import ID_LIMITS, get_context, read_body_limited, replay_request, writer
+from app.api.schemas import SpacecraftName
 from app.frames import FrameLimits
 from app.workflow import AppContext, queue
 from app.workflow import frames as framing
@@ -144,7 +146,7 @@ async def upload_frames(request: Request, background: BackgroundTasks,
 
 @router.get("/api/frames/hot-pixels", response_model=framing.HotPixelMapDocument,
             summary="A spacecraft camera's hot-pixel map (current hot pixels and every version)")
-def hot_pixels(spacecraft: str = Query(..., min_length=1, max_length=128),
+def hot_pixels(spacecraft: Annotated[SpacecraftName, Query(description="the spacecraft name of its frames")],
                sensor: str = Query(..., pattern=r"^\d{1,6}x\d{1,6}$", description="WIDTHxHEIGHT, e.g. 752x582"),
                ctx: AppContext = Depends(get_context)):
     return framing.hot_pixel_map_document(ctx, spacecraft, sensor)
