@@ -110,6 +110,35 @@ def test_calibration_through_the_api_is_stored_versioned_and_given_to_later_uplo
     ctx.close()
 
 
+def test_an_archive_calibration_leaves_out_rejected_sequences_and_counts_a_resent_sequence_once(tmp_path, sky,
+                                                                                               wrong_optics_files):
+    """An operator's "no valid attitude" stands over the search that identified the sequence; the same
+    telemetry uploaded again with a byte-order mark (another upload of the same stars) counts once, and
+    the confirmed upload of the two is the one used."""
+    paths, _ = wrong_optics_files
+    ctx = AppContext(storage=Storage.open(tmp_path / "once.sqlite3"), sky=sky)
+    api = TestClient(create_app(ctx))
+    ids = []
+    for path in paths[:5]:
+        seq = api.post("/api/sequences", files={"file": (path.name, path.read_bytes())}).json()["id"]
+        assert api.post(f"/api/sequences/{seq}/search").json()["status"] == "identified"
+        ids.append(seq)
+    search = api.post(f"/api/sequences/{ids[0]}/search").json()
+    assert api.post(f"/api/sequences/{ids[0]}/confirm",
+                    json={"rank": 1, "operator": "op", "search_id": search["search_id"]}).status_code in (200, 201)
+    assert api.post(f"/api/sequences/{ids[4]}/reject", json={"reason": "clouds", "operator": "op"}).status_code == 201
+    resent = api.post("/api/sequences", files={"file": ("resent.json", b"\xef\xbb\xbf" + paths[0].read_bytes())}).json()
+    assert resent["created"] and resent["same_sequence_id_as"] == [ids[0]]
+    assert api.post(f"/api/sequences/{resent['id']}/search").json()["status"] == "identified"
+
+    r = api.post("/api/spacecraft/OPTICS-SAT/calibrate", json={"operator": "cal"})
+    assert r.status_code == 201, r.text
+    assert r.json()["sequences"] == ids[:4]  # not the rejected one, and the confirmed upload of the resent one
+    assert r.json()["notes"] == ["1 upload of a sequence id already used left out (the same telemetry sent again "
+                                 "counts once: the confirmed upload, else the newest)"]
+    ctx.close()
+
+
 def test_a_calibration_needs_enough_identified_sequences(tmp_path, sky, sample_dir):
     ctx = AppContext(storage=Storage.open(tmp_path / "few.sqlite3"), sky=sky)
     api = TestClient(create_app(ctx))

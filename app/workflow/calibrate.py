@@ -250,27 +250,42 @@ def calibrate_files(files: Iterable[tuple[str, object]], sky, options,
 # From the archive
 # ---------------------------------------------------------------------------
 
-def archive_sequences(ctx: AppContext, spacecraft: str
-                      ) -> tuple[list[IdentifiedSequence], Camera | None, dict[str, int]]:
-    """The usable sequences of ``spacecraft`` for one camera, newest first, their camera, and how many
-    usable sequences of other sensor sizes ("WxH") were left out.
+@dataclass(frozen=True)
+class ArchiveSelection:
+    """What :func:`archive_sequences` took from a spacecraft's archive, and what it left out and why."""
+
+    sequences: list[IdentifiedSequence]  # usable, of the chosen sensor, newest first
+    camera: Camera | None  # the chosen sensor's newest declared camera (None: nothing usable at all)
+    other_sensors: dict[str, int]  # "WxH" -> usable sequences of that sensor size, left out
+    repeated: int  # uploads left out as another upload of a sequence id already taken
+
+
+def archive_sequences(ctx: AppContext, spacecraft: str) -> ArchiveSelection:
+    """The usable sequences of ``spacecraft`` for one camera, newest first, with what was left out.
 
     Usable: confirmed (the confirmed candidate) or identified (the first
-    candidate), with 3 or more identified stars in some snapshot.  A
-    spacecraft name may cover several sensors (a second camera, a renamed
-    test article); a calibration is of one, the sensor with the most usable
-    sequences (on a tie, the newest sequence's), and uses at most
-    :data:`MAX_SEQUENCES` of them.  The camera is None when the spacecraft
-    has no confirmed or identified sequence at all.
+    candidate) and not given "no valid attitude" by an operator, with 3 or
+    more identified stars in some snapshot.  One upload per sequence id: the
+    same telemetry sent again in other bytes (CRLF line endings, a byte-order
+    mark) is a second upload of the same stars, and counting it twice would
+    make the calibration's uncertainties too small; the confirmed upload is
+    taken, else the newest.  A spacecraft name may cover several sensors (a
+    second camera, a renamed test article); a calibration is of one, the
+    sensor with the most usable sequences (on a tie, the newest sequence's),
+    and uses at most :data:`MAX_SEQUENCES` of them.
     """
     from app.workflow.documents import SearchResult
 
     by_sensor: dict[tuple[int, int], list[IdentifiedSequence]] = {}
     cameras: dict[tuple[int, int], Camera] = {}  # each sensor's newest declared camera, newest sensor first
+    taken: dict[tuple[tuple[int, int], str | None], tuple[int, bool]] = {}  # (sensor, sequence id) -> (position, confirmed)
+    repeated = 0
     offset = 0
     while all(len(found) < MAX_SEQUENCES for found in by_sensor.values()):
         rows, total = ctx.storage.list_sequences(offset, 200, spacecraft=spacecraft)
         for light in rows:
+            if light.status == "rejected":  # an operator's "no valid attitude" stands over any search
+                continue
             candidate = None
             confirmation = ctx.storage.current_confirmation(light.id)
             if confirmation is not None:
@@ -285,24 +300,36 @@ def archive_sequences(ctx: AppContext, spacecraft: str
             sensor = (item.sequence.camera.width, item.sequence.camera.height)
             cameras.setdefault(sensor, item.sequence.camera)
             found = by_sensor.setdefault(sensor, [])
-            if len(found) < MAX_SEQUENCES:
+            key, confirmed = (sensor, light.sequence_id), confirmation is not None
+            earlier = taken.get(key) if light.sequence_id is not None else None
+            if earlier is not None and (earlier[1] or not confirmed):
+                repeated += 1  # a newer (or as well confirmed) upload of this sequence id is taken already
+                continue
+            if len(found) < MAX_SEQUENCES or earlier is not None:
                 usable = IdentifiedSequence.of(str(light.id), item.sequence, item.extraction, candidate, ctx.sky)
-                if usable.observations:
+                if not usable.observations:
+                    continue
+                if earlier is not None:  # this older upload is the confirmed one: it replaces the newer
+                    found[earlier[0]] = usable
+                    repeated += 1
+                else:
                     found.append(usable)
+                taken[key] = (found.index(usable), confirmed)
         offset += len(rows)
         if not rows or offset >= total:
             break
     if not cameras:
-        return [], None, {}
+        return ArchiveSelection([], None, {}, repeated)
     chosen = max(cameras, key=lambda sensor: len(by_sensor[sensor]))  # max keeps the first (newest) on a tie
     others = {f"{w}x{h}": len(found) for (w, h), found in by_sensor.items() if (w, h) != chosen and found}
-    return by_sensor[chosen], cameras[chosen], others
+    return ArchiveSelection(by_sensor[chosen], cameras[chosen], others, repeated)
 
 
 def calibrate_spacecraft(ctx: AppContext, spacecraft: str, operator: str | None = None,
                          parameters: Iterable[str] | None = None) -> StoredCalibration:
     """Fit the camera of ``spacecraft`` from its archive and store it as the next calibration version."""
-    identified, camera, other_sensors = archive_sequences(ctx, spacecraft)
+    selection = archive_sequences(ctx, spacecraft)
+    identified, camera, other_sensors = selection.sequences, selection.camera, selection.other_sensors
     if camera is None:
         raise NotFound(f"no identified or confirmed sequence of spacecraft {spacecraft!r} to calibrate from")
     left_out = [f"{n} usable sequence{'s' * (n != 1)} of another sensor size ({sensor})"
@@ -310,14 +337,18 @@ def calibrate_spacecraft(ctx: AppContext, spacecraft: str, operator: str | None 
     tie = any(n == len(identified) for n in other_sensors.values())
     why = (f"left out: a calibration is of one camera, the {camera.width}x{camera.height} sensor, which has "
            + ("as many usable sequences as any and the newest" if tie else "the most usable sequences"))
+    notes = [f"{entry} {why}" for entry in left_out]
+    if selection.repeated:
+        notes.append(f"{selection.repeated} upload{'s' * (selection.repeated != 1)} of a sequence id already "
+                     "used left out (the same telemetry sent again counts once: the confirmed upload, else the "
+                     "newest)")
     try:
         fitted = fit(identified, camera, ctx.sky, parameters)
     except Invalid as exc:
-        if not left_out:
+        if not notes:
             raise
-        raise Invalid(f"{exc.detail} ({', '.join(left_out)} {why})", location="sequences") from None
+        raise Invalid(f"{exc.detail} ({'; '.join(notes)})", location="sequences") from None
     result, observations = fitted.calibration, fitted.observations
-    notes = [f"{entry} {why}" for entry in left_out]
     document = CalibrationDocument.of(result, residual_map(observations, result, camera), notes=notes)
     used_ids = sorted({int(o.sequence) for o, inlier in zip(observations, result.inliers) if np.any(inlier)})
     row = ctx.storage.add_calibration(spacecraft, camera=document.camera, result=document.model_dump(mode="json"),
