@@ -123,6 +123,7 @@ async function selectSequence(id) {
   await action("Opening the sequence", async () => {
     cancelSteps();
     await loadDetail(id, { fresh: true });
+    state.openedFrom = { id, ids: [...state.queueIds] };   // the queue as it was: what j/k step through
     state.rank = state.detail.search && state.detail.search.candidates.length ? 1 : null;
     await writeView({ sequence: id });
     await showCandidate();
@@ -482,12 +483,20 @@ function toggleHelp(show) {
   if (!help.hidden) $("help-close").focus();
 }
 
+// j/k: the next or previous sequence of the queue as it was when this one was opened. A verdict moves
+// the sequence itself (confirmed work goes to the end of "needs an operator first"): stepping from where
+// it went would jump into finished work instead of to the sequence that followed it.
 function nextSequence(delta) {
   const ids = state.queueIds;
   if (!ids.length) return;
-  const at = state.detail ? ids.indexOf(state.detail.id) : -1;
-  const next = at < 0 ? ids[0] : ids[Math.min(Math.max(0, at + delta), ids.length - 1)];
-  if (state.detail && next === state.detail.id) { toast(delta > 0 ? "Last sequence of this page" : "First sequence of this page"); return; }
+  const current = state.detail?.id;
+  const seen = state.openedFrom?.id === current ? state.openedFrom.ids : ids;
+  const at = current === undefined ? -1 : seen.indexOf(current);
+  let next = at < 0 ? ids[0] : null;
+  for (let k = at + delta; at >= 0 && k >= 0 && k < seen.length; k += delta) {
+    if (seen[k] !== current && ids.includes(seen[k])) { next = seen[k]; break; }
+  }
+  if (next === null) { toast(delta > 0 ? "Last sequence of this page" : "First sequence of this page"); return; }
   selectSequence(next);
 }
 

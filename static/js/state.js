@@ -29,6 +29,7 @@ export const state = {
   seqOffset: 0,
   attOffset: 0,
   queueIds: [],          // ids of the work queue page shown, in order (keys j / k)
+  openedFrom: null,      // {id, ids}: the queue page as it was when sequence id was opened (j / k step through it)
   viewRevision: -1,      // newest revision of this session's view state applied or written
   busy: 0,               // actions in flight: the poll does not apply state meanwhile
   authRequired: false,

@@ -372,6 +372,32 @@ def test_a_comment_stays_with_its_sequence(server, api, new_page, tmp_path):
     assert unexpected_errors(watched) == []
 
 
+def test_j_after_a_confirmation_goes_to_the_sequence_that_followed_it(server, api, new_page, tmp_path):
+    """In "needs an operator first" a confirmed sequence moves to the end of the queue; j then opens the
+    sequence that followed it when it was opened, not one after its new place (finished work)."""
+    for sample in ("01-clean.json", "03-jupiter.json", "04-big-dipper.json"):
+        upload_and_search(api, fresh_copy(sample, "jnav", tmp_path))
+    watched, _ = console(new_page, server)
+    page = watched.page
+    page.fill("#operator", "Stepper")
+    page.select_option("#sort-order", "queue")
+    page.fill("#filter-search", "jnav")
+    rows = page.locator("#sequence-list li[data-id]")
+    expect_text(page.locator("#seq-page-info"), "1-3 of 3")
+    names = [rows.nth(k).locator(".seq-name").inner_text() for k in range(3)]
+    rows.nth(0).click()
+    expect_text(page.locator("#seq-title"), re.escape(names[0]))
+    expect_text(page.locator("#cand-verdict"), "Rank 1 is credible")
+    press(page, "c")
+    expect_text(page.locator("#seq-status"), "confirmed")
+    expect_text(page.locator("#sequence-list li[data-id]").last, re.escape(names[0]))  # moved to the end
+    press(page, "j")
+    expect_text(page.locator("#seq-title"), re.escape(names[1]))
+    press(page, "j")
+    expect_text(page.locator("#seq-title"), re.escape(names[2]))
+    assert unexpected_errors(watched) == []
+
+
 def test_no_valid_attitude_refused_after_another_verdict_shows_that_verdict(server, api, new_page, tmp_path):
     """This console opens "no valid attitude" while another operator confirms the sequence through the API
     and before this console's polling has noticed (its reads of the view are answered with the view as it
