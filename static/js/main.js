@@ -408,6 +408,7 @@ function announceChange(what) {
   notice.textContent = `Changed by another console: ${what}.`;
   notice.hidden = false;
   cancelSteps();
+  $("comment").value = "";   // it was about what was shown before, as the closed step's reason was
   // Into view just below the sticky top bar, whose height grows while an error shows there.
   const below = document.querySelector(".topbar").getBoundingClientRect().bottom + 8;
   const top = notice.getBoundingClientRect().top;

@@ -292,6 +292,7 @@ def test_a_confirmation_refused_for_a_replaced_search_shows_the_new_search_whole
     hold_back_polling(page)
     second = api(f"/api/sequences/{seq_id}/search", "POST", body={"method": "tf"})
     assert second["search_id"] != first["search_id"]
+    page.fill("#comment", "about rank 3 of the first search")
     page.click("#confirm")
     expect_visible(page.locator("#override-step"))  # rank 3 is not the credible best: the second step
     page.fill("#override-reason", "checked by eye")
@@ -299,8 +300,10 @@ def test_a_confirmation_refused_for_a_replaced_search_shows_the_new_search_whole
     expect_text(page.locator("#toast"), "replaced by search")
     # The refusal is read whole in the status line, not cut to one line with the rest in a tooltip.
     assert page.locator("#toast").evaluate("e => e.scrollWidth <= e.clientWidth && e.scrollHeight <= e.clientHeight")
-    # The second step asked about rank 3 of the old search: it must not stay to confirm the new rank 1.
+    # The second step asked about rank 3 of the old search: it must not stay to confirm the new rank 1,
+    # and neither does the comment typed for it.
     expect_visible(page.locator("#override-step"), False)
+    assert page.locator("#comment").input_value() == ""
     n_new = len(second["candidates"])
     expect_text(page.locator("#cand-rank"), f"rank 1 of {n_new}")
     expect_text(page.locator("#change-notice"), f"a new search \\(#{second['search_id']}\\) replaced the candidates")
