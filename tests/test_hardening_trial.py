@@ -128,7 +128,7 @@ def test_every_operator_field_refuses_control_characters(api, stored, method, pa
 
 @pytest.mark.parametrize("field, text, code, kind", [
     ("comment", "fine\x1b[2J", "U+001B", "control character"),
-    ("comment", "ok\rthen", "U+000D", "control character"),
+    ("comment", "ok\x0bthen", "U+000B", "control character"),
     ("override_reason", "best \u202bis wrong", "U+202B", "bidirectional control"),
 ])
 def test_comments_refuse_control_characters_but_line_breaks_and_tabs(api, stored, field, text, code, kind):
@@ -136,6 +136,15 @@ def test_comments_refuse_control_characters_but_line_breaks_and_tabs(api, stored
     r = client.post(f"/api/sequences/{stored}/confirm", json={"rank": 1, "operator": "ann", field: text})
     assert _problems(r) == [{"location": f"body.{field}",
                              "message": f"must not contain the {kind} {code} (line breaks and tabs are allowed)"}]
+
+
+def test_windows_and_old_mac_line_breaks_in_a_reason_are_kept_as_plain_newlines(api, stored):
+    """A text field on Windows (or a pasted mail) sends CRLF: the same reason, not a refused one."""
+    client, _ = api
+    r = client.post(f"/api/sequences/{stored}/reject", json={"reason": "no stars:\r\n- ghosts\r- hot pixels",
+                                                             "operator": "ann"})
+    assert r.status_code == 201, r.text
+    assert r.json()["reason"] == "no stars:\n- ghosts\n- hot pixels"
 
 
 def test_a_reason_with_line_breaks_and_tabs_is_kept_as_written(api, stored):

@@ -41,6 +41,8 @@ def _operator_name(text: str | None) -> str | None:
 
 
 def _comment(text: str | None) -> str | None:
+    # CRLF and CR line breaks are kept as LF: a Windows text field or a pasted mail sends the same comment.
+    text = None if text is None else text.replace("\r\n", "\n").replace("\r", "\n")
     problem = None if text is None else comment_problem(text)
     if problem:
         raise ValueError(problem)
