@@ -241,6 +241,9 @@ def test_bulk_aem_holds_one_segment_per_confirmed_sequence_in_the_range(env):
     one = client.get("/api/attitudes/aem", params={"spacecraft": "SIM-TUBSAT", "start": first.isoformat(),
                                                    "end": (first + timedelta(seconds=1)).isoformat()})
     assert one.status_code == 200 and len(parse_kvn(one.text)["segments"]) == 1
+    # The header says the range in words (it once read "Time range - to -" for no range).
+    assert "COMMENT Time range: every confirmed attitude" in r.text
+    assert "Time range: reference epochs from " in one.text and " to before " in one.text
     empty = client.get("/api/attitudes/aem", params={"spacecraft": "NOBODY"})
     assert empty.status_code == 404 and "NOBODY" in empty.json()["detail"]
     backwards = client.get("/api/attitudes/aem", params={"spacecraft": "SIM-TUBSAT", "start": "2001-01-02T00:00:00Z",

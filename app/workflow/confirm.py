@@ -339,6 +339,17 @@ def sequence_aem(ctx: AppContext, seq_id: int) -> tuple[str, str]:
     return c.aem_text, download_name(row.sequence_id, f"sequence-{seq_id}", ".aem")
 
 
+def _time_range_comment(start: datetime | None, end: datetime | None) -> str:
+    """The bulk AEM's time range in words ("every confirmed attitude", "from T", "before T", "from T to T")."""
+    if start is None and end is None:
+        return "Time range: every confirmed attitude"
+    if end is None:
+        return f"Time range: reference epochs from {utc_text(start)}"
+    if start is None:
+        return f"Time range: reference epochs before {utc_text(end)}"
+    return f"Time range: reference epochs from {utc_text(start)} to before {utc_text(end)}"
+
+
 def bulk_aem(ctx: AppContext, spacecraft: str, start: datetime | None, end: datetime | None) -> tuple[str, str]:
     """One AEM holding the attitudes of every confirmed sequence of ``spacecraft`` whose reference epoch
     lies in [start, end), oldest first, and its download name.
@@ -364,7 +375,7 @@ def bulk_aem(ctx: AppContext, spacecraft: str, start: datetime | None, end: date
               *comment_lines([f"Confirmed attitudes of spacecraft {spacecraft}: {len(rows)} "
                               f"sequence{'s' * (len(rows) != 1)}, one segment each, as rendered at their "
                               "confirmation",
-                              f"Time range {utc_text(start) if start else '-'} to {utc_text(end) if end else '-'}"]),
+                              _time_range_comment(start, end)]),
               f"CREATION_DATE = {format_epoch(created)}", f"ORIGINATOR = {ORIGINATOR}"]
     text = "\n".join(header) + "\n\n" + "\n\n".join(segments) + "\n"
     stamp = "" if start is None else "-" + start.strftime("%Y%m%dT%H%M%S")

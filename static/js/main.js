@@ -203,13 +203,21 @@ function renderPattern() {
     `${pattern.points.length} points, reference snapshot ${pattern.reference_snapshot + 1}`;
 }
 
+// A search method as the method menu names it ("triangle features", not "tf").
+function methodName(method) {
+  const option = [...$("search-method").options].find((o) => o.value === method);
+  return option ? option.textContent.replace(/\s*\(.*\)$/, "").toLowerCase() : method.replace("_", " ");
+}
+
+const plural = (n, word) => `${n} ${word}${n === 1 ? "" : "s"}`;
+
 function renderSearchSummary() {
   const s = state.detail.search;
   const stale = s && s.pattern_version !== state.detail.pattern.version;
   const box = $("search-summary");
   box.classList.toggle("stale", !!stale);
   box.textContent = s
-    ? `Latest search: ${statusText(s.status)} by ${s.method.replace("_", " ")}, ${s.candidates.length} candidates in ` +
+    ? `Latest search: ${statusText(s.status)} by ${methodName(s.method)}, ${plural(s.candidates.length, "candidate")} in ` +
       `${Math.round(s.elapsed_ms)} ms (pattern version ${s.pattern_version})` +
       `${stale ? ` - STALE: the pattern is at version ${state.detail.pattern.version} now; search again` : ""}. ${(s.notes || []).join("; ")}`
     : "Not searched yet.";

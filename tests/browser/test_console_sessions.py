@@ -315,6 +315,9 @@ def test_a_confirmation_refused_for_a_replaced_search_shows_the_new_search_whole
     assert page.locator("#candidate-rows tr").count() == n_new
     assert page.locator("#candidate-rows tr.selected").get_attribute("data-rank") == "1"
     expect_text(page.locator("#cand-facts"), f"1 of {n_new}")
+    # The search summary names the method as the menu does, and counts in words.
+    expect_text(page.locator("#search-summary"),
+                f"by triangle features, {n_new} candidate{'' if n_new == 1 else 's'} in ")
     watched.screenshot("16-refused-for-a-replaced-search")
     review = api(f"/api/sequences/{seq_id}/review")
     assert review["confirmation"] is None and review["search_id"] == second["search_id"]
