@@ -35,8 +35,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.viewer import scene as geo
-from app.workflow import archive, confirm as confirming, search as searching, view
+from app.workflow import AppContext, archive, confirm as confirming, search as searching, view
 from app.workflow.documents import ViewerDocument
+from app.workflow.review import review
 from app.workflow.errors import WorkflowError
 
 log = logging.getLogger(__name__)
@@ -45,6 +46,27 @@ log = logging.getLogger(__name__)
 VIEWER_HOST = "127.0.0.1"
 #: Characters that start markup in CommonMark (all ASCII punctuation may be backslash-escaped there).
 _MARKDOWN_PUNCTUATION = frozenset("!\"#$%&'()*+,-./:;<=>?@[\\]^_`{|}~")
+
+
+def confirm_from_3d(ctx: AppContext, sequence: int | None, rank: int | None, operator: str,
+                    comment: str | None) -> str:
+    """What the 3D view's Confirm does, and the panel's answer (Markdown).
+
+    The panel has one click and no second step: it confirms the credible
+    best candidate only.  Any other rank needs the reason the audit record
+    keeps, which the console's second step asks for, so the panel says so
+    in those words (the API's would name a request field).
+    """
+    if sequence is None or rank is None:
+        return "Nothing to confirm: no candidate is shown."
+    if not operator:
+        return "**Error:** enter the operator's name before confirming."
+    verdict = next((v for v in review(ctx, sequence).candidates if v.rank == rank), None)
+    if verdict is not None and not verdict.credible:
+        return (f"Rank {rank} is not the credible best candidate: {markdown_text('; '.join(verdict.reasons))}. "
+                "Confirm it in the console: its second step asks for the reason, which the audit record keeps.")
+    result = confirming.confirm(ctx, sequence, rank, operator, comment)
+    return f"Confirmed rank {result.rank} as attitude {result.id} by {markdown_text(operator)}."
 
 
 def markdown_text(value) -> str:
@@ -215,14 +237,8 @@ class Viewer:
     def _confirm_shown(self) -> None:
         def action() -> str:
             doc = view.view_document(self._ctx)
-            if doc.sequence is None or doc.rank is None:
-                return "Nothing to confirm: no candidate is shown."
-            operator = self._operator.value.strip()
-            if not operator:
-                return "**Error:** enter the operator's name before confirming."
-            comment = self._comment.value.strip() or None
-            result = confirming.confirm(self._ctx, doc.sequence, doc.rank, operator, comment)
-            return f"Confirmed rank {result.rank} as attitude {result.id} by {markdown_text(operator)}."
+            return confirm_from_3d(self._ctx, doc.sequence, doc.rank, self._operator.value.strip(),
+                                   self._comment.value.strip() or None)
         self._act(action)
 
     def _toggle(self, definition_change) -> None:
