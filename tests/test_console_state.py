@@ -34,6 +34,40 @@ def test_sessions_keep_their_own_state_and_the_3d_view_follows_one():
         store.update(session="../x", rank=1)
 
 
+def test_a_session_carries_its_operators_name_for_the_3d_view():
+    """The console names its operator in its session; the 3D view drawing that session confirms under it.
+    A blank name clears it; a name an operator field refuses is refused here too; the rest stays put."""
+    store = ViewStateStore()
+    store.update(session="tab-a", sequence=3, rank=2, updated_by="console")
+    store.update(session="tab-a", operator="  Vera Rubin ", updated_by="console")
+    state = store.get("tab-a")
+    assert (state.operator, state.sequence, state.rank) == ("Vera Rubin", 3, 2)
+    store.follow("tab-a")
+    assert store.get().operator == "Vera Rubin" and store.get("tab-b").operator is None
+    with pytest.raises(ValueError, match="U\\+001B"):
+        store.update(session="tab-a", operator="eve\x1b[2J", updated_by="console")
+    assert store.get("tab-a").operator == "Vera Rubin"
+    store.update(session="tab-a", operator=" ", updated_by="console")
+    assert store.get("tab-a").operator is None
+
+
+def test_the_3d_views_operator_field_follows_the_console_until_someone_types_another():
+    from types import SimpleNamespace
+
+    from app.viewer.server import Viewer
+
+    panel = SimpleNamespace(_operator=SimpleNamespace(value=""), _operator_from_console="")
+    Viewer._follow_operator(panel, "Vera")
+    assert panel._operator.value == "Vera"
+    Viewer._follow_operator(panel, "Annie")  # the console's name changed: the field follows
+    assert panel._operator.value == "Annie"
+    panel._operator.value = "Henrietta"  # typed in the 3D view itself: kept
+    Viewer._follow_operator(panel, "Vera")
+    assert panel._operator.value == "Henrietta"
+    Viewer._follow_operator(panel, None)
+    assert panel._operator.value == "Henrietta"
+
+
 def test_old_sessions_are_forgotten_but_never_the_3d_views():
     store = ViewStateStore(max_sessions=3)
     store.update(session="s0", sequence=1)

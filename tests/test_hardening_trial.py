@@ -293,3 +293,14 @@ def test_the_upload_line_carries_the_servers_note():
     assert summary_line("b.json", 201, doc) == ("b.json: created id=9 sequence_id=p\n"
                                                 "  note: another stored upload (#8) has ...")
     assert summary_line("b.json", 200, {**doc, "note": None}) == "b.json: duplicate id=9 sequence_id=p"
+
+
+def test_a_console_names_its_operator_in_its_view_session(api):
+    """What the 3D view confirms under: the console's name, held to the operator-name rule."""
+    client, _ = api
+    r = client.put("/api/view", params={"session": "tab-1"}, json={"operator": "Vera"})
+    assert r.status_code == 200 and r.json()["operator"] == "Vera"
+    r = client.put("/api/view", params={"session": "tab-1"}, json={"operator": "eve\x1b[2J"})
+    assert _problems(r) == [{"location": "body.operator", "message": "must not contain the control character "
+                                                                    "U+001B (an operator name is one line of plain text)"}]
+    assert client.get("/api/view", params={"session": "tab-1"}).json()["operator"] == "Vera"

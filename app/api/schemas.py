@@ -170,6 +170,9 @@ class ViewEdit(_Strict):
     sequence: int | None = Field(default=None, ge=1, le=MAX_ID)
     rank: int | None = Field(default=None, ge=1, le=MAX_ID)
     mag: float = Field(default=6.0, ge=-2.0, le=7.0, allow_inf_nan=False)
+    #: The name typed in this console (null or blank: none): the 3D view's Confirm, drawing this session,
+    #: confirms under it.
+    operator: OperatorName | None = None
 
     def changes(self) -> dict:
         """The fields the client actually sent."""

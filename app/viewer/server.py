@@ -194,6 +194,7 @@ class Viewer:
         self._mag = gui.add_slider("Faintest mag", min=1.0, max=7.0, step=0.5,
                                    initial_value=float(self._ctx.view.get().mag))
         self._operator = gui.add_text("Operator", initial_value="")
+        self._operator_from_console = ""  # the name last taken from the console (kept while nobody edits it)
         self._comment = gui.add_text("Comment", initial_value="")
         self._confirm = gui.add_button("Confirm", color="green", hint="confirm the candidate shown")
         self._message = gui.add_markdown("")
@@ -292,10 +293,17 @@ class Viewer:
                 if key != self._drawn_key:
                     self._draw_candidate(doc)
                     self._drawn_key = key
+                self._follow_operator(doc.operator)
             except Exception:  # a bad record must not kill the view; try again next time
                 log.exception("3D view could not draw the shared state")
             self._wake.wait(POLL_S)
             self._wake.clear()
+
+    def _follow_operator(self, name: str | None) -> None:
+        """The Operator field takes the name typed in the console it draws, unless someone typed another here."""
+        if name and self._operator.value.strip() in ("", self._operator_from_console) and name != self._operator.value:
+            self._operator.value = name
+            self._operator_from_console = name
 
     def _draw_candidate(self, doc) -> None:
         self._clear_candidate()

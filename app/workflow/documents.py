@@ -538,6 +538,8 @@ class ViewDocument(Document):
     session: str | None = Field(default=None, description="the console session this state belongs to")
     followed_by_3d: bool = Field(default=False, description="the 3D view draws this session")
     rejection_id: int | None = Field(default=None, description="the current verdict, when it is 'no valid attitude'")
+    operator: str | None = Field(default=None, description="the operator named in this session's console (the 3D "
+                                                            "view's Confirm uses it)")
 
 
 class ViewerDocument(Document):

@@ -38,7 +38,7 @@ def view_document(ctx: AppContext, session: str | None = None) -> ViewDocument:
     state = ctx.view.get(name)
     doc = ViewDocument(sequence=state.sequence, rank=state.rank, mag=state.mag, revision=state.revision,
                        updated_by=state.updated_by, updated_at=utc_text(state.updated_at), session=name,
-                       followed_by_3d=name == ctx.view.followed)
+                       followed_by_3d=name == ctx.view.followed, operator=state.operator)
     row = ctx.storage.get_sequence(state.sequence) if state.sequence is not None else None
     if row is not None:
         search = ctx.storage.latest_search(row.id)

@@ -27,6 +27,8 @@ from collections import OrderedDict
 from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 
+from app.workflow.text import operator_name_problem
+
 #: Magnitude limit of a fresh view (Hp), and the range the sky-section endpoint accepts.
 DEFAULT_MAG = 6.0
 MAG_MIN, MAG_MAX = -2.0, 7.0
@@ -52,6 +54,7 @@ class ViewState:
     updated_by: str = "server"
     updated_at: datetime | None = None
     session: str = DEFAULT_SESSION
+    operator: str | None = None  # the name typed in this session's console: the 3D view confirms under it
 
 
 _UNSET = object()
@@ -94,7 +97,7 @@ class ViewStateStore:
             name = self._resolve(session)
             return self._states.get(name) or ViewState(session=name)
 
-    def update(self, *, session: str | None = None, sequence=_UNSET, rank=_UNSET, mag=_UNSET,
+    def update(self, *, session: str | None = None, sequence=_UNSET, rank=_UNSET, mag=_UNSET, operator=_UNSET,
                updated_by: str = "server") -> ViewState:
         """Apply the given fields to one session as one write; ValueError for a value out of its range."""
         changes = {}
@@ -104,6 +107,8 @@ class ViewStateStore:
             changes["rank"] = _optional_positive_int("rank", rank)
         if mag is not _UNSET:
             changes["mag"] = check_mag(mag)
+        if operator is not _UNSET:
+            changes["operator"] = check_operator(operator)
         if updated_by not in WRITERS:
             raise ValueError(f"unknown writer {updated_by!r}")
         with self._lock:
@@ -124,6 +129,17 @@ class ViewStateStore:
     def sessions(self) -> int:
         with self._lock:
             return len(self._states)
+
+
+def check_operator(value) -> str | None:
+    """An operator's name for a session (None or blank: none); ValueError as :mod:`app.workflow.text` says."""
+    if value is None or not str(value).strip():
+        return None
+    name = str(value).strip()
+    problem = operator_name_problem(name)
+    if problem:
+        raise ValueError(f"operator: {problem}")
+    return name
 
 
 def check_session(value) -> str:

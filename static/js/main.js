@@ -100,6 +100,7 @@ async function identify() {
     const me = await api.get("/api/operator");
     name.value = me.operator || "";
     name.readOnly = true;
+    shareOperator();
     name.placeholder = me.operator ? "" : "enter your token";
   } catch (err) {
     name.value = "";
@@ -107,10 +108,19 @@ async function identify() {
   }
 }
 
+// The operator's name goes with this console's view session, so that the 3D view drawing it confirms
+// under the same name (its own Operator field takes it).
+function shareOperator() {
+  return writeView({ operator: $("operator").value.trim() || null });
+}
+
 function setupOperator() {
   const name = $("operator"), token = $("token");
   name.value = stored(localStorage, "starid-operator", "");
-  name.addEventListener("change", () => { if (!name.readOnly) store(localStorage, "starid-operator", name.value.trim()); });
+  name.addEventListener("change", () => {
+    if (!name.readOnly) store(localStorage, "starid-operator", name.value.trim());
+    shareOperator();
+  });
   // The token is kept for this tab only (sessionStorage), never in localStorage.
   token.value = stored(sessionStorage, "starid-token", "");
   api.setToken(token.value);
@@ -583,6 +593,7 @@ function note3D(doc) {
 
 async function follow3D() {
   try {
+    await shareOperator();
     await api.put("/api/viewer", { session: SESSION });
     const doc = await api.get(viewPath());
     note3D(doc);

@@ -301,11 +301,14 @@ def test_3d_view_follows_the_console_that_opened_it(server, api, new_page):
     console.page.goto(server + "/")
     session = console.page.evaluate("document.body.dataset.session")
     view = f"/api/view?session={session}"
+    console.page.fill("#operator", "Console Operator")
+    console.page.locator("#operator").dispatch_event("change")
     console.page.fill("#filter-search", "04-big-dipper")
     console.page.locator(f"#sequence-list li[data-id='{seq_id}']").click()
     expect_text(console.page.locator("#seq-title"), "04-big-dipper")
     expect_text(console.page.locator("#cand-rank"), rf"rank 1 of {n}")
     assert (api(view)["sequence"], api(view)["rank"]) == (seq_id, 1)
+    assert api(view)["operator"] == "Console Operator"  # the 3D view confirms under the console's name
     # A rank the latest search does not have is refused with its location.
     with pytest.raises(urllib.error.HTTPError) as refused:
         api(view, "PUT", body={"rank": n + 1})
@@ -326,6 +329,9 @@ def test_3d_view_follows_the_console_that_opened_it(server, api, new_page):
     viewer = new_page()
     viewer.page.goto(f"{info['url']}?session={session}")
     expect_text(viewer.page.locator("body"), rf"Candidate 1 of {n}", timeout=40_000)
+    # Its Operator field took the console's name (viser's text fields have no label element to find them by).
+    viewer.page.wait_for_function("() => [...document.querySelectorAll('input, textarea')]"
+                                  ".some((i) => i.value === 'Console Operator')", timeout=10_000)
     viewer.page.wait_for_timeout(1500)  # let the software renderer draw the sphere before the screenshot
     viewer.screenshot("07-viewer-rank1")
     viewer.page.get_by_role("button", name="Next").click()

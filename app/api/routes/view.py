@@ -27,7 +27,10 @@ def get_view(session: str | None = Session, ctx: AppContext = Depends(get_contex
             summary="Change a console session's view state; only the fields sent change")
 def put_view(edit: ViewEdit, session: str | None = Session, _operator: str | None = Depends(writer),
              ctx: AppContext = Depends(get_context)):
-    return view.set_view(ctx, edit.changes(), "console", session)
+    changes = edit.changes()
+    if _operator is not None and "operator" in changes:
+        changes["operator"] = _operator  # behind tokens, a console's operator is its token's
+    return view.set_view(ctx, changes, "console", session)
 
 
 @router.get("/viewer", response_model=ViewerDocument,
