@@ -515,6 +515,9 @@ function nextSequence(delta) {
   for (let k = at + delta; at >= 0 && k >= 0 && k < seen.length; k += delta) {
     if (seen[k] !== current && ids.includes(seen[k])) { next = seen[k]; break; }
   }
+  // Nothing beyond it in the queue as it was (a filter since widened, say): the list as it is now.
+  const now = ids.indexOf(current);
+  if (next === null && now >= 0 && ids[now + delta] !== undefined) next = ids[now + delta];
   if (next === null) { toast(delta > 0 ? "Last sequence of this page" : "First sequence of this page"); return; }
   selectSequence(next);
 }

@@ -401,6 +401,17 @@ def test_j_after_a_confirmation_goes_to_the_sequence_that_followed_it(server, ap
     expect_text(page.locator("#seq-title"), re.escape(names[1]))
     press(page, "j")
     expect_text(page.locator("#seq-title"), re.escape(names[2]))
+    # Opened from a queue filtered down to it alone, then the filter widened: j goes on in the list as it is.
+    page.fill("#filter-search", names[2])
+    expect_text(page.locator("#seq-page-info"), "1-1 of 1")
+    page.locator("#sequence-list li[data-id]").first.click()
+    page.fill("#filter-search", "jnav")
+    expect_text(page.locator("#seq-page-info"), "1-3 of 3")
+    listed = [rows.nth(k).locator(".seq-name").inner_text() for k in range(3)]
+    at = listed.index(names[2])
+    assert at > 0
+    press(page, "k")
+    expect_text(page.locator("#seq-title"), re.escape(listed[at - 1]))
     assert unexpected_errors(watched) == []
 
 
@@ -552,7 +563,7 @@ def test_keyboard_search_methods_and_the_remembered_operator(server, api, new_pa
     press(page, "s")
     detail = wait_for(lambda: api(f"/api/sequences/{seq_id}"), lambda d: d["search"]["method"] == "tf")
     assert detail["search"]["method"] == "tf"
-    expect_text(page.locator("#search-summary"), "by tf")
+    expect_text(page.locator("#search-summary"), "by triangle features")
 
     # Tracking from a prior taken from the candidate shown and edited: it finds the same attitude.
     page.select_option("#search-method", "tracking")
