@@ -474,6 +474,11 @@ def _reduced_camera_system(normal: _Normal, active: np.ndarray) -> tuple[np.ndar
     return S, rhs, v_inv
 
 
+def _solved_whole(normal: _Normal, active: np.ndarray) -> bool:
+    """One observation taking part (every candidate's optics fit): its (3 + p) system is solved whole."""
+    return len(normal.blocks) == 1 and bool(active[0])
+
+
 def _newton_step(normal: _Normal, active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The Gauss-Newton step (delta_c (p,), delta_theta (m, 3)): ``N delta = -g``.
 
@@ -481,7 +486,7 @@ def _newton_step(normal: _Normal, active: np.ndarray) -> tuple[np.ndarray, np.nd
     One (every candidate's optics fit): the (3 + p) system solved whole, the
     same step at a third of the cost of the block machinery.
     """
-    if len(normal.V) == 1 and active[0]:
+    if _solved_whole(normal, active):
         matrix, gradient = normal.whole()
         delta, _ = _solve_spd(matrix, -gradient, "camera fit")
         return delta[3:], delta[None, :3]
@@ -534,8 +539,8 @@ def _gauss_newton(stars: _Stars, rotations: np.ndarray, camera: Camera, names: t
         if predicted < _CHI2_TOLERANCE:
             break
     normal = _normal_equations(stars, rotations, camera, weight, names, prior_mean, prior_precision)
-    if len(normal.blocks) == 1 and active[0]:
-        # One observation: the whole covariance (theta, camera); the camera's is its corner block.
+    if _solved_whole(normal, active):
+        # The whole covariance (theta, camera); the camera's is its corner block.
         _, whole = _solve_spd(*normal.whole(), "attitude and camera fit")
         return _Solution(camera, rotations, whole[3:, 3:], normal, chi2, iteration, whole)
     S, _, _ = _reduced_camera_system(normal, active)

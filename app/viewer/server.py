@@ -37,8 +37,8 @@ import numpy as np
 from app.viewer import scene as geo
 from app.workflow import AppContext, archive, confirm as confirming, search as searching, view
 from app.workflow.documents import ViewerDocument
-from app.workflow.review import review
 from app.workflow.errors import WorkflowError
+from app.workflow.review import review
 
 log = logging.getLogger(__name__)
 

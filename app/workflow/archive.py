@@ -235,11 +235,10 @@ def same_sequence_note(ids: list[int]) -> str | None:
     if not ids:
         return None
     listed = ", ".join(f"#{i}" for i in ids)
-    if len(ids) == 1:
-        return (f"another stored upload ({listed}) has the same spacecraft and sequence id; its telemetry differs "
-                "in bytes (line endings, byte-order mark or content)")
-    return (f"other stored uploads ({listed}) have the same spacecraft and sequence id; their telemetry differs "
-            "in bytes (line endings, byte-order mark or content)")
+    others, have, its = ("another stored upload", "has", "its") if len(ids) == 1 else \
+        ("other stored uploads", "have", "their")
+    return (f"{others} ({listed}) {have} the same spacecraft and sequence id; {its} telemetry differs in bytes "
+            "(line endings, byte-order mark or content)")
 
 
 # ---------------------------------------------------------------------------

@@ -305,16 +305,20 @@ def archive_sequences(ctx: AppContext, spacecraft: str) -> ArchiveSelection:
             if earlier is not None and (earlier[1] or not confirmed):
                 repeated += 1  # a newer (or as well confirmed) upload of this sequence id is taken already
                 continue
-            if len(found) < MAX_SEQUENCES or earlier is not None:
-                usable = IdentifiedSequence.of(str(light.id), item.sequence, item.extraction, candidate, ctx.sky)
-                if not usable.observations:
-                    continue
-                if earlier is not None:  # this older upload is the confirmed one: it replaces the newer
-                    found[earlier[0]] = usable
-                    repeated += 1
-                else:
-                    found.append(usable)
-                taken[key] = (found.index(usable), confirmed)
+            if earlier is None and len(found) >= MAX_SEQUENCES:
+                continue
+            usable = IdentifiedSequence.of(str(light.id), item.sequence, item.extraction, candidate, ctx.sky)
+            if not usable.observations:
+                continue
+            if earlier is None:
+                position = len(found)
+                found.append(usable)
+            else:  # this older upload is the confirmed one: it takes the newer one's place
+                position = earlier[0]
+                found[position] = usable
+                repeated += 1
+            if light.sequence_id is not None:
+                taken[key] = (position, confirmed)
         offset += len(rows)
         if not rows or offset >= total:
             break

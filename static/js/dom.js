@@ -38,6 +38,9 @@ export function toast(message, kind = "ok") {
   toastTimer = setTimeout(() => { box.hidden = true; }, kind === "error" ? 12000 : 5000);
 }
 
+// "1 candidate", "3 candidates".
+export const plural = (n, word) => `${n} ${word}${n === 1 ? "" : "s"}`;
+
 export function errorText(err) {
   if (!err) return "unknown error";
   const lines = [err.headline || err.detail || err.message || String(err)];

@@ -7,7 +7,7 @@
 // hands: another console's search or pattern edit of the same sequence is announced, and a
 // confirmation names the search it was made on. Every action ends in a visible result or error.
 import * as api from "./api.js";
-import { $, el, toast, errorText, fmt, fmtProbability, fmtTime, store, stored } from "./dom.js";
+import { $, el, toast, errorText, fmt, fmtProbability, fmtTime, plural, store, stored } from "./dom.js";
 import { FrameView } from "./frame.js";
 import { SnapshotPlayer } from "./player.js";
 import { drawSky, hitAt } from "./sky.js";
@@ -218,8 +218,6 @@ function methodName(method) {
   const option = [...$("search-method").options].find((o) => o.value === method);
   return option ? option.textContent.replace(/\s*\(.*\)$/, "").toLowerCase() : method.replace("_", " ");
 }
-
-const plural = (n, word) => `${n} ${word}${n === 1 ? "" : "s"}`;
 
 function renderSearchSummary() {
   const s = state.detail.search;

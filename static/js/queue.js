@@ -2,7 +2,7 @@
 // list (filter, search, order: what needs an operator first), confirmed attitudes and the bulk AEM.
 import * as api from "./api.js";
 import { frameFields, isImage, isSidecar, uploadFrames } from "./frames-upload.js";
-import { $, el, toast, errorText, fmt, fmtTime, store, stored } from "./dom.js";
+import { $, el, toast, errorText, fmt, fmtTime, plural, store, stored } from "./dom.js";
 import { state } from "./state.js";
 
 const PAGE_SIZE = 20;
@@ -74,11 +74,11 @@ async function uploadFiles(files) {
     results.push(await uploadPass(list, images, sidecars, search));
   }
   const done = results.filter((r) => r !== null), failures = results.length - done.length;
-  const note = skipped.length ? `; ${skipped.length} truth file${skipped.length > 1 ? "s" : ""} skipped` : "";
+  const note = skipped.length ? `; ${plural(skipped.length, "truth file")} skipped` : "";
   // A pass of frames counts as one upload, beside the spot-list files.
   const unit = images.length ? "upload" : "file";
   toast(failures ? `${done.length} of ${results.length} ${unit}s uploaded${note}; see the errors next to the files`
-    : `${done.length} ${unit}${done.length === 1 ? "" : "s"} uploaded${note}`, failures ? "error" : "ok");
+    : `${plural(done.length, unit)} uploaded${note}`, failures ? "error" : "ok");
   await Promise.all([loadSequences(), loadSpacecraft()]);
   if (done.length) await onSelect(done.at(-1).id);
 }
@@ -127,7 +127,7 @@ async function uploadLine(list, dataset, name, send, describe, waiting = null) {
 async function uploadPass(list, images, sidecars, search) {
   const names = images.map((f) => f.name);
   const shown = names.length > 3 ? [...names.slice(0, 2), `${names.length - 2} more`] : names;
-  const label = `${images.length} image${images.length === 1 ? "" : "s"}: ${shown.join(", ")}` +
+  const label = `${plural(images.length, "image")}: ${shown.join(", ")}` +
     (sidecars.length ? ` + ${sidecars.map((f) => f.name).join(", ")}` : "");
   const fields = frameFields();
   const check = fields instanceof api.ApiError ? fields
@@ -141,7 +141,7 @@ async function uploadPass(list, images, sidecars, search) {
       const sources = body.extraction.sources.reduce((n, s) => n + s.length, 0);
       const name = `#${body.id} ${body.sequence.sequence_id || ""}`.trim();
       return status === 201
-        ? `${frames} frame${frames === 1 ? "" : "s"} → ${name}, ${sources} sources${queued(search, status, body)}`
+        ? `${plural(frames, "frame")} → ${name}, ${sources} sources${queued(search, status, body)}`
         : `already stored as ${name}${queued(search, status, body)}`;
     }, "reading the frames and detecting the stars...");
   return outcome;

@@ -7,15 +7,16 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-from fastapi import Depends, Request
+from fastapi import BackgroundTasks, Depends, Request
 from fastapi.responses import PlainTextResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from starlette.requests import ClientDisconnect
 
 from app.api.errors import ApiError
 from app.api.schemas import MAX_ID
-from app.workflow import AppContext
+from app.workflow import AppContext, queue
 from app.workflow.compute import INTERACTIVE, JobExpired, JobKilled
+from app.workflow.documents import UploadDocument
 
 #: An oversized body is read and thrown away up to this many bytes, so that a client that sends its
 #: whole body before reading the answer (Python's urllib, our `upload` command) reads the 413
@@ -78,6 +79,13 @@ def operator_name(token_operator: str | None, body_operator: str | None) -> str 
         return token_operator
     name = (body_operator or "").strip()
     return name or None
+
+
+def search_after_answer(background: BackgroundTasks, ctx: AppContext, doc: UploadDocument, asked: bool) -> None:
+    """Queue the search an upload asked for (``search=true``), to run after the response: a new sequence,
+    or one stored before and never searched (:func:`app.workflow.queue.wants_automatic_search`)."""
+    if asked and queue.wants_automatic_search(doc):
+        background.add_task(queue.search_new_upload, ctx, doc.id)
 
 
 def attachment(text: str, filename: str) -> PlainTextResponse:

@@ -15,11 +15,11 @@ from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
 
 from app.api.errors import ApiError
-from app.api.routes.common import ID_LIMITS, get_context, read_body_limited, replay_request, writer
+from app.api.routes.common import (ID_LIMITS, get_context, read_body_limited, replay_request, search_after_answer,
+                                   writer)
 from app.api.schemas import SpacecraftName
 from app.frames import FrameLimits
-from app.workflow import AppContext, queue
-from app.workflow import frames as framing
+from app.workflow import AppContext, frames as framing
 from app.workflow.compute import BULK
 from app.workflow.documents import FramePreviewsDocument, UploadDocument
 from app.workflow.errors import Busy
@@ -124,8 +124,7 @@ async def upload_frames(request: Request, background: BackgroundTasks,
         await form.close()
     prepared = await run_in_threadpool(framing.prepare_frames, ctx, files, sidecar_bytes, sequence_id, spacecraft, fov)
     if isinstance(prepared, UploadDocument):  # the same frames were stored before
-        if search and queue.wants_automatic_search(prepared):
-            background.add_task(queue.search_new_upload, ctx, prepared.id)
+        search_after_answer(background, ctx, prepared, search)
         return JSONResponse(prepared.model_dump(mode="json"), status_code=200, background=background)
     deadline = limits.timeout_s + FRAMES_GRACE_S
     # The bulk lane: whole frames are heavy, and must never hold up the ordinary searches; a job still
@@ -138,8 +137,7 @@ async def upload_frames(request: Request, background: BackgroundTasks,
         raise Busy(f"the frames were not read and detected within {deadline:.0f} s (the server is busy); "
                    "try again") from None
     doc = await run_in_threadpool(framing.store_frames, ctx, prepared, result)
-    if search and queue.wants_automatic_search(doc):
-        background.add_task(queue.search_new_upload, ctx, doc.id)  # after the response, as for spot lists
+    search_after_answer(background, ctx, doc, search)  # after the response, as for spot lists
     return JSONResponse(doc.model_dump(mode="json"), status_code=201 if doc.created else 200,
                         background=background)
 

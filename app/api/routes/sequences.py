@@ -11,7 +11,8 @@ from starlette.datastructures import UploadFile
 
 from app.api.errors import ApiError
 from app.api.routes.common import (ID_LIMITS, attachment, compute_within, get_context, operator_name,
-                                   read_body_limited, replay_request, too_large, work_deadline, writer)
+                                   read_body_limited, replay_request, search_after_answer, too_large, work_deadline,
+                                   writer)
 from app.api.schemas import ConfirmRequest, PatternEdit, PatternReset, SearchRequest, ShortText
 from app.storage import SEQUENCE_ORDERS
 from app.workflow import AppContext, archive, confirm as confirming, queue, search as searching
@@ -81,16 +82,14 @@ async def upload(request: Request, background: BackgroundTasks,
     upload = await run_in_threadpool(archive.parse_upload, ctx, data, form_name or filename)
     stored = await run_in_threadpool(archive.stored_upload, ctx, upload)
     if stored is not None:
-        if search and queue.wants_automatic_search(stored):
-            background.add_task(queue.search_new_upload, ctx, stored.id)
+        search_after_answer(background, ctx, stored, search)
         return JSONResponse(stored.model_dump(mode="json"), status_code=200, background=background)
     # Extraction is CPU-bound: in the compute pool, large files on their own lane.  Nothing is stored
     # before it is done, so an upload that times out leaves nothing behind.
     extraction = await compute_within(ctx, deadline, "the upload's extraction", archive.extraction_job,
                                       upload.sequence, upload.known_hot, lane=archive.extraction_lane(upload.sequence))
     doc = await run_in_threadpool(archive.store_upload, ctx, upload, extraction)
-    if search and queue.wants_automatic_search(doc):
-        background.add_task(queue.search_new_upload, ctx, doc.id)  # after the response: the queue shows "new"
+    search_after_answer(background, ctx, doc, search)  # after the response: the queue shows "new" meanwhile
     return JSONResponse(doc.model_dump(mode="json"), status_code=201 if doc.created else 200,
                         background=background)
 

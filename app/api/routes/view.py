@@ -25,11 +25,11 @@ def get_view(session: str | None = Session, ctx: AppContext = Depends(get_contex
 
 @router.put("/view", response_model=ViewDocument,
             summary="Change a console session's view state; only the fields sent change")
-def put_view(edit: ViewEdit, session: str | None = Session, _operator: str | None = Depends(writer),
+def put_view(edit: ViewEdit, session: str | None = Session, token_operator: str | None = Depends(writer),
              ctx: AppContext = Depends(get_context)):
     changes = edit.changes()
-    if _operator is not None and "operator" in changes:
-        changes["operator"] = _operator  # behind tokens, a console's operator is its token's
+    if token_operator is not None and "operator" in changes:
+        changes["operator"] = token_operator  # behind tokens, a console's operator is its token's
     return view.set_view(ctx, changes, "console", session)
 
 
