@@ -63,13 +63,10 @@ def ordered_pattern_edges(xy: np.ndarray, camera: Camera, min_separation_px: flo
     if m < 3:
         return all_pairs
     p = perturbed(xy)
-    try:
-        tri = Delaunay(p).simplices
-    except (QhullError, ValueError):  # all points on a line
+    triangles = delaunay_triangles(xy, camera)
+    if triangles is None:  # all points on a line
         return all_pairs
-    centre, radius = _circumcircles(p[tri[:, 0]], p[tri[:, 1]], p[tri[:, 2]])
-    inside = ((centre[:, 0] - radius >= -0.5) & (centre[:, 0] + radius <= camera.width - 0.5)
-              & (centre[:, 1] - radius >= -0.5) & (centre[:, 1] + radius <= camera.height - 0.5))
+    tri, inside = triangles
     sure: set[tuple[int, int]] = set()
     delaunay: set[tuple[int, int]] = set()
     for t, is_inside in zip(np.sort(tri, axis=1).tolist(), inside.tolist()):
@@ -85,6 +82,26 @@ def ordered_pattern_edges(xy: np.ndarray, camera: Camera, min_separation_px: flo
         return sorted(edges, key=lambda e: (length[e], e))
 
     return by_length(sure) + by_length(delaunay) + by_length(rest)
+
+
+def delaunay_triangles(xy: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray] | None:
+    """The pattern's Delaunay triangles (T, 3) and whether each is surely bright (T,) bool; None when the
+    points are all on a line.
+
+    Surely bright: its circumcircle lies inside the sensor, so it holds no
+    pattern point and no star brighter than the pattern's faintest (the
+    pattern is the field's brightest sources); its edges are then bright
+    pairs (:mod:`app.index`).
+    """
+    p = perturbed(np.asarray(xy, dtype=float))
+    try:
+        tri = Delaunay(p).simplices
+    except (QhullError, ValueError):
+        return None
+    centre, radius = _circumcircles(p[tri[:, 0]], p[tri[:, 1]], p[tri[:, 2]])
+    inside = ((centre[:, 0] - radius >= -0.5) & (centre[:, 0] + radius <= camera.width - 0.5)
+              & (centre[:, 1] - radius >= -0.5) & (centre[:, 1] + radius <= camera.height - 0.5))
+    return tri, inside
 
 
 def _circumcircles(a, b, c) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,278 @@
+"""The focal length a pattern was seen with, from its bright triangles' shapes.
+
+Why.  A wrong focal length scales every angle of the pattern by the same
+factor, beyond the bright-pair lookup's edge window, so the engine searches
+focal lengths in steps (:mod:`.optics`), a full lookup at each: 20,000-60,000
+hypotheses and 100-600 ms for a camera 5 % off.  A triangle's *shape* (its
+sides' ratios) does not change with the scale, so one lookup by shape finds
+the catalogue triangles a pattern triangle can be, at every focal length
+within the tolerance at once, and each says which focal length it needs
+(the "hashed first-triangle lookup" of tetra3 and the seed's own bright
+triangles, here only to choose where to search first).
+
+Bright triangles.  The seed's bright pairs (:mod:`app.index`) are the edges
+of the bright triangles, whose enclosing disc holds only fainter stars.  A
+pattern triangle of the Delaunay triangulation whose circumcircle lies in the
+sensor holds no pattern point, and the pattern is the field's brightest
+sources, so it is bright: its three sides are bright pairs.  The triangles
+of the index are taken as every three stars joined pairwise by bright pairs
+(a superset of the bright triangles: complete, and only a little larger).
+
+Shape key.  Sides sorted ``s1 <= s2 <= s3``; the key is ``(s1/s3, s2/s3)``,
+and the corners are named by the side opposite them (corner 0 opposite
+``s1``, ...), so the longest side joins corners 0 and 1.  A rotation cannot
+mirror, so the sense of the corners (the sign of ``det[v0 v1 v2]``) must
+agree too.  The ratios of a pattern triangle err by its sides' errors over
+the longest side; sides within that error of each other may be named either
+way, so each such naming is looked up.
+
+Estimate.  Each shape match gives a focal length ``f' = f s3_pattern /
+s3_catalogue`` (angles measured through the declared focal length ``f`` are
+``f'/f`` times the true ones) and a rotation (its longest side onto the
+catalogue's, :func:`app.attitude.rotation_from_pair`); the whole pattern,
+seen at ``f'``, is checked against the sky under that rotation.  The match
+that catches most points gives the estimate, when chance would not explain
+it: with ``H`` matches checked, a point caught within ``r`` of one of the
+stars (density ``rho``) with probability ``p = 1 - exp(-rho pi r^2)``, and
+the triangle's corners caught by construction, the expected number of
+chance matches catching ``k`` of ``m`` points,
+``H P[Binomial(m - 3, p) >= k - 3]``, must be at most
+:data:`CHANCE_LIMIT` (the reasoning of :mod:`.verify`'s false-match
+probability; random points caught 5 of 16 by chance before this test).  The engine then
+searches there first with its usual machinery (check, refine, optics fit,
+false-match probability, every hypothesis counted), so the estimate only
+orders the work: an answer never rests on it.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import bdtrc  # binomial survival function
+
+from app.attitude import rotation_from_pair
+from app.identification.candidates import PreparedPattern
+from app.identification.hypotheses import delaunay_triangles
+from app.identification.options import SearchOptions
+from app.identification.verify import StarField, chord
+from app.index import BrightPairIndex
+
+#: Expected number of chance matches as good as the estimate's, at most (see the module doc).
+CHANCE_LIMIT = 1e-3
+#: Shape matches checked at most: a true triangle is usually among the first few (20-350 matches in all for
+#: the 20 deg camera); a pattern of ghosts or the Earth must not check them all.
+MAX_TRIED = 1500
+#: A point of a shape match's pattern is caught when a star lies within this many pixels: the match's
+#: rotation and focal length err by its sides' errors (a few pixels across the pattern), far less than the
+#: distance between stars (~100 px for the 20 deg camera).
+CHECK_RADIUS_PX = 5.0
+#: Fixed part of the shape tolerance (ratio units): the gnomonic projection changes a triangle's ratios
+#: with the focal length by up to ~3 % of the focal error over a 20 deg field (0.15 % at 5 %).
+SHAPE_MARGIN = 0.002
+
+
+@dataclass(frozen=True, eq=False)
+class BrightTriangles:
+    """Every three stars of the index joined pairwise by bright pairs, sorted by their first shape ratio.
+
+    ``corners`` (T, 3) are index rows named by the opposite side, shortest
+    first; ``ratio1``/``ratio2`` the shorter sides over the longest;
+    ``longest_rad`` the longest side; ``sense`` the sign of
+    ``det[v0 v1 v2]`` (mean places; no triangle of bright pairs is that
+    flat); ``faintest`` the largest of its corners' rows (the index's stars
+    are sorted brightest first, so a field down to a magnitude is a prefix).
+    """
+
+    corners: np.ndarray
+    ratio1: np.ndarray
+    ratio2: np.ndarray
+    longest_rad: np.ndarray
+    sense: np.ndarray
+    faintest: np.ndarray  # (T,) the largest corner row (stars are sorted brightest first)
+
+    def __len__(self) -> int:
+        return int(self.corners.shape[0])
+
+
+def _sides(v: np.ndarray) -> np.ndarray:
+    """(T, 3) angles of the sides opposite corners 0, 1, 2 of the triangles ``v`` (T, 3, 3)."""
+    def angle(a, b):
+        return 2 * np.arcsin(np.minimum(np.linalg.norm(a - b, axis=-1) / 2, 1.0))
+    return np.column_stack([angle(v[:, 1], v[:, 2]), angle(v[:, 0], v[:, 2]), angle(v[:, 0], v[:, 1])])
+
+
+def _named(corners: np.ndarray, sides: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Corners and sides reordered so that side k (opposite corner k) grows with k."""
+    order = np.argsort(sides, axis=1, kind="stable")
+    return np.take_along_axis(corners, order, axis=1), np.take_along_axis(sides, order, axis=1)
+
+
+def _sense(v: np.ndarray) -> np.ndarray:
+    return np.sign(np.einsum("ti,ti->t", v[:, 0], np.cross(v[:, 1], v[:, 2])))
+
+
+def bright_triangles(index: BrightPairIndex) -> BrightTriangles:
+    """The triangles of ``index``'s bright pairs (about 90,000 for the stars to Hp 6.5; 0.15 s)."""
+    n = index.n_stars
+    a = np.minimum(index.star_a, index.star_b).astype(np.int64)
+    b = np.maximum(index.star_a, index.star_b).astype(np.int64)
+    keys = np.sort(a * n + b)
+    # Each star's neighbours, sorted; a triangle x < y < z is found once, at its corner x, as two of x's
+    # neighbours y < z that are themselves a bright pair.
+    u, w = np.concatenate([a, b]), np.concatenate([b, a])
+    order = np.lexsort((w, u))
+    u, w = u[order], w[order]
+    start = np.searchsorted(u, np.arange(n + 1))
+    degree = np.diff(start)
+    found = []
+    for d in np.unique(degree[degree >= 2]).tolist():
+        x = np.flatnonzero(degree == d)
+        neighbours = w[start[x][:, None] + np.arange(d)]
+        i, j = np.triu_indices(d, k=1)
+        y, z = neighbours[:, i], neighbours[:, j]
+        wedge = x[:, None] < y
+        x3 = np.broadcast_to(x[:, None], y.shape)[wedge]
+        y, z = y[wedge], z[wedge]
+        k = y * n + z
+        at = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
+        joined = keys[at] == k
+        found.append(np.column_stack([x3[joined], y[joined], z[joined]]))
+    corners = np.concatenate(found) if found else np.empty((0, 3), np.int64)
+    corners, sides = _named(corners, _sides(index.vectors[corners]))
+    order = np.argsort(sides[:, 0] / sides[:, 2], kind="stable")
+    corners, sides = corners[order], sides[order]
+    return BrightTriangles(corners=corners.astype(np.int32), ratio1=sides[:, 0] / sides[:, 2],
+                           ratio2=sides[:, 1] / sides[:, 2], longest_rad=sides[:, 2],
+                           sense=_sense(index.vectors[corners]).astype(np.int8),
+                           faintest=corners.max(axis=1).astype(np.int32))
+
+
+@functools.lru_cache(maxsize=2)
+def triangles_of(index: BrightPairIndex) -> BrightTriangles:
+    """:func:`bright_triangles`, made once per index (only a search away from the declared focal length
+    needs it)."""
+    return bright_triangles(index)
+
+
+@dataclass(frozen=True)
+class FocalEstimate:
+    """The shape match that caught most of the pattern: its focal length and how it was found."""
+
+    focal_length_px: float
+    n_matched: int  # pattern points within the check radius, its triangle's three included
+    n_tried: int  # shape matches checked (each a hypothesis, for the false-match count)
+
+
+def shape_matches(triangles: BrightTriangles, ratio1: float, ratio2: float, sense: int, tolerance: float,
+                  longest_lo: float, longest_hi: float, star_limit: int) -> np.ndarray:
+    """Rows of ``triangles`` whose shape is within ``tolerance`` of (ratio1, ratio2), of the same sense,
+    with the longest side in [longest_lo, longest_hi] and every corner among the first ``star_limit``
+    stars."""
+    lo, hi = np.searchsorted(triangles.ratio1, [ratio1 - tolerance, ratio1 + tolerance])
+    rows = lo + np.flatnonzero(np.abs(triangles.ratio2[lo:hi] - ratio2) <= tolerance)  # the narrowest test first
+    longest = triangles.longest_rad[rows]
+    keep = ((triangles.sense[rows] == sense) & (longest >= longest_lo) & (longest <= longest_hi)
+            & (triangles.faintest[rows] < star_limit))
+    return rows[keep]
+
+
+def _namings(triangle: np.ndarray, sides: np.ndarray, error: float) -> list[np.ndarray]:
+    """The corner orders of a pattern triangle under which its sides may be sorted: sides within their
+    error of each other may be named either way round."""
+    order = np.argsort(sides, kind="stable")
+    names = {tuple(order.tolist())}
+    for first, second in ((0, 1), (1, 2)):
+        if sides[order[second]] - sides[order[first]] <= 2 * error:
+            swapped = order.copy()
+            swapped[[first, second]] = order[[second, first]]
+            names.add(tuple(swapped.tolist()))
+    return [triangle[list(name)] for name in sorted(names)]
+
+
+def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, focal_length_px: float,
+                          tolerance: float, side_error_rad: np.ndarray, triangles: BrightTriangles,
+                          matched_within, star_vectors: np.ndarray,
+                          catch_probability: float) -> FocalEstimate | None:
+    """The focal length of the first shape match of a pattern triangle that chance does not explain.
+
+    ``pattern_triangles`` (K, 3) pattern rows (bright triangles of the
+    pattern); ``plane`` (m, 2) the pattern's undistorted normalised
+    coordinates at the declared ``focal_length_px`` (a direction is
+    ``(plane, 1)`` normalised, and at focal length ``f'`` it is
+    ``(plane f / f', 1)``); ``tolerance`` the declared focal tolerance
+    (fraction); ``side_error_rad`` (K,) how far a side of each triangle may
+    be off; ``matched_within(points (N, 3)) -> (N,) bool`` whether a sky
+    point has a star within the check radius; ``star_vectors`` the places of
+    the index rows now; ``catch_probability`` the chance that a point lands
+    within the check radius of a star.
+
+    The triangles are taken in order of their shape tolerance (the most
+    telling first), all shape matches of one at once, and the search stops
+    at the first match that passes the chance test, counting every match
+    checked until then (or once :data:`MAX_TRIED` are checked).
+    """
+    def directions(scale):  # (H,) plane scale factors -> (H, m, 3) unit vectors
+        xy = plane[None] * np.asarray(scale)[:, None, None]
+        v = np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], axis=2)
+        return v / np.linalg.norm(v, axis=2, keepdims=True)
+
+    m = plane.shape[0]
+    v = directions(np.ones(1))[0]
+    named = [(c, float(err)) for t, s, err in zip(pattern_triangles, _sides(v[pattern_triangles]), side_error_rad)
+             for c in _namings(t, s, float(err))]
+    if not named:
+        return None
+    sides = _sides(v[np.array([c for c, _ in named])])  # (N, 3), side k opposite corner k
+    shape_tolerance = 2 * np.array([err for _, err in named]) / sides[:, 2] + SHAPE_MARGIN
+    tried = 0
+    for k in np.argsort(shape_tolerance, kind="stable").tolist():
+        if tried >= MAX_TRIED:
+            break
+        (c, err), s = named[k], sides[k]
+        rows = shape_matches(triangles, s[0] / s[2], s[1] / s[2], int(_sense(v[c][None])[0]), shape_tolerance[k],
+                             s[2] / (1 + tolerance) - err, s[2] / (1 - tolerance) + err, len(star_vectors))
+        if len(rows) == 0:
+            continue
+        tried += len(rows)
+        f_new = focal_length_px * s[2] / triangles.longest_rad[rows]
+        seen = directions(focal_length_px / f_new)  # (H, m, 3)
+        h = np.arange(len(rows))
+        stars = triangles.corners[rows]
+        R = rotation_from_pair(seen[h, c[0]], seen[h, c[1]], star_vectors[stars[:, 0]], star_vectors[stars[:, 1]])
+        caught = matched_within(np.matmul(seen, R).reshape(-1, 3)).reshape(len(rows), m).sum(axis=1)  # rows R^T p
+        best = int(np.argmax(caught))
+        n = int(caught[best])
+        # The corners are caught by construction: P[Binomial(m - 3, p) >= n - 3] = P[... > n - 4].
+        if n > 3 and tried * float(bdtrc(n - 4, m - 3, catch_probability)) <= CHANCE_LIMIT:
+            return FocalEstimate(float(f_new[best]), n, tried)
+    return None
+
+
+def focal_estimate(p: PreparedPattern, triangles: BrightTriangles, options: SearchOptions) -> FocalEstimate | None:
+    """:func:`estimate_focal_length` for a prepared pattern (seen through the declared camera), from its
+    surely bright Delaunay triangles (:func:`app.identification.hypotheses.delaunay_triangles`)."""
+    found = delaunay_triangles(p.xy, p.camera) if p.m >= 3 else None
+    if found is None:
+        return None
+    tri = found[0][found[1]]
+    # A side errs by the edge window of the bright-pair lookup (systematic error + 4 sigma of its points).
+    sigma = p.sigma_px[tri]
+    side_sigma = np.hypot(sigma, np.roll(sigma, 1, axis=1)).max(axis=1)
+    side_error = (options.edge_tolerance_px + 4 * side_sigma) * p.scale
+    plane = p.vectors[:, :2] / p.vectors[:, 2:]
+    radius = CHECK_RADIUS_PX * p.scale
+    catch = 1.0 - np.exp(-p.field.density_per_sr * np.pi * radius * radius)
+    return estimate_focal_length(tri, plane, p.camera.focal_length_px, p.camera.focal_tolerance, side_error,
+                                 triangles, _star_within(p.field, radius), p.field.vectors, float(catch))
+
+
+def _star_within(field: StarField, radius_rad: float):
+    """``points -> (N,) bool``: a star of ``field`` within ``radius_rad`` of each point (its cell map, else
+    its KD-tree)."""
+    bound = float(chord(radius_rad))
+    cells = field.cells(radius_rad) if field.cells is not None else None
+    if cells is not None:
+        return lambda points: cells.nearest_within(points, field.vectors, bound) <= bound
+    return lambda points: field.tree.query(points, k=1, distance_upper_bound=bound)[0] <= bound

@@ -1,0 +1,125 @@
+"""The bright triangles' focal-length estimate (issue 16, fourth round), checked against brute force and the
+simulator's true optics."""
+
+from __future__ import annotations
+
+import dataclasses
+from itertools import combinations
+
+import numpy as np
+import pytest
+
+from app.attitude import rotation_from_pair
+from app.camera import CAMERAS
+from app.extraction import extract
+from app.identification import engine, identify
+from app.identification.bright_triangles import bright_triangles, focal_estimate, triangles_of
+from app.identification.candidates import prepare_pattern
+from app.identification.options import SearchOptions
+from app.index import BrightPairIndex
+from app.simulate import simulate_sequence, true_optics
+
+CAMERA = CAMERAS["tubsat-752x582-20deg"]
+
+
+def _random_index(rng, n_stars: int, n_pairs: int) -> BrightPairIndex:
+    v = rng.normal(size=(n_stars, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    i, j = np.triu_indices(n_stars, k=1)
+    pick = rng.choice(len(i), n_pairs, replace=False)
+    a, b = i[pick], j[pick]
+    swap = rng.random(n_pairs) < 0.5  # the index keeps either order
+    a, b = np.where(swap, b, a), np.where(swap, a, b)
+    length = np.arccos(np.clip((v[a] * v[b]).sum(1), -1, 1))
+    order = np.argsort(length)
+    return BrightPairIndex(star_a=a[order], star_b=b[order], length_rad=length[order], vectors=v,
+                           hip=np.arange(n_stars), mag=np.linspace(1, 6, n_stars), mag_limit=6.5,
+                           max_edge_rad=np.pi, epoch_jyear=2000.0)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_the_triangles_are_every_three_stars_joined_pairwise_by_bright_pairs(seed):
+    rng = np.random.default_rng(seed)
+    index = _random_index(rng, 40, 300)
+    pairs = {frozenset(p) for p in zip(index.star_a.tolist(), index.star_b.tolist())}
+    brute = {frozenset(t) for t in combinations(range(40), 3)
+             if all(frozenset(e) in pairs for e in combinations(t, 2))}
+    found = bright_triangles(index)
+    assert len(brute) > 50
+    assert {frozenset(t) for t in found.corners.tolist()} == brute and len(found) == len(brute)
+    # Corners named by the opposite side, shortest first; the key is the sides over the longest, sorted.
+    v = index.vectors[found.corners]
+    side = lambda x, y: np.arccos(np.clip((x * y).sum(1), -1, 1))  # noqa: E731
+    s0, s1, s2 = side(v[:, 1], v[:, 2]), side(v[:, 0], v[:, 2]), side(v[:, 0], v[:, 1])
+    assert np.all(s0 <= s1 + 1e-12) and np.all(s1 <= s2 + 1e-12)
+    np.testing.assert_allclose(found.ratio1, s0 / s2, atol=1e-12)
+    np.testing.assert_allclose(found.ratio2, s1 / s2, atol=1e-12)
+    np.testing.assert_allclose(found.longest_rad, s2, atol=1e-12)
+    assert np.all(np.diff(found.ratio1) >= 0)
+    assert np.array_equal(found.sense, np.sign(np.linalg.det(v)))
+
+
+def _prepared(sky, seed: int, focal_error: float, scenario: str = "single"):
+    sequence, _ = simulate_sequence(np.random.default_rng([seed, 1616]), CAMERA, scenario,
+                                    true_camera=true_optics(CAMERA, focal_error=focal_error))
+    extraction = extract(sequence)
+    return prepare_pattern(extraction.pattern, CAMERA, sequence.snapshots[extraction.reference].time, sky)
+
+
+@pytest.mark.parametrize("focal_error", [0.05, -0.05, 0.03, -0.02, 0.0])
+def test_the_estimate_finds_the_true_focal_length(sky, focal_error):
+    """Against the simulator's true optics: within 1 % (the engine jumps only beyond 1.5 %)."""
+    triangles = triangles_of(sky.index)
+    errors = []
+    for seed in range(4):
+        estimate = focal_estimate(_prepared(sky, seed, focal_error), triangles, SearchOptions())
+        assert estimate is not None
+        errors.append(estimate.focal_length_px / CAMERA.focal_length_px - 1 - focal_error)
+        assert estimate.n_matched >= 7 and estimate.n_tried > 0
+    assert np.max(np.abs(errors)) < 0.01, errors
+
+
+def test_points_where_no_stars_are_give_no_estimate(sky):
+    rng = np.random.default_rng(7)
+    p = _prepared(sky, 0, 0.0)
+    for _ in range(6):
+        xy = np.column_stack([rng.uniform(0, CAMERA.width - 1, 12), rng.uniform(0, CAMERA.height - 1, 12)])
+        random = dataclasses.replace(p, xy=xy, vectors=CAMERA.pixels_to_vectors(xy), sigma_px=np.full(12, 0.3),
+                                     match_tol=np.full(12, p.match_tol[0]), weights=np.full(12, p.weights[0]),
+                                     keep=np.arange(12), track_ids=np.arange(12))
+        assert focal_estimate(random, triangles_of(sky.index), SearchOptions()) is None
+
+
+def test_a_triangle_keeps_its_shape_and_sense_under_any_rotation():
+    rng = np.random.default_rng(5)
+    index = _random_index(rng, 30, 200)
+    found = bright_triangles(index)
+    R = rotation_from_pair(np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0]),
+                           np.array([0.6, 0.0, 0.8]), np.array([0.0, 1.0, 0.0]))
+    turned = bright_triangles(dataclasses.replace(index, vectors=index.vectors @ R.T))
+    assert np.array_equal(turned.corners, found.corners) and np.array_equal(turned.sense, found.sense)
+    np.testing.assert_allclose(turned.ratio1, found.ratio1, atol=1e-12)
+
+
+def test_a_wrong_focal_length_is_searched_first_where_the_triangles_point(sky, monkeypatch):
+    """The same best answer as the old order (declared camera, then every step outwards), from fewer
+    hypotheses: the estimate only orders the search."""
+    for seed, focal_error in ((11, 0.05), (12, -0.05), (13, 0.04)):
+        p_true = true_optics(CAMERA, focal_error=focal_error)
+        sequence, truth = simulate_sequence(np.random.default_rng([seed, 1616]), CAMERA, "single",
+                                            true_camera=p_true)
+        extraction = extract(sequence)
+        t = sequence.snapshots[extraction.reference].time
+        now = identify(extraction.pattern, CAMERA, t, sky)
+        with monkeypatch.context() as without:
+            without.setattr(engine, "ESTIMATE_MIN_OFFSET", np.inf)
+            before = identify(extraction.pattern, CAMERA, t, sky)
+        assert now.status == before.status == "identified"
+        best, old = now.candidates[0], before.candidates[0]
+        assert [m.hip for m in best.matches] == [m.hip for m in old.matches]
+        assert abs(best.camera.focal_length_px / p_true.focal_length_px - 1) < 0.003
+        tried = lambda s: int(s.notes[0].split()[0])  # noqa: E731
+        assert tried(now) < tried(before)
+        said = [n for n in now.notes if "bright triangles put the focal length" in n]
+        assert len(said) == 1 and ("(+" if focal_error > 0 else "(-") in said[0], now.notes
+        assert best.false_match_probability <= old.false_match_probability
