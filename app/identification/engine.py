@@ -29,8 +29,9 @@ from app.identification.sky import Sky
 from app.identification.verify import check_hypotheses, refine, refine_many
 
 #: The bright triangles' focal length is searched first when it is at least this far from the declared one
-#: (a fraction): its estimates err by up to ~1 % (48 simulated snapshots of the 20 deg camera, 0-5 % off).
-ESTIMATE_MIN_OFFSET = 0.015
+#: (a fraction): its estimates err by 0.05 % RMS, 0.13 % at most (144 simulated single snapshots and
+#: sequences of the 20 deg camera, 0-5 % off), so an exact camera never leaves its own search.
+ESTIMATE_MIN_OFFSET = 0.005
 
 
 def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=None,
@@ -93,6 +94,7 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
         estimate = _estimated_focal_length(declared, sky, options)
         if estimate is not None:
             search.n_tried += estimate.n_tried
+            search.fitted_focal_lengths.add(estimate.focal_length_px)
             notes.append(f"the pattern's bright triangles put the focal length at {estimate.focal_length_px:.1f} px "
                          f"({estimate.focal_length_px / camera.focal_length_px - 1:+.1%} of the declared), "
                          "searched first")
@@ -152,6 +154,8 @@ class _Search:
     def __init__(self, sky: Sky, options: SearchOptions, generator, started: float, declared: Camera) -> None:
         self.sky, self.options, self.generator, self.started = sky, options, generator, started
         self.declared = declared
+        #: Focal lengths fitted on stars already (the bright triangles' estimate): no optics fit per hypothesis.
+        self.fitted_focal_lengths: set[float] = set()
         self.found: list[dict] = []
         self.parts: dict[int, list[tuple]] = {}  # by id of the prepared pattern: its checked hypotheses
         self.batches: dict[int, object] = {}  # by id of the prepared pattern: its hypothesis batches
@@ -226,7 +230,8 @@ class _Search:
             self.n_refined += 1
             r = self._refine(p, key, R0, tol)
             fitted = p
-            if p.camera is not self.declared and r.n_matched >= 3 and self.options.fit_optics:
+            if (p.camera is not self.declared and p.camera.focal_length_px not in self.fitted_focal_lengths
+                    and r.n_matched >= 3 and self.options.fit_optics):
                 # A searched focal length is only near the truth: the optics fitted on the stars this
                 # hypothesis caught bring in the rest, so that the right focal length settles at once.
                 optics = refine_optics(r, p, self.declared, p.field)
