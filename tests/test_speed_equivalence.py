@@ -15,7 +15,7 @@ it runs with.
 The cases seen through a focal length 3 % off the declared one
 (:data:`SEARCHED_FIRST_WHERE_THE_TRIANGLES_POINT`) are the exception: since
 issue 16's fourth round the engine searches first where the pattern's bright
-triangles put the focal length (:mod:`app.identification.bright_triangles`),
+triangles put the focal length (:mod:`app.identification.focal_estimate`),
 so it tries fewer hypotheses and its alternatives are other chance fits.
 What it decides must not move: the status, and the best candidate's stars,
 attitude and fitted optics; its false-match probability may only fall, by

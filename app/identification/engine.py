@@ -19,7 +19,7 @@ import numpy as np
 
 from app.attitude import rotation_angles_between
 from app.camera import Camera
-from app.identification.bright_triangles import FocalEstimate, focal_estimate, triangles_of
+from app.identification.focal_estimate import FocalEstimate, focal_estimate
 from app.identification.candidates import PreparedPattern, build_candidate, prepare_pattern
 from app.identification.methods import METHODS
 from app.identification.optics import focal_lengths_to_try, prepared_with_camera, refine_optics
@@ -322,10 +322,10 @@ class _Search:
 
 
 def _estimated_focal_length(declared: PreparedPattern, sky: Sky, options: SearchOptions) -> FocalEstimate | None:
-    """The bright triangles' estimate of the focal length (:mod:`.bright_triangles`), when it lies at least
+    """The bright triangles' estimate of the focal length (:mod:`.focal_estimate`), when it lies at least
     :data:`ESTIMATE_MIN_OFFSET` from the declared one (closer, the declared camera's own search and optics
     fit find it, and an exact camera keeps its answers)."""
-    estimate = focal_estimate(declared, triangles_of(sky.index), options)
+    estimate = focal_estimate(declared, sky.bright_triangles(), options)
     f = declared.camera.focal_length_px
     if estimate is None or abs(estimate.focal_length_px / f - 1) < ESTIMATE_MIN_OFFSET:
         return None

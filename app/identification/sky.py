@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 from app.attitude import angle_between
 from app.catalogue import Catalogue, julian_year, load_catalogue, star_names
 from app.identification.cells import MAX_SPACECRAFT_SPEED_KM_S, MAX_YEARS, NearStarCells, motion_margin_rad
+from app.identification.triangle_index import BrightTriangles, bright_triangles
 from app.identification.verify import StarField, chord
 from app.index import BrightPairIndex, load_index
 
@@ -48,6 +49,7 @@ class Sky:
         self._motion_margins = None
         self._alone_within = None
         self._digest = None
+        self._triangles = None
 
     def star_mask(self, mag_limit: float) -> np.ndarray:
         return self.index.mag <= mag_limit
@@ -173,6 +175,18 @@ class Sky:
             np.minimum.at(nearest, i, gap)
             np.minimum.at(nearest, j, gap)
         return chord(np.maximum(nearest, 0.0) / 2) * (1 - 1e-9)
+
+    def bright_triangles(self):
+        """The index's :class:`app.identification.triangle_index.BrightTriangles` (made once, ~0.15 s,
+        and kept on disk beside the index: a few ms to load)."""
+        if self._triangles is None:
+            h = hashlib.sha256()
+            for a in (self.index.star_a, self.index.star_b, self.index.vectors):
+                h.update(np.ascontiguousarray(a).tobytes())
+            params = {"format": BrightTriangles.FORMAT, "index": h.hexdigest()[:16]}
+            arrays = self._cached("bright-triangles", params, lambda: bright_triangles(self.index).arrays())
+            self._triangles = BrightTriangles(**arrays)
+        return self._triangles
 
     def motion_margins(self) -> np.ndarray:
         if self._motion_margins is None:

@@ -1,5 +1,5 @@
-"""The bright triangles' focal-length estimate (issue 16, fourth round), checked against brute force and the
-simulator's true optics."""
+"""The bright triangles of the index (brute force) and the focal length they estimate (the simulator's true
+optics, exact pinhole geometry), issue 16's fourth round."""
 
 from __future__ import annotations
 
@@ -13,7 +13,8 @@ from app.attitude import rotation_from_pair
 from app.camera import CAMERAS
 from app.extraction import extract
 from app.identification import engine, identify
-from app.identification.bright_triangles import bright_triangles, focal_estimate, triangles_of
+from app.identification.focal_estimate import focal_estimate
+from app.identification.triangle_index import bright_triangles
 from app.identification.candidates import prepare_pattern
 from app.identification.options import SearchOptions
 from app.index import BrightPairIndex
@@ -59,6 +60,22 @@ def test_the_triangles_are_every_three_stars_joined_pairwise_by_bright_pairs(see
     assert np.array_equal(found.sense, np.sign(np.linalg.det(v)))
 
 
+def test_the_index_triangles_are_kept_on_disk_and_a_damaged_file_is_made_again(sky, tmp_path, monkeypatch):
+    from app.identification import Sky
+
+    monkeypatch.setenv("STARID_CACHE_DIR", str(tmp_path))
+    made = Sky(index=sky.index, catalogue=sky.catalogue).bright_triangles()
+    files = list(tmp_path.glob("bright-triangles-*.npz"))
+    assert len(files) == 1 and len(made) > 50_000
+    loaded = Sky(index=sky.index, catalogue=sky.catalogue).bright_triangles()
+    built = bright_triangles(sky.index)
+    for key, value in built.arrays().items():
+        assert np.array_equal(loaded.arrays()[key], value) and np.array_equal(made.arrays()[key], value)
+    files[0].write_bytes(b"not triangles")
+    again = Sky(index=sky.index, catalogue=sky.catalogue).bright_triangles()
+    assert np.array_equal(again.corners, built.corners)
+
+
 def _prepared(sky, seed: int, focal_error: float, scenario: str = "single"):
     sequence, _ = simulate_sequence(np.random.default_rng([seed, 1616]), CAMERA, scenario,
                                     true_camera=true_optics(CAMERA, focal_error=focal_error))
@@ -69,7 +86,7 @@ def _prepared(sky, seed: int, focal_error: float, scenario: str = "single"):
 @pytest.mark.parametrize("focal_error", [0.05, -0.05, 0.03, -0.02, 0.0])
 def test_the_estimate_finds_the_true_focal_length(sky, focal_error):
     """Against the simulator's true optics: within 0.25 % (the engine jumps only beyond 0.5 %)."""
-    triangles = triangles_of(sky.index)
+    triangles = sky.bright_triangles()
     errors = []
     for seed in range(4):
         estimate = focal_estimate(_prepared(sky, seed, focal_error), triangles, SearchOptions())
@@ -87,7 +104,7 @@ def test_points_where_no_stars_are_give_no_estimate(sky):
         random = dataclasses.replace(p, xy=xy, vectors=CAMERA.pixels_to_vectors(xy), sigma_px=np.full(12, 0.3),
                                      match_tol=np.full(12, p.match_tol[0]), weights=np.full(12, p.weights[0]),
                                      keep=np.arange(12), track_ids=np.arange(12))
-        assert focal_estimate(random, triangles_of(sky.index), SearchOptions()) is None
+        assert focal_estimate(random, sky.bright_triangles(), SearchOptions()) is None
 
 
 def test_a_triangle_keeps_its_shape_and_sense_under_any_rotation():
@@ -129,7 +146,7 @@ def test_a_wrong_focal_length_is_searched_first_where_the_triangles_point(sky, m
 def test_the_fitted_focal_length_makes_the_points_angles_the_stars(true_over_declared):
     """Points seen through a pinhole of focal length f_true, measured with the declared f: the fit gives
     f_true (to rounding, for exact points) from a start 1 % off, over a 20 deg field."""
-    from app.identification.bright_triangles import _fitted_focal_length
+    from app.identification.focal_estimate import _fitted_focal_length
 
     rng = np.random.default_rng(4)
     declared, true = 2000.0, 2000.0 * true_over_declared

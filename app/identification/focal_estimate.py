@@ -4,26 +4,13 @@ Why.  A wrong focal length scales every angle of the pattern by the same
 factor, beyond the bright-pair lookup's edge window, so the engine searches
 focal lengths in steps (:mod:`.optics`), a full lookup at each: 20,000-60,000
 hypotheses and 100-600 ms for a camera 5 % off.  A triangle's *shape* (its
-sides' ratios) does not change with the scale, so one lookup by shape finds
-the catalogue triangles a pattern triangle can be, at every focal length
-within the tolerance at once, and each says which focal length it needs
-(the "hashed first-triangle lookup" of tetra3 and the seed's own bright
-triangles, here only to choose where to search first).
+sides' ratios) does not change with the scale, so one lookup by shape
+(:mod:`.triangle_index`) finds the catalogue triangles a pattern triangle can
+be, at every focal length within the tolerance at once, and each says which
+focal length it needs.
 
-Bright triangles.  The seed's bright pairs (:mod:`app.index`) are the edges
-of the bright triangles, whose enclosing disc holds only fainter stars.  A
-pattern triangle of the Delaunay triangulation whose circumcircle lies in the
-sensor holds no pattern point, and the pattern is the field's brightest
-sources, so it is bright: its three sides are bright pairs.  The triangles
-of the index are taken as every three stars joined pairwise by bright pairs
-(a superset of the bright triangles: complete, and only a little larger).
-
-Shape key.  Sides sorted ``s1 <= s2 <= s3``; the key is ``(s1/s3, s2/s3)``,
-and the corners are named by the side opposite them (corner 0 opposite
-``s1``, ...), so the longest side joins corners 0 and 1.  A rotation cannot
-mirror, so the sense of the corners (the sign of ``det[v0 v1 v2]``) must
-agree too.  The ratios of a pattern triangle err by its sides' errors over
-the longest side; sides within that error of each other may be named either
+Naming.  The ratios of a pattern triangle err by its sides' errors over the
+longest side; sides within that error of each other may be named either
 way, so each such naming is looked up.
 
 Estimate.  Each shape match gives a focal length ``f' = f s3_pattern /
@@ -38,15 +25,15 @@ the triangle's corners caught by construction, the expected number of
 chance matches catching ``k`` of ``m`` points,
 ``H P[Binomial(m - 3, p) >= k - 3]``, must be at most
 :data:`CHANCE_LIMIT` (the reasoning of :mod:`.verify`'s false-match
-probability; random points caught 5 of 16 by chance before this test).  The engine then
-searches there first with its usual machinery (check, refine, optics fit,
+probability; random points caught 5 of 16 by chance before this test).  The
+focal length is then fitted on all the points caught.  The engine searches
+there first with its usual machinery (check, refine, optics fit,
 false-match probability, every hypothesis counted), so the estimate only
 orders the work: an answer never rests on it.
 """
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,8 +43,8 @@ from app.attitude import rotation_from_pair
 from app.identification.candidates import PreparedPattern
 from app.identification.hypotheses import delaunay_triangles
 from app.identification.options import SearchOptions
+from app.identification.triangle_index import BrightTriangles, sense_of, shape_matches, sides_of
 from app.identification.verify import StarField, chord
-from app.index import BrightPairIndex
 
 #: Expected number of chance matches as good as the estimate's, at most (see the module doc).
 CHANCE_LIMIT = 1e-3
@@ -73,109 +60,13 @@ CHECK_RADIUS_PX = 5.0
 SHAPE_MARGIN = 0.002
 
 
-@dataclass(frozen=True, eq=False)
-class BrightTriangles:
-    """Every three stars of the index joined pairwise by bright pairs, sorted by their first shape ratio.
-
-    ``corners`` (T, 3) are index rows named by the opposite side, shortest
-    first; ``ratio1``/``ratio2`` the shorter sides over the longest;
-    ``longest_rad`` the longest side; ``sense`` the sign of
-    ``det[v0 v1 v2]`` (mean places; no triangle of bright pairs is that
-    flat); ``faintest`` the largest of its corners' rows (the index's stars
-    are sorted brightest first, so a field down to a magnitude is a prefix).
-    """
-
-    corners: np.ndarray
-    ratio1: np.ndarray
-    ratio2: np.ndarray
-    longest_rad: np.ndarray
-    sense: np.ndarray
-    faintest: np.ndarray  # (T,) the largest corner row (stars are sorted brightest first)
-
-    def __len__(self) -> int:
-        return int(self.corners.shape[0])
-
-
-def _sides(v: np.ndarray) -> np.ndarray:
-    """(T, 3) angles of the sides opposite corners 0, 1, 2 of the triangles ``v`` (T, 3, 3)."""
-    def angle(a, b):
-        return 2 * np.arcsin(np.minimum(np.linalg.norm(a - b, axis=-1) / 2, 1.0))
-    return np.column_stack([angle(v[:, 1], v[:, 2]), angle(v[:, 0], v[:, 2]), angle(v[:, 0], v[:, 1])])
-
-
-def _named(corners: np.ndarray, sides: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Corners and sides reordered so that side k (opposite corner k) grows with k."""
-    order = np.argsort(sides, axis=1, kind="stable")
-    return np.take_along_axis(corners, order, axis=1), np.take_along_axis(sides, order, axis=1)
-
-
-def _sense(v: np.ndarray) -> np.ndarray:
-    return np.sign(np.einsum("ti,ti->t", v[:, 0], np.cross(v[:, 1], v[:, 2])))
-
-
-def bright_triangles(index: BrightPairIndex) -> BrightTriangles:
-    """The triangles of ``index``'s bright pairs (about 90,000 for the stars to Hp 6.5; 0.15 s)."""
-    n = index.n_stars
-    a = np.minimum(index.star_a, index.star_b).astype(np.int64)
-    b = np.maximum(index.star_a, index.star_b).astype(np.int64)
-    keys = np.sort(a * n + b)
-    # Each star's neighbours, sorted; a triangle x < y < z is found once, at its corner x, as two of x's
-    # neighbours y < z that are themselves a bright pair.
-    u, w = np.concatenate([a, b]), np.concatenate([b, a])
-    order = np.lexsort((w, u))
-    u, w = u[order], w[order]
-    start = np.searchsorted(u, np.arange(n + 1))
-    degree = np.diff(start)
-    found = []
-    for d in np.unique(degree[degree >= 2]).tolist():
-        x = np.flatnonzero(degree == d)
-        neighbours = w[start[x][:, None] + np.arange(d)]
-        i, j = np.triu_indices(d, k=1)
-        y, z = neighbours[:, i], neighbours[:, j]
-        wedge = x[:, None] < y
-        x3 = np.broadcast_to(x[:, None], y.shape)[wedge]
-        y, z = y[wedge], z[wedge]
-        k = y * n + z
-        at = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
-        joined = keys[at] == k
-        found.append(np.column_stack([x3[joined], y[joined], z[joined]]))
-    corners = np.concatenate(found) if found else np.empty((0, 3), np.int64)
-    corners, sides = _named(corners, _sides(index.vectors[corners]))
-    order = np.argsort(sides[:, 0] / sides[:, 2], kind="stable")
-    corners, sides = corners[order], sides[order]
-    return BrightTriangles(corners=corners.astype(np.int32), ratio1=sides[:, 0] / sides[:, 2],
-                           ratio2=sides[:, 1] / sides[:, 2], longest_rad=sides[:, 2],
-                           sense=_sense(index.vectors[corners]).astype(np.int8),
-                           faintest=corners.max(axis=1).astype(np.int32))
-
-
-@functools.lru_cache(maxsize=2)
-def triangles_of(index: BrightPairIndex) -> BrightTriangles:
-    """:func:`bright_triangles`, made once per index (only a search away from the declared focal length
-    needs it)."""
-    return bright_triangles(index)
-
-
 @dataclass(frozen=True)
 class FocalEstimate:
-    """The shape match that caught most of the pattern: its focal length and how it was found."""
+    """The focal length fitted on the first shape match that chance does not explain, and how it was found."""
 
     focal_length_px: float
     n_matched: int  # pattern points within the check radius, its triangle's three included
     n_tried: int  # shape matches checked (each a hypothesis, for the false-match count)
-
-
-def shape_matches(triangles: BrightTriangles, ratio1: float, ratio2: float, sense: int, tolerance: float,
-                  longest_lo: float, longest_hi: float, star_limit: int) -> np.ndarray:
-    """Rows of ``triangles`` whose shape is within ``tolerance`` of (ratio1, ratio2), of the same sense,
-    with the longest side in [longest_lo, longest_hi] and every corner among the first ``star_limit``
-    stars."""
-    lo, hi = np.searchsorted(triangles.ratio1, [ratio1 - tolerance, ratio1 + tolerance])
-    rows = lo + np.flatnonzero(np.abs(triangles.ratio2[lo:hi] - ratio2) <= tolerance)  # the narrowest test first
-    longest = triangles.longest_rad[rows]
-    keep = ((triangles.sense[rows] == sense) & (longest >= longest_lo) & (longest <= longest_hi)
-            & (triangles.faintest[rows] < star_limit))
-    return rows[keep]
 
 
 def _namings(triangle: np.ndarray, sides: np.ndarray, error: float) -> list[np.ndarray]:
@@ -223,18 +114,18 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
 
     m = plane.shape[0]
     v = directions(np.ones(1))[0]
-    named = [(c, float(err)) for t, s, err in zip(pattern_triangles, _sides(v[pattern_triangles]), side_error_rad)
+    named = [(c, float(err)) for t, s, err in zip(pattern_triangles, sides_of(v[pattern_triangles]), side_error_rad)
              for c in _namings(t, s, float(err))]
     if not named:
         return None
-    sides = _sides(v[np.array([c for c, _ in named])])  # (N, 3), side k opposite corner k
+    sides = sides_of(v[np.array([c for c, _ in named])])  # (N, 3), side k opposite corner k
     shape_tolerance = 2 * np.array([err for _, err in named]) / sides[:, 2] + SHAPE_MARGIN
     tried = 0
     for k in np.argsort(shape_tolerance, kind="stable").tolist():
         if tried >= MAX_TRIED:
             break
         (c, err), s = named[k], sides[k]
-        rows = shape_matches(triangles, s[0] / s[2], s[1] / s[2], int(_sense(v[c][None])[0]), shape_tolerance[k],
+        rows = shape_matches(triangles, s[0] / s[2], s[1] / s[2], int(sense_of(v[c][None])[0]), shape_tolerance[k],
                              s[2] / (1 + tolerance) - err, s[2] / (1 - tolerance) + err, len(star_vectors))
         if len(rows) == 0:
             continue
