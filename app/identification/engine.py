@@ -32,6 +32,9 @@ from app.identification.verify import check_hypotheses, refine, refine_many
 #: (a fraction): its estimates err by 0.05 % RMS, 0.13 % at most (144 simulated single snapshots and
 #: sequences of the 20 deg camera, 0-5 % off), so an exact camera never leaves its own search.
 ESTIMATE_MIN_OFFSET = 0.005
+#: When nothing is identified, the bright triangles look this far (a fraction) from the declared focal
+#: length for a declaration that is wrong beyond its tolerance (a note for the operator; never searched).
+DIAGNOSIS_TOLERANCE = 0.2
 
 
 def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=None,
@@ -92,7 +95,10 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
         yield None, 1
         # The shape matches the estimate checked count among the hypotheses tried when it chose where to look.
         estimate = _estimated_focal_length(declared, sky, options)
-        if estimate is not None:
+        if estimate is not None and _outside_tolerance(estimate, camera):
+            # Optics outside the declaration never make a credible answer: not searched there, but said.
+            notes.append(_outside_tolerance_note(estimate, camera))
+        elif estimate is not None:
             search.n_tried += estimate.n_tried
             search.fitted_focal_lengths.add(estimate.focal_length_px)
             notes.append(f"the pattern's bright triangles put the focal length at {estimate.focal_length_px:.1f} px "
@@ -132,6 +138,12 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     candidates.sort(key=lambda c: (-c.n_matched, c.false_match_probability, c.deviation_arcsec))
     candidates = [replace(c, rank=i + 1) for i, c in enumerate(candidates)]
     status = classify(candidates, options)
+    if status != IDENTIFIED and not any("outside its tolerance" in n for n in notes):
+        # A focal length declared wrong beyond its tolerance identifies nothing: say so when the pattern's
+        # triangles fit one, so that an operator can correct the declaration (or calibrate) and search again.
+        wide = _estimated_focal_length(declared, sky, options, DIAGNOSIS_TOLERANCE)
+        if wide is not None and _outside_tolerance(wide, camera):
+            notes.append(_outside_tolerance_note(wide, camera))
     notes.insert(0, f"{search.n_tried} {method} hypotheses from {search.used} pattern features"
                  + (f" at {n_scales} focal lengths within {camera.focal_tolerance:.1%} of the declared one"
                     if n_scales > 1 else ""))
@@ -321,15 +333,29 @@ class _Search:
             self.consider(p, rot[h], pe[h], cp[h], float(hyp_tol[h]), key=h)
 
 
-def _estimated_focal_length(declared: PreparedPattern, sky: Sky, options: SearchOptions) -> FocalEstimate | None:
-    """The bright triangles' estimate of the focal length (:mod:`.focal_estimate`), when it lies at least
+def _estimated_focal_length(declared: PreparedPattern, sky: Sky, options: SearchOptions,
+                            tolerance: float | None = None) -> FocalEstimate | None:
+    """The bright triangles' estimate of the focal length (:mod:`.focal_estimate`; within ``tolerance`` of
+    the declared one, the declared tolerance when None), when it lies at least
     :data:`ESTIMATE_MIN_OFFSET` from the declared one (closer, the declared camera's own search and optics
     fit find it, and an exact camera keeps its answers)."""
-    estimate = focal_estimate(declared, sky.bright_triangles(), options)
+    estimate = focal_estimate(declared, sky.bright_triangles(), options, tolerance)
     f = declared.camera.focal_length_px
     if estimate is None or abs(estimate.focal_length_px / f - 1) < ESTIMATE_MIN_OFFSET:
         return None
     return estimate
+
+
+def _outside_tolerance(estimate: FocalEstimate, camera: Camera) -> bool:
+    """Whether the estimate lies outside the declared tolerance by more than its own uncertainty."""
+    return abs(estimate.focal_length_px / camera.focal_length_px - 1) > camera.focal_tolerance + ESTIMATE_MIN_OFFSET
+
+
+def _outside_tolerance_note(estimate: FocalEstimate, camera: Camera) -> str:
+    offset = estimate.focal_length_px / camera.focal_length_px - 1
+    return (f"the pattern's bright triangles fit a focal length of {estimate.focal_length_px:.1f} px ({offset:+.1%} "
+            f"of the declared), outside its tolerance of {camera.focal_tolerance:.1%}: if those stars are right, "
+            "the declared focal length is not")
 
 
 def _candidate(c: dict, declared: Camera, sky: Sky, n_tried: int, options: SearchOptions, planets) -> Candidate:

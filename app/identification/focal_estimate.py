@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import bdtrc  # binomial survival function
 
-from app.attitude import rotation_from_pair
+from app.attitude import rotation_from_pair, solve_wahba
 from app.identification.candidates import PreparedPattern
 from app.identification.hypotheses import delaunay_triangles
 from app.identification.options import SearchOptions
@@ -103,9 +103,10 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
     The triangles are taken in order of their shape tolerance (the most
     telling first), all shape matches of one at once, and the search stops
     at the first match that passes the chance test, counting every match
-    checked until then (or once :data:`MAX_TRIED` are checked).  The
-    estimate is then fitted on all the points that match caught
-    (:func:`_fitted_focal_length`).
+    checked until then (or once :data:`MAX_TRIED` are checked).  The best
+    match of each triangle has its focal length (:func:`_fitted_focal_length`)
+    and rotation (Wahba) fitted on the points it caught, twice, before the
+    pattern is checked again and the chance test is made.
     """
     def directions(scale):  # (H,) plane scale factors -> (H, m, 3) unit vectors
         xy = plane[None] * np.asarray(scale)[:, None, None]
@@ -137,12 +138,21 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
         R = rotation_from_pair(seen[h, c[0]], seen[h, c[1]], star_vectors[stars[:, 0]], star_vectors[stars[:, 1]])
         caught = matched_within(np.matmul(seen, R).reshape(-1, 3)).reshape(len(rows), m).sum(axis=1)  # rows R^T p
         best = int(np.argmax(caught))
-        n = int(caught[best])
+        if caught[best] <= 3:
+            continue
+        # The match's focal length and rotation fitted on the points it caught, then the pattern checked
+        # again: one side's focal length errs by ~1 %, enough to miss the far points of a pattern seen
+        # 10-20 % off the declared focal length.
+        f = float(f_new[best])
+        star = nearest_star(seen[best] @ R[best])
+        for _ in range(2):
+            ok = star >= 0
+            f = _fitted_focal_length(plane[ok], focal_length_px, f, star_vectors[star[ok]])
+            v_f = directions(np.array([focal_length_px / f]))[0]
+            star = nearest_star(v_f @ solve_wahba(v_f[ok], star_vectors[star[ok]]))
+        n = int(np.count_nonzero(star >= 0))
         # The corners are caught by construction: P[Binomial(m - 3, p) >= n - 3] = P[... > n - 4].
         if n > 3 and tried * float(bdtrc(n - 4, m - 3, catch_probability)) <= CHANCE_LIMIT:
-            star = nearest_star(seen[best] @ R[best])
-            f = _fitted_focal_length(plane[star >= 0], focal_length_px, float(f_new[best]),
-                                     star_vectors[star[star >= 0]])
             return FocalEstimate(f, n, tried)
     return None
 
@@ -171,9 +181,11 @@ def _fitted_focal_length(plane: np.ndarray, declared_px: float, start_px: float,
     return f
 
 
-def focal_estimate(p: PreparedPattern, triangles: BrightTriangles, options: SearchOptions) -> FocalEstimate | None:
+def focal_estimate(p: PreparedPattern, triangles: BrightTriangles, options: SearchOptions,
+                   tolerance: float | None = None) -> FocalEstimate | None:
     """:func:`estimate_focal_length` for a prepared pattern (seen through the declared camera), from its
-    surely bright Delaunay triangles (:func:`app.identification.hypotheses.delaunay_triangles`)."""
+    surely bright Delaunay triangles (:func:`app.identification.hypotheses.delaunay_triangles`), within
+    ``tolerance`` (a fraction; the camera's declared tolerance when None) of the declared focal length."""
     found = delaunay_triangles(p.xy, p.camera) if p.m >= 3 else None
     if found is None:
         return None
@@ -186,7 +198,8 @@ def focal_estimate(p: PreparedPattern, triangles: BrightTriangles, options: Sear
     radius = CHECK_RADIUS_PX * p.scale
     catch = 1.0 - np.exp(-p.field.density_per_sr * np.pi * radius * radius)
     within, nearest = _star_within(p.field, radius)
-    return estimate_focal_length(tri, plane, p.camera.focal_length_px, p.camera.focal_tolerance, side_error,
+    tolerance = p.camera.focal_tolerance if tolerance is None else tolerance
+    return estimate_focal_length(tri, plane, p.camera.focal_length_px, tolerance, side_error,
                                  triangles, within, nearest, p.field.vectors, float(catch))
 
 
