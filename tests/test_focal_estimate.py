@@ -190,3 +190,20 @@ def test_random_points_are_not_given_a_focal_length_even_far_from_the_declared(s
                                   brightness=np.linspace(200, 100, 12), track_ids=np.arange(12))
         solution = identify(pattern, CAMERA, datetime(2011, 3, 4, tzinfo=timezone.utc) + timedelta(days=50 * k), sky)
         assert not any("bright triangles" in n for n in solution.notes), solution.notes
+
+
+def test_solve_prints_the_focal_length_a_wrong_declaration_hides(tmp_path, capsys):
+    """`simulate --focal-error 0.08` then `solve`: the table's notes name the true focal length."""
+    from app.cli import main as cli_main
+
+    assert cli_main(["simulate", str(tmp_path), "--n", "1", "--seed", "5", "--scenario", "single",
+                     "--focal-error", "0.08"]) == 0
+    capsys.readouterr()
+    [telemetry] = [p for p in tmp_path.glob("*.json") if not p.name.endswith(".truth.json")]
+    assert cli_main(["solve", str(telemetry)]) == 0
+    out = capsys.readouterr().out
+    line = next(line for line in out.splitlines() if "bright triangles fit a focal length" in line)
+    assert line.startswith("  note: ") and "outside its tolerance of 5.0%" in line
+    fitted = float(line.split("focal length of ")[1].split(" px")[0])
+    assert fitted == pytest.approx(CAMERA.focal_length_px * 1.08, rel=0.005)
+    assert "no_match" in out.splitlines()[0]
