@@ -131,7 +131,7 @@ def test_a_wrong_focal_length_is_searched_first_where_the_triangles_point(sky, m
         t = sequence.snapshots[extraction.reference].time
         now = identify(extraction.pattern, CAMERA, t, sky)
         with monkeypatch.context() as without:
-            without.setattr(engine, "ESTIMATE_MIN_OFFSET", np.inf)
+            without.setattr(engine, "focal_estimate", lambda *args, **kwargs: None)
             before = identify(extraction.pattern, CAMERA, t, sky)
         assert now.status == before.status == "identified"
         best, old = now.candidates[0], before.candidates[0]
@@ -207,3 +207,34 @@ def test_solve_prints_the_focal_length_a_wrong_declaration_hides(tmp_path, capsy
     fitted = float(line.split("focal length of ")[1].split(" px")[0])
     assert fitted == pytest.approx(CAMERA.focal_length_px * 1.08, rel=0.005)
     assert "no_match" in out.splitlines()[0]
+
+
+def test_triangle_features_stay_an_independent_opinion(sky, monkeypatch):
+    """The bright triangles' match is a hypothesis of the bright-pair method only: on the sample sparse
+    field, where triangle features' first edge settles nothing and the estimate is made, Liebe's method
+    answers exactly as it does without the estimate (here: nothing found)."""
+    from pathlib import Path
+
+    from app.identification import solve_sequence
+    from app.telemetry.formats import parse_telemetry
+
+    path = Path(__file__).parent.parent / "sample_telemetry" / "06-sparse.json"
+    sequence = parse_telemetry(path.read_bytes(), filename=path.name)
+    made = []
+
+    def spy(*args, **kwargs):
+        made.append(focal_estimate(*args, **kwargs))
+        return made[-1]
+
+    with monkeypatch.context() as watched:
+        watched.setattr(engine, "focal_estimate", spy)
+        with_estimate = solve_sequence(sequence, sky, method="tf")
+    assert made and made[0] is not None  # the triangles found the field ...
+    with monkeypatch.context() as without:
+        without.setattr(engine, "focal_estimate", lambda *args, **kwargs: None)
+        alone = solve_sequence(sequence, sky, method="tf")
+    # ... and triangle features did not take it.
+    assert with_estimate.solution.status == alone.solution.status
+    assert with_estimate.solution.notes == alone.solution.notes
+    assert [[m.hip for m in c.matches] for c in with_estimate.solution.candidates] == \
+        [[m.hip for m in c.matches] for c in alone.solution.candidates]

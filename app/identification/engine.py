@@ -19,7 +19,7 @@ import numpy as np
 
 from app.attitude import rotation_angles_between
 from app.camera import Camera
-from app.identification.focal_estimate import FocalEstimate, focal_estimate
+from app.identification.focal_estimate import CHECK_RADIUS_PX, FocalEstimate, focal_estimate
 from app.identification.candidates import PreparedPattern, build_candidate, prepare_pattern
 from app.identification.methods import METHODS
 from app.identification.optics import focal_lengths_to_try, prepared_with_camera, refine_optics
@@ -30,7 +30,8 @@ from app.identification.verify import check_hypotheses, refine, refine_many
 
 #: The bright triangles' focal length is searched first when it is at least this far from the declared one
 #: (a fraction): its estimates err by 0.05 % RMS, 0.13 % at most (144 simulated single snapshots and
-#: sequences of the 20 deg camera, 0-5 % off), so an exact camera never leaves its own search.
+#: sequences of the 20 deg camera, 0-5 % off), so an exact camera never leaves its own search (closer, the
+#: triangles' match is refined as a hypothesis of the declared camera).
 ESTIMATE_MIN_OFFSET = 0.005
 #: When nothing is identified, the bright triangles look this far (a fraction) from the declared focal
 #: length for a declaration that is wrong beyond its tolerance (a note for the operator; never searched).
@@ -87,31 +88,44 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
             prepared[f] = prepared_with_camera(declared, camera.with_optics(focal_length_px=f))
         return prepared[f]
 
+    settled_at = None
+    tried_before_focal_search = None
+
     def phases():
-        """(focal length (None: the declared), features to try) in turn, until one settles."""
+        """(focal length (None: the declared), features to try) in turn, until one settles (or, when the
+        bright triangles' own match settles the declared camera, none more)."""
+        nonlocal settled_at
         if not searched:
             yield None, None
             return
         yield None, 1
-        # The shape matches the estimate checked count among the hypotheses tried when it chose where to look.
-        estimate = _estimated_focal_length(declared, sky, options)
-        if estimate is not None and _outside_tolerance(estimate, camera):
+        estimate = focal_estimate(declared, sky.bright_triangles(), options)
+        offset = None if estimate is None else estimate.focal_length_px / camera.focal_length_px - 1
+        if estimate is not None and _outside_tolerance(offset, camera):
             # Optics outside the declaration never make a credible answer: not searched there, but said.
             notes.append(_outside_tolerance_note(estimate, camera))
+        elif estimate is not None and abs(offset) < ESTIMATE_MIN_OFFSET:
+            if METHODS[method].bright_triangles:
+                # The declared focal length holds, and the match found is a hypothesis of this method's own
+                # (the shape matches checked count among the hypotheses tried).
+                search.n_tried += estimate.n_tried
+                search.consider(declared, estimate.rotation, np.array(estimate.pattern_edge),
+                                np.array(estimate.catalogue_pair), CHECK_RADIUS_PX * declared.scale)
+                if search.settled(declared, used=1):
+                    settled_at = declared
+                    return
         elif estimate is not None:
+            # The shape matches the estimate checked count among the hypotheses tried: they chose where to look.
             search.n_tried += estimate.n_tried
             search.fitted_focal_lengths.add(estimate.focal_length_px)
-            notes.append(f"the pattern's bright triangles put the focal length at {estimate.focal_length_px:.1f} px "
-                         f"({estimate.focal_length_px / camera.focal_length_px - 1:+.1%} of the declared), "
-                         "searched first")
+            notes.append(f"the pattern's bright triangles put the focal length at "
+                         f"{estimate.focal_length_px:.1f} px ({offset:+.1%} of the declared), searched first")
             yield estimate.focal_length_px, options.focal_search_features
         yield None, options.declared_features_first
         yield from ((f, 1) for f in searched)
         yield from ((f, options.focal_search_features) for f in searched)
         yield None, None
 
-    settled_at = None
-    tried_before_focal_search = None
     for f, max_features in phases():
         if f is not None:
             # A pattern that matches nowhere (the Earth, noise) must not pay a dozen searches.
@@ -141,8 +155,8 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     if status != IDENTIFIED and not any("outside its tolerance" in n for n in notes):
         # A focal length declared wrong beyond its tolerance identifies nothing: say so when the pattern's
         # triangles fit one, so that an operator can correct the declaration (or calibrate) and search again.
-        wide = _estimated_focal_length(declared, sky, options, DIAGNOSIS_TOLERANCE)
-        if wide is not None and _outside_tolerance(wide, camera):
+        wide = focal_estimate(declared, sky.bright_triangles(), options, DIAGNOSIS_TOLERANCE)
+        if wide is not None and _outside_tolerance(wide.focal_length_px / camera.focal_length_px - 1, camera):
             notes.append(_outside_tolerance_note(wide, camera))
     notes.insert(0, f"{search.n_tried} {method} hypotheses from {search.used} pattern features"
                  + (f" at {n_scales} focal lengths within {camera.focal_tolerance:.1%} of the declared one"
@@ -293,13 +307,18 @@ class _Search:
                 for h in top:
                     self.consider(p, hyp.rotations[h], hyp.pattern_edge[h], hyp.catalogue_pair[h],
                                   float(tol[h]), key=offset + h)
-            best = max((c["refined"].n_matched for c in self.found if c["searched"] is p), default=0)
-            if (best >= min(p.m, options.early_stop_matches) and best >= options.early_stop_fraction * p.m
-                    and used >= options.early_stop_edges):
+            if self.settled(p, used):
                 return True
             if self.timed_out() or (max_features is not None and used >= max_features):
                 break
         return False
+
+    def settled(self, p, used: int) -> bool:
+        """Whether a refined hypothesis of ``p`` explains most of it, after ``used`` pattern features."""
+        options = self.options
+        best = max((c["refined"].n_matched for c in self.found if c["searched"] is p), default=0)
+        return (best >= min(p.m, options.early_stop_matches) and best >= options.early_stop_fraction * p.m
+                and used >= options.early_stop_edges)
 
     def alternatives(self, p) -> None:
         """More distinct alternatives for the operator's Next/Prev, in order of promise, from ``p``'s hypotheses.
@@ -333,22 +352,10 @@ class _Search:
             self.consider(p, rot[h], pe[h], cp[h], float(hyp_tol[h]), key=h)
 
 
-def _estimated_focal_length(declared: PreparedPattern, sky: Sky, options: SearchOptions,
-                            tolerance: float | None = None) -> FocalEstimate | None:
-    """The bright triangles' estimate of the focal length (:mod:`.focal_estimate`; within ``tolerance`` of
-    the declared one, the declared tolerance when None), when it lies at least
-    :data:`ESTIMATE_MIN_OFFSET` from the declared one (closer, the declared camera's own search and optics
-    fit find it, and an exact camera keeps its answers)."""
-    estimate = focal_estimate(declared, sky.bright_triangles(), options, tolerance)
-    f = declared.camera.focal_length_px
-    if estimate is None or abs(estimate.focal_length_px / f - 1) < ESTIMATE_MIN_OFFSET:
-        return None
-    return estimate
-
-
-def _outside_tolerance(estimate: FocalEstimate, camera: Camera) -> bool:
-    """Whether the estimate lies outside the declared tolerance by more than its own uncertainty."""
-    return abs(estimate.focal_length_px / camera.focal_length_px - 1) > camera.focal_tolerance + ESTIMATE_MIN_OFFSET
+def _outside_tolerance(offset: float, camera: Camera) -> bool:
+    """Whether an estimated focal length ``offset`` (a fraction of the declared) lies outside the declared
+    tolerance by more than the estimate's own uncertainty."""
+    return abs(offset) > camera.focal_tolerance + ESTIMATE_MIN_OFFSET
 
 
 def _outside_tolerance_note(estimate: FocalEstimate, camera: Camera) -> str:

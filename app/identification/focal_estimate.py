@@ -26,10 +26,16 @@ chance matches catching ``k`` of ``m`` points,
 ``H P[Binomial(m - 3, p) >= k - 3]``, must be at most
 :data:`CHANCE_LIMIT` (the reasoning of :mod:`.verify`'s false-match
 probability; random points caught 5 of 16 by chance before this test).  The
-focal length is then fitted on all the points caught.  The engine searches
-there first with its usual machinery (check, refine, optics fit,
-false-match probability, every hypothesis counted), so the estimate only
-orders the work: an answer never rests on it.
+focal length is then fitted on all the points caught.
+
+Use (:func:`app.identification.engine.identify`, when the declared camera's
+first bright-pair edge has not settled the pattern).  Away from the declared
+focal length, the engine searches there first with its usual machinery
+(check, refine, optics fit, false-match probability, every hypothesis
+counted).  At the declared focal length, the match is refined as one more of
+its hypotheses, which usually settles the pattern at once.  Either way the
+answer rests on the engine's own refinement and scoring, never on the
+estimate.
 """
 
 from __future__ import annotations
@@ -60,13 +66,16 @@ CHECK_RADIUS_PX = 5.0
 SHAPE_MARGIN = 0.002
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class FocalEstimate:
     """The focal length fitted on the first shape match that chance does not explain, and how it was found."""
 
     focal_length_px: float
     n_matched: int  # pattern points within the check radius, its triangle's three included
     n_tried: int  # shape matches checked (each a hypothesis, for the false-match count)
+    rotation: np.ndarray  # (3, 3) ICRS -> camera, fitted with the focal length on the caught points
+    pattern_edge: tuple[int, int]  # the matched triangle's longest side: pattern rows ...
+    catalogue_pair: tuple[int, int]  # ... and the star rows matched to them
 
 
 def _namings(triangle: np.ndarray, sides: np.ndarray, error: float) -> list[np.ndarray]:
@@ -143,17 +152,19 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
         # The match's focal length and rotation fitted on the points it caught, then the pattern checked
         # again: one side's focal length errs by ~1 %, enough to miss the far points of a pattern seen
         # 10-20 % off the declared focal length.
-        f = float(f_new[best])
-        star = nearest_star(seen[best] @ R[best])
+        f, rotation = float(f_new[best]), R[best]
+        star = nearest_star(seen[best] @ rotation)
         for _ in range(2):
             ok = star >= 0
             f = _fitted_focal_length(plane[ok], focal_length_px, f, star_vectors[star[ok]])
             v_f = directions(np.array([focal_length_px / f]))[0]
-            star = nearest_star(v_f @ solve_wahba(v_f[ok], star_vectors[star[ok]]))
+            rotation = solve_wahba(v_f[ok], star_vectors[star[ok]])
+            star = nearest_star(v_f @ rotation)
         n = int(np.count_nonzero(star >= 0))
         # The corners are caught by construction: P[Binomial(m - 3, p) >= n - 3] = P[... > n - 4].
         if n > 3 and tried * float(bdtrc(n - 4, m - 3, catch_probability)) <= CHANCE_LIMIT:
-            return FocalEstimate(f, n, tried)
+            return FocalEstimate(f, n, tried, rotation, (int(c[0]), int(c[1])),
+                                 (int(stars[best, 0]), int(stars[best, 1])))
     return None
 
 

@@ -31,11 +31,15 @@ class Method:
     hypotheses: Callable | None = None
     #: Tracking matches near a prior attitude instead of searching the sky.
     needs_prior: bool = False
+    #: Its hypotheses come from the bright-pair index, so a match of the index's bright triangles
+    #: (:mod:`app.identification.focal_estimate`) is one of its own; another method stays an independent
+    #: opinion and uses them only to choose the focal length searched first.
+    bright_triangles: bool = False
 
 
 METHODS: dict[str, Method] = {m.name: m for m in (
     Method("bright_pair", "the seed's bright-pair index, edges looked up by length (lost in space; default)",
-           hypotheses=bright_pair_batches),
+           hypotheses=bright_pair_batches, bright_triangles=True),
     Method("tf", "Liebe's triangle features: two angular distances and the spherical angle (lost in space)",
            hypotheses=tf_batches),
     Method("tracking", "match near a prior attitude (Liebe's predictional estimate; FUSE's known tracking)",
