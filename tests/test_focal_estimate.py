@@ -11,7 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from app.attitude import rotation_from_pair
+from app.attitude import angle_between, radec_roll_from_rotation, rotation_from_pair
 from app.camera import CAMERAS
 from app.extraction import extract
 from app.identification import engine, identify
@@ -23,6 +23,11 @@ from app.index import BrightPairIndex
 from app.simulate import simulate_sequence, true_optics
 
 CAMERA = CAMERAS["tubsat-752x582-20deg"]
+
+
+def _unit(ra_deg: float, dec_deg: float) -> np.ndarray:
+    ra, dec = np.radians(ra_deg), np.radians(dec_deg)
+    return np.array([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)])
 
 
 def _random_index(rng, n_stars: int, n_pairs: int) -> BrightPairIndex:
@@ -168,8 +173,8 @@ def test_a_focal_length_declared_wrong_beyond_its_tolerance_is_named_never_searc
     for seed in range(3):
         for focal_error in (0.08, -0.10, 0.15):
             p_true = true_optics(CAMERA, focal_error=focal_error)
-            sequence, _ = simulate_sequence(np.random.default_rng([seed, 1616]), CAMERA, "single",
-                                            true_camera=p_true)
+            sequence, truth = simulate_sequence(np.random.default_rng([seed, 1616]), CAMERA, "single",
+                                                true_camera=p_true)
             extraction = extract(sequence)
             solution = identify(extraction.pattern, CAMERA, sequence.snapshots[extraction.reference].time, sky)
             assert solution.status != "identified"
@@ -179,6 +184,12 @@ def test_a_focal_length_declared_wrong_beyond_its_tolerance_is_named_never_searc
                 named += 1
                 fitted = float(said[0].split("focal length of ")[1].split(" px")[0])
                 assert fitted == pytest.approx(p_true.focal_length_px, rel=0.005)
+                # ... and where the camera pointed, to say where those stars are.
+                ra = float(said[0].split("near RA ")[1].split(" deg")[0])
+                dec = float(said[0].split("Dec ")[1].split(" deg")[0])
+                R_true = np.asarray(truth["rotation_matrices"][extraction.reference])
+                ra_true, dec_true, _ = radec_roll_from_rotation(R_true)
+                assert angle_between(_unit(ra, dec), _unit(ra_true, dec_true)) < np.radians(0.2)
     assert named >= 7
 
 

@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from app.attitude import rotation_angles_between
+from app.attitude import radec_roll_from_rotation, rotation_angles_between
 from app.camera import Camera
 from app.identification.focal_estimate import CHECK_RADIUS_PX, FocalEstimate, focal_estimate
 from app.identification.candidates import PreparedPattern, build_candidate, prepare_pattern
@@ -118,8 +118,10 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
             # The shape matches the estimate checked count among the hypotheses tried: they chose where to look.
             search.n_tried += estimate.n_tried
             search.fitted_focal_lengths.add(estimate.focal_length_px)
+            beyond = (f", within the declared {camera.focal_tolerance:.1%} and the estimate's own "
+                      f"{ESTIMATE_MIN_OFFSET:.1%}" if abs(offset) > camera.focal_tolerance else "")
             notes.append(f"the pattern's bright triangles put the focal length at "
-                         f"{estimate.focal_length_px:.1f} px ({offset:+.1%} of the declared), searched first")
+                         f"{estimate.focal_length_px:.1f} px ({offset:+.1%} of the declared{beyond}), searched first")
             yield estimate.focal_length_px, options.focal_search_features
         yield None, options.declared_features_first
         yield from ((f, 1) for f in searched)
@@ -359,10 +361,15 @@ def _outside_tolerance(offset: float, camera: Camera) -> bool:
 
 
 def _outside_tolerance_note(estimate: FocalEstimate, camera: Camera) -> str:
+    """What an operator needs to act on a declaration the stars contradict: the focal length they fit, where
+    the camera then points, and what to change."""
     offset = estimate.focal_length_px / camera.focal_length_px - 1
+    ra, dec, _ = radec_roll_from_rotation(estimate.rotation)
     return (f"the pattern's bright triangles fit a focal length of {estimate.focal_length_px:.1f} px ({offset:+.1%} "
-            f"of the declared), outside its tolerance of {camera.focal_tolerance:.1%}: if those stars are right, "
-            "the declared focal length is not")
+            f"of the declared), outside its tolerance of {camera.focal_tolerance:.1%}, with {estimate.n_matched} "
+            f"of {estimate.n_points} points on stars near RA {ra:.1f} deg, "
+            f"Dec {dec:+.1f} deg: if that is where the camera pointed, correct the camera's focal length (or its "
+            "focal_length_tolerance) in the telemetry, or calibrate the camera, and search again")
 
 
 def _candidate(c: dict, declared: Camera, sky: Sky, n_tried: int, options: SearchOptions, planets) -> Candidate:

@@ -71,7 +71,8 @@ class FocalEstimate:
     """The focal length fitted on the first shape match that chance does not explain, and how it was found."""
 
     focal_length_px: float
-    n_matched: int  # pattern points within the check radius, its triangle's three included
+    n_matched: int  # pattern points within the check radius, its triangle's three included ...
+    n_points: int  # ... of these
     n_tried: int  # shape matches checked (each a hypothesis, for the false-match count)
     rotation: np.ndarray  # (3, 3) ICRS -> camera, fitted with the focal length on the caught points
     pattern_edge: tuple[int, int]  # the matched triangle's longest side: pattern rows ...
@@ -163,7 +164,7 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
         n = int(np.count_nonzero(star >= 0))
         # The corners are caught by construction: P[Binomial(m - 3, p) >= n - 3] = P[... > n - 4].
         if n > 3 and tried * float(bdtrc(n - 4, m - 3, catch_probability)) <= CHANCE_LIMIT:
-            return FocalEstimate(f, n, tried, rotation, (int(c[0]), int(c[1])),
+            return FocalEstimate(f, n, m, tried, rotation, (int(c[0]), int(c[1])),
                                  (int(stars[best, 0]), int(stars[best, 1])))
     return None
 
