@@ -19,8 +19,8 @@ import numpy as np
 
 from app.attitude import radec_roll_from_rotation, rotation_angles_between
 from app.camera import Camera
+from app.identification.candidates import build_candidate, prepare_pattern
 from app.identification.focal_estimate import CHECK_RADIUS_PX, FocalEstimate, focal_estimate
-from app.identification.candidates import PreparedPattern, build_candidate, prepare_pattern
 from app.identification.methods import METHODS
 from app.identification.optics import focal_lengths_to_try, prepared_with_camera, refine_optics
 from app.identification.options import SearchOptions
@@ -71,12 +71,13 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
         else [camera.focal_length_px]
     search = _Search(sky, options, generator, started, camera)
     # The declared camera's first feature; then a few features at the focal length the pattern's bright
-    # triangles point to, when that is clearly another; the declared camera's next features; then the first
-    # feature at each other focal length (nearest first), a few more at each, and the rest of the declared
-    # camera's.  An exact camera settles in the first phases as it always did, and a wrong one costs one
-    # search where its triangles point (or, when they point nowhere, a few features per focal length)
-    # instead of a full search at each.  (The pattern seen at another focal length is prepared when its
-    # phase comes: an exact camera never needs it.)
+    # triangles point to, when that is clearly another (when it is the declared one, their match is refined
+    # as a bright-pair hypothesis of its own); the declared camera's next features; then the first feature
+    # at each other focal length (nearest first), a few more at each, and the rest of the declared camera's.
+    # An exact camera settles in the first phases as it always did, and a wrong one costs one search where
+    # its triangles point (or, when they point nowhere, a few features per focal length) instead of a full
+    # search at each.  (The pattern seen at another focal length is prepared when its phase comes: an exact
+    # camera never needs it.)
     searched = focal_lengths[1:]
     prepared = {}
     notes: list[str] = []
@@ -90,11 +91,12 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
 
     settled_at = None
     tried_before_focal_search = None
+    contradicted = False  # the bright triangles fit a focal length outside the declared tolerance
 
     def phases():
         """(focal length (None: the declared), features to try) in turn, until one settles (or, when the
         bright triangles' own match settles the declared camera, none more)."""
-        nonlocal settled_at
+        nonlocal settled_at, contradicted
         if not searched:
             yield None, None
             return
@@ -104,6 +106,7 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
         if estimate is not None and _outside_tolerance(offset, camera):
             # Optics outside the declaration never make a credible answer: not searched there, but said.
             notes.append(_outside_tolerance_note(estimate, camera))
+            contradicted = True
         elif estimate is not None and abs(offset) < ESTIMATE_MIN_OFFSET:
             if METHODS[method].bright_triangles:
                 # The declared focal length holds, and the match found is a hypothesis of this method's own
@@ -154,7 +157,7 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     candidates.sort(key=lambda c: (-c.n_matched, c.false_match_probability, c.deviation_arcsec))
     candidates = [replace(c, rank=i + 1) for i, c in enumerate(candidates)]
     status = classify(candidates, options)
-    if status != IDENTIFIED and not any("outside its tolerance" in n for n in notes):
+    if status != IDENTIFIED and not contradicted:
         # A focal length declared wrong beyond its tolerance identifies nothing: say so when the pattern's
         # triangles fit one, so that an operator can correct the declaration (or calibrate) and search again.
         wide = focal_estimate(declared, sky.bright_triangles(), options, DIAGNOSIS_TOLERANCE)

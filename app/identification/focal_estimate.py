@@ -50,7 +50,7 @@ from app.identification.candidates import PreparedPattern
 from app.identification.hypotheses import delaunay_triangles
 from app.identification.options import SearchOptions
 from app.identification.triangle_index import BrightTriangles, sense_of, shape_matches, sides_of
-from app.identification.verify import StarField, chord
+from app.identification.verify import StarField, chord, chord_to_angle
 
 #: Expected number of chance matches as good as the estimate's, at most (see the module doc).
 CHANCE_LIMIT = 1e-3
@@ -157,6 +157,8 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
         star = nearest_star(seen[best] @ rotation)
         for _ in range(2):
             ok = star >= 0
+            if np.count_nonzero(ok) < 3:  # a refit lost its points: no estimate from this match
+                break
             f = _fitted_focal_length(plane[ok], focal_length_px, f, star_vectors[star[ok]])
             v_f = directions(np.array([focal_length_px / f]))[0]
             rotation = solve_wahba(v_f[ok], star_vectors[star[ok]])
@@ -182,13 +184,13 @@ def _fitted_focal_length(plane: np.ndarray, declared_px: float, start_px: float,
     caught points, to ~0.1 %.
     """
     i, j = np.triu_indices(len(plane), k=1)
-    star_angle = 2 * np.arcsin(np.minimum(np.linalg.norm(stars[i] - stars[j], axis=1) / 2, 1.0))
+    star_angle = chord_to_angle(np.linalg.norm(stars[i] - stars[j], axis=1))
     f = start_px
     for _ in range(3):
         xy = plane * (declared_px / f)
         v = np.column_stack([xy, np.ones(len(xy))])
         v /= np.linalg.norm(v, axis=1, keepdims=True)
-        seen_angle = 2 * np.arcsin(np.minimum(np.linalg.norm(v[i] - v[j], axis=1) / 2, 1.0))
+        seen_angle = chord_to_angle(np.linalg.norm(v[i] - v[j], axis=1))
         f *= float(seen_angle @ star_angle / (star_angle @ star_angle))
     return f
 

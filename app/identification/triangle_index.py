@@ -25,6 +25,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from app.identification.verify import chord_to_angle
 from app.index import BrightPairIndex
 
 
@@ -59,7 +60,7 @@ class BrightTriangles:
 def sides_of(v: np.ndarray) -> np.ndarray:
     """(T, 3) angles of the sides opposite corners 0, 1, 2 of the triangles ``v`` (T, 3, 3)."""
     def angle(a, b):
-        return 2 * np.arcsin(np.minimum(np.linalg.norm(a - b, axis=-1) / 2, 1.0))
+        return chord_to_angle(np.linalg.norm(a - b, axis=-1))
     return np.column_stack([angle(v[:, 1], v[:, 2]), angle(v[:, 0], v[:, 2]), angle(v[:, 0], v[:, 1])])
 
 
