@@ -161,7 +161,7 @@ async function loadDetail(id, { fresh = false } = {}) {
   if (fresh) $("change-notice").hidden = true;
   $("seq-title").textContent = detail.sequence_id || `sequence #${detail.id}`;
   $("seq-meta").textContent = `#${detail.id} · ${detail.spacecraft || "unknown spacecraft"} · ${detail.camera.name || "camera"} · ` +
-    `${detail.n_snapshots} snapshots from ${fmtTime(detail.first_time)}${detail.filename ? ` · ${detail.filename}` : ""}`;
+    `${plural(detail.n_snapshots, "snapshot")} from ${fmtTime(detail.first_time)}${detail.filename ? ` · ${detail.filename}` : ""}`;
   const badge = $("seq-status");
   badge.textContent = statusText(detail.status);
   badge.className = `badge ${detail.status}`;

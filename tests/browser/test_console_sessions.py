@@ -677,3 +677,28 @@ def test_bulk_aem_export_from_the_console(server, api, new_page, tmp_path):
     page.click("#bulk-go")
     expect_text(page.locator("#toast"), "No AEM: no confirmed attitude of spacecraft 'SIM-TUBSAT'")
     assert watched.errors == [] or all("404" in e for e in watched.errors)
+
+
+def test_a_focal_length_the_stars_contradict_is_named_in_the_search_summary(server, api, new_page, tmp_path):
+    """A single snapshot seen 8 % off a camera declared to 5 %: nothing is identified, and the summary names
+    the focal length the stars fit and where they put the camera; the header counts one snapshot (not
+    "1 snapshots") and a whole sample sixteen."""
+    from app.cli import main as cli_main
+
+    assert cli_main(["simulate", str(tmp_path), "--n", "1", "--seed", "5", "--scenario", "single",
+                     "--focal-error", "0.08", "--name", "focal-8-percent"]) == 0
+    [path] = [p for p in tmp_path.glob("*.json") if not p.name.endswith(".truth.json")]
+    seq_id, search = upload_and_search(api, path)
+    assert search["status"] != "identified"
+    name = json.loads(path.read_text())["sequence_id"]
+    watched = operator_on(new_page, server, "Focal Watcher", seq_id, name)
+    page = watched.page
+    expect_text(page.locator("#seq-meta"), r"· 1 snapshot from ")
+    expect_text(page.locator("#search-summary"),
+                r"bright triangles fit a focal length of 2\d{3}\.\d px \(\+8\.\d% of the declared\), outside its "
+                r"tolerance of 5\.0%, with \d+ of \d+ points on stars near RA \d+\.\d deg")
+    watched.screenshot("17-focal-length-contradicted")
+    clean_id = api("/api/sequences", "POST", raw=fresh_copy("01-clean.json", "focal", tmp_path).read_bytes())["id"]
+    open_sequence(page, clean_id, "01-clean-focal")
+    expect_text(page.locator("#seq-meta"), r"· 16 snapshots from ")
+    assert unexpected_errors(watched) == []
