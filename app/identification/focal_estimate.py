@@ -79,9 +79,17 @@ class FocalEstimate:
     catalogue_pair: tuple[int, int]  # ... and the star rows matched to them
 
 
-def _namings(triangle: np.ndarray, sides: np.ndarray, error: float) -> list[np.ndarray]:
-    """The corner orders of a pattern triangle under which its sides may be sorted: sides within their
-    error of each other may be named either way round."""
+def _directions(plane: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """(H, m, 3) unit vectors of the points ``plane`` (m, 2) (normalised coordinates at the declared focal
+    length) seen at each of the focal lengths ``declared / scale`` (``scale`` (H,))."""
+    xy = plane[None] * np.asarray(scale, dtype=float)[:, None, None]
+    v = np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], axis=2)
+    return v / np.linalg.norm(v, axis=2, keepdims=True)
+
+
+def _namings(triangle: np.ndarray, sides: np.ndarray, error: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The corner orders of a pattern triangle under which its sides may be sorted, each with its sides
+    (side k opposite corner k): sides within their error of each other may be named either way round."""
     order = np.argsort(sides, kind="stable")
     names = {tuple(order.tolist())}
     for first, second in ((0, 1), (1, 2)):
@@ -89,7 +97,7 @@ def _namings(triangle: np.ndarray, sides: np.ndarray, error: float) -> list[np.n
             swapped = order.copy()
             swapped[[first, second]] = order[[second, first]]
             names.add(tuple(swapped.tolist()))
-    return [triangle[list(name)] for name in sorted(names)]
+    return [(triangle[list(name)], sides[list(name)]) for name in sorted(names)]
 
 
 def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, focal_length_px: float,
@@ -118,31 +126,26 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
     and rotation (Wahba) fitted on the points it caught, twice, before the
     pattern is checked again and the chance test is made.
     """
-    def directions(scale):  # (H,) plane scale factors -> (H, m, 3) unit vectors
-        xy = plane[None] * np.asarray(scale)[:, None, None]
-        v = np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], axis=2)
-        return v / np.linalg.norm(v, axis=2, keepdims=True)
-
     m = plane.shape[0]
-    v = directions(np.ones(1))[0]
-    named = [(c, float(err)) for t, s, err in zip(pattern_triangles, sides_of(v[pattern_triangles]), side_error_rad)
-             for c in _namings(t, s, float(err))]
+    v = _directions(plane, np.ones(1))[0]
+    named = [(c, sides, float(err))
+             for t, s, err in zip(pattern_triangles, sides_of(v[pattern_triangles]), side_error_rad)
+             for c, sides in _namings(t, s, float(err))]
     if not named:
         return None
-    sides = sides_of(v[np.array([c for c, _ in named])])  # (N, 3), side k opposite corner k
-    shape_tolerance = 2 * np.array([err for _, err in named]) / sides[:, 2] + SHAPE_MARGIN
+    shape_tolerance = [2 * err / sides[2] + SHAPE_MARGIN for _, sides, err in named]
     tried = 0
     for k in np.argsort(shape_tolerance, kind="stable").tolist():
         if tried >= MAX_TRIED:
             break
-        (c, err), s = named[k], sides[k]
+        c, s, err = named[k]
         rows = shape_matches(triangles, s[0] / s[2], s[1] / s[2], int(sense_of(v[c][None])[0]), shape_tolerance[k],
                              s[2] / (1 + tolerance) - err, s[2] / (1 - tolerance) + err, len(star_vectors))
         if len(rows) == 0:
             continue
         tried += len(rows)
         f_new = focal_length_px * s[2] / triangles.longest_rad[rows]
-        seen = directions(focal_length_px / f_new)  # (H, m, 3)
+        seen = _directions(plane, focal_length_px / f_new)  # (H, m, 3)
         h = np.arange(len(rows))
         stars = triangles.corners[rows]
         R = rotation_from_pair(seen[h, c[0]], seen[h, c[1]], star_vectors[stars[:, 0]], star_vectors[stars[:, 1]])
@@ -160,7 +163,7 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
             if np.count_nonzero(ok) < 3:  # a refit lost its points: no estimate from this match
                 break
             f = _fitted_focal_length(plane[ok], focal_length_px, f, star_vectors[star[ok]])
-            v_f = directions(np.array([focal_length_px / f]))[0]
+            v_f = _directions(plane, np.array([focal_length_px / f]))[0]
             rotation = solve_wahba(v_f[ok], star_vectors[star[ok]])
             star = nearest_star(v_f @ rotation)
         n = int(np.count_nonzero(star >= 0))
@@ -187,9 +190,7 @@ def _fitted_focal_length(plane: np.ndarray, declared_px: float, start_px: float,
     star_angle = chord_to_angle(np.linalg.norm(stars[i] - stars[j], axis=1))
     f = start_px
     for _ in range(3):
-        xy = plane * (declared_px / f)
-        v = np.column_stack([xy, np.ones(len(xy))])
-        v /= np.linalg.norm(v, axis=1, keepdims=True)
+        v = _directions(plane, np.array([declared_px / f]))[0]
         seen_angle = chord_to_angle(np.linalg.norm(v[i] - v[j], axis=1))
         f *= float(seen_angle @ star_angle / (star_angle @ star_angle))
     return f
