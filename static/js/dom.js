@@ -55,6 +55,17 @@ export function trackColour(track, alpha = 1) {
   return `hsla(${hue.toFixed(1)}, 85%, 62%, ${alpha})`;
 }
 
+// Where a w×h label of a marker of radius r at (cx, cy) goes on a canvas `width` wide: the box's top-left
+// corner. Beside the marker's upper right as usual (`gap` from it, its bottom `above` the centre); a source
+// at the sensor's edge would have its name cut there, so the label goes to the marker's left when it runs
+// past the right edge and below the marker when it runs past the top.
+export function placeLabel({ cx, cy, r, w, h, width, gap = 2, above = 0 }) {
+  let x = cx + r + gap, y = cy - above - h;
+  if (x + w > width) x = cx - r - gap - w;
+  if (y < 0) y = cy + r + gap;
+  return { x, y, w, h };
+}
+
 export const fmt = (value, digits = 3) => (value === null || value === undefined || Number.isNaN(value))
   ? "-" : Number(value).toFixed(digits);
 

@@ -6,7 +6,7 @@
 // for the whole frame; a click on a detection takes its track in or out of the pattern, as a
 // click in the player does. Telemetry strings only ever reach the page as text.
 import * as api from "./api.js";
-import { $, trackColour } from "./dom.js";
+import { $, placeLabel, trackColour } from "./dom.js";
 
 const MAX_ZOOM = 32;            // screen pixels per sensor pixel at most
 const ZOOM_STEP = 1.5;          // one +/- press
@@ -21,6 +21,8 @@ const REASONS = {
   extended: "extended (glare, Moon, limb)", not_brightest: "a star beyond the brightest reported", saturated: "saturated",
   edge: "cut by the frame's edge",
 };
+const round1 = (v) => Math.round(v * 10) / 10;   // canvas positions as the page shows them to tests
+
 export const reasonText = (reason) => String(reason).split("+").map((r) => REASONS[r] || r.replaceAll("_", " ")).join(", ");
 
 export class FrameView {
@@ -302,22 +304,25 @@ export class FrameView {
         ctx.beginPath(); ctx.arc(cx, cy, r, 0, 2 * Math.PI); ctx.stroke();
         ctx.setLineDash([]);
         const label = track !== null ? `T${track}` : (reason || "").replaceAll("_", " ");
-        if (label) {
+        // On its dark box at the circle's upper right; inside the canvas for a source at its edge.
+        const box = label ? placeLabel({ cx, cy, r, w: ctx.measureText(label).width + 4, h: 14, width: canvas.width,
+          gap: 2, above: r - 2 }) : null;
+        if (box) {
           ctx.fillStyle = "#000a";
-          const w = ctx.measureText(label).width;
-          ctx.fillRect(cx + r + 2, cy - r - 12, w + 4, 14);
+          ctx.fillRect(box.x, box.y, box.w, box.h);
           ctx.fillStyle = track === null ? COLOURS.untracked : inside ? trackColour(track) : COLOURS.out;
-          ctx.fillText(label, cx + r + 4, cy - r - 1);
+          ctx.fillText(label, box.x + 2, box.y + 11);
         }
         const what = track !== null ? `T${track}${inside ? "" : " (out of the pattern)"}` : (reason ? reason.replaceAll("_", " ") : "untracked");
         this.hits.push({ kind: "detection", x: cx, y: cy, r, track, reason,
           text: `${what} · source ${d.source + 1} at (${d.x.toFixed(2)}, ${d.y.toFixed(2)}), brightness ${Math.round(d.brightness ?? 0)}` +
             (d.flags.length ? ` · ${reasonText(d.flags.join("+"))}` : "") + (track !== null ? " · click: in / out of the pattern" : "") });
-        markers.push({ kind: "detection", x: cx, y: cy, track, source: d.source });
+        markers.push({ kind: "detection", x: cx, y: cy, track, source: d.source,
+          label: box && { text: label, x: round1(box.x), y: round1(box.y), w: round1(box.w), h: box.h } });
       }
     }
     // What was drawn where, for whoever inspects the page (the browser tests).
-    canvas.dataset.markers = JSON.stringify(markers.map((m) => ({ ...m, x: Math.round(m.x * 10) / 10, y: Math.round(m.y * 10) / 10 })));
+    canvas.dataset.markers = JSON.stringify(markers.map((m) => ({ ...m, x: round1(m.x), y: round1(m.y) })));
   }
 
   visible(cx, cy) {

@@ -12,7 +12,8 @@ import { FrameView } from "./frame.js";
 import { SnapshotPlayer } from "./player.js";
 import { drawSky, hitAt } from "./sky.js";
 import { SESSION, state } from "./state.js";
-import { loadAttitudes, loadSequences, loadSpacecraft, markSelected, setupQueue, statusText } from "./queue.js";
+import { loadAttitudes, loadSequences, loadSpacecraft, markSelected, noteSearched, setupQueue,
+  statusText } from "./queue.js";
 import { cancelSteps, confirmClick, openReject, renderCandidates, setupDecision,
   verdictSummary } from "./decision.js";
 import { calibrate, showCalibration } from "./calibration.js";
@@ -167,6 +168,7 @@ async function loadDetail(id, { fresh = false } = {}) {
   badge.className = `badge ${detail.status}`;
   $("seq-verdict").textContent = verdictSummary();
   markSelected(id);
+  noteSearched([detail]);   // its upload line, if it still says a search is queued
   if (detail.spacecraft !== state.calibrationShown) {
     state.calibrationShown = detail.spacecraft;
     action("Loading the camera calibration", () => showCalibration(detail.spacecraft));
@@ -227,8 +229,16 @@ function renderSearchSummary() {
   box.textContent = s
     ? `Latest search: ${statusText(s.status)} by ${methodName(s.method)}, ${plural(s.candidates.length, "candidate")} in ` +
       `${Math.round(s.elapsed_ms)} ms (pattern version ${s.pattern_version})` +
-      `${stale ? ` - STALE: the pattern is at version ${state.detail.pattern.version} now; search again` : ""}. ${(s.notes || []).join("; ")}`
+      `${stale ? ` - STALE: the pattern is at version ${state.detail.pattern.version} now; search again` : ""}.` +
+      (s.notes || []).filter((note) => note.trim()).map((note) => ` ${sentence(note)}`).join("")
     : "Not searched yet.";
+}
+
+// A search note as a sentence of the summary: the notes are clauses in lower case ("the pattern's bright
+// triangles ..."), each said after a full stop, so each starts with a capital and ends with one.
+function sentence(note) {
+  const text = note.trim();
+  return `${text.charAt(0).toUpperCase()}${text.slice(1)}${/[.!?]$/.test(text) ? "" : "."}`;
 }
 
 async function editPattern(change, what) {

@@ -1,11 +1,12 @@
 // Snapshot player: the sequence on the sensor frame, sources coloured by track,
 // rejected sources marked by reason, tracks drawn as trails; play / step / slider;
 // clicks toggle tracks in or out of the pattern, or pick points by hand.
-import { $, trackColour } from "./dom.js";
+import { $, placeLabel, trackColour } from "./dom.js";
 
 const CLICK_RADIUS_CSS = 10;   // how close (CSS pixels) a click must be to a source or trail
 const SNAP_RADIUS_PX = 6;      // a picked point snaps to a reported source this close (sensor pixels)
 const PLAY_INTERVAL_MS = 450;
+const LABEL_FONT_PX = 11;      // track names (T3) beside their sources
 
 export class SnapshotPlayer {
   constructor({ onToggleTrack, onPick, onRemoveManual, onMessage, onShow }) {
@@ -92,6 +93,8 @@ export class SnapshotPlayer {
     const { ctx, canvas } = this;
     ctx.fillStyle = "#05070b";
     ctx.fillRect(0, 0, canvas.width, canvas.height);
+    this.labels = [];
+    canvas.dataset.labels = "[]";
     if (!this.detail) return;
     const snapshots = this.detail.telemetry.snapshots;
     const ex = this.detail.extraction;
@@ -129,6 +132,9 @@ export class SnapshotPlayer {
       ctx.moveTo(cx, cy - 7); ctx.lineTo(cx + 7, cy); ctx.lineTo(cx, cy + 7); ctx.lineTo(cx - 7, cy); ctx.closePath();
       ctx.fill();
     }
+    // What was drawn where, for whoever inspects the page (the browser tests check labels stay on the canvas).
+    canvas.dataset.labels = JSON.stringify(this.labels.map(({ text, x, y, w, h }) => ({
+      text, x: Math.round(x * 10) / 10, y: Math.round(y * 10) / 10, w: Math.round(w * 10) / 10, h })));
     // Whoever follows the snapshot shown (the frame panel).
     if (this.callbacks.onShow) this.callbacks.onShow(this.index);
   }
@@ -144,8 +150,7 @@ export class SnapshotPlayer {
       if (inside) { ctx.fillStyle = trackColour(s.track); ctx.fill(); }
       else { ctx.setLineDash([2, 2]); ctx.strokeStyle = "#aaa"; ctx.lineWidth = 1.5; ctx.stroke(); ctx.setLineDash([]); }
       ctx.fillStyle = inside ? "#dfe6ee" : "#777";
-      ctx.font = "11px system-ui, sans-serif";
-      ctx.fillText(`T${s.track}`, cx + r + 3, cy - 3);
+      this.drawLabel(`T${s.track}`, cx, cy, r);
     } else if (s.reason === "ghost") {
       ctx.strokeStyle = "#f85149"; ctx.lineWidth = 2;
       ctx.beginPath(); ctx.moveTo(cx - 5, cy - 5); ctx.lineTo(cx + 5, cy + 5); ctx.moveTo(cx + 5, cy - 5); ctx.lineTo(cx - 5, cy + 5); ctx.stroke();
@@ -157,6 +162,17 @@ export class SnapshotPlayer {
     } else {
       ctx.strokeStyle = "#777"; ctx.beginPath(); ctx.arc(cx, cy, 3, 0, 2 * Math.PI); ctx.stroke();
     }
+  }
+
+  // A source's name beside it, moved inside the canvas for a source at the sensor's edge (placeLabel);
+  // the baseline 9 px below the box's top leaves the descenders their 2 px.
+  drawLabel(text, cx, cy, r) {
+    const { ctx } = this;
+    ctx.font = `${LABEL_FONT_PX}px system-ui, sans-serif`;
+    const box = placeLabel({ cx, cy, r, w: ctx.measureText(text).width, h: LABEL_FONT_PX, width: this.canvas.width,
+      gap: 3, above: 1 });
+    ctx.fillText(text, box.x, box.y + LABEL_FONT_PX - 2);
+    this.labels.push({ text, ...box });
   }
 
   // Sensor pixel under a mouse event.

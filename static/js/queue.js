@@ -64,9 +64,8 @@ async function uploadFiles(files) {
   for (const file of spotLists) {
     results.push(await uploadLine(list, { file: file.name }, file.name,
       (progress) => api.uploadFile(file, progress, { search }),
-      (status, body) => status === 201
-        ? `stored as #${body.id}: ${body.pattern.points.length} pattern points${queued(search, status, body)}`
-        : `already stored as #${body.id}${queued(search, status, body)}`));
+      (status, body) => [status === 201 ? `stored as #${body.id}: ${body.pattern.points.length} pattern points`
+        : `already stored as #${body.id}`, queued(search, status, body)]));
   }
   if (!images.length) {
     for (const file of sidecars) skippedLine(list, file.name, "skipped: a frames sidecar, but no images were dropped with it");
@@ -88,15 +87,31 @@ function skippedLine(list, name, why) {
     el("div", { class: "name" }, name), el("div", { class: "dim" }, why)));
 }
 
-// Whether the server queued a search of this upload (asked for, and the sequence new or never searched).
+// Whether the server queued a search of this upload (asked for, and the sequence new or never searched):
+// the words in a span of their own, which noteSearched turns into the search's outcome once it is known.
 function queued(search, status, body) {
-  if (!search) return "";
-  if (status === 201) return ", search queued";
-  return body.sequence.status === "new" ? ", never searched: search queued" : "";
+  if (!search || (status !== 201 && body.sequence.status !== "new")) return "";
+  return el("span", { class: "search-state", dataset: { sequence: body.id } },
+    status === 201 ? ", search queued" : ", never searched: search queued");
+}
+
+// Sequences as the console just read them (the work queue's page, the sequence opened): an upload line
+// still saying "search queued" says what came of that search once the sequence has left "new". The
+// queued search's outcome, said once: a later verdict is the work queue's to show.
+export function noteSearched(sequences) {
+  for (const s of sequences) {
+    if (s.status === "new") continue;
+    for (const span of document.querySelectorAll(`.upload-list .search-state[data-sequence="${s.id}"]`)) {
+      span.textContent = `, searched: ${statusText(s.status)}`;
+      delete span.dataset.sequence;
+      span.dataset.status = s.status;
+    }
+  }
 }
 
 // One line of the upload list: the name, a progress bar, then the result or the error with its
-// located problems. send(progress) resolves {status, body}; resolves {id, created} or null (failed).
+// located problems. send(progress) resolves {status, body}; describe(status, body) gives the result's
+// parts (text, the queued search's span); resolves {id, created} or null (failed).
 async function uploadLine(list, dataset, name, send, describe, waiting = null) {
   const bar = el("progress", { max: 1, value: 0 });
   const result = el("div", {}, "uploading...");
@@ -108,7 +123,7 @@ async function uploadLine(list, dataset, name, send, describe, waiting = null) {
     });
     bar.value = 1;
     result.className = "ok";
-    result.textContent = describe(status, body);
+    result.replaceChildren(...describe(status, body));
     // The server's word on other stored uploads of the same spacecraft and sequence id (the same telemetry
     // in other bytes, or a re-downlink): worth a look before two operators work on two copies.
     if (body.note) result.after(el("div", { class: "upload-note" }, body.note));
@@ -140,9 +155,8 @@ async function uploadPass(list, images, sidecars, search) {
       const frames = body.sequence.n_snapshots ?? images.length;
       const sources = body.extraction.sources.reduce((n, s) => n + s.length, 0);
       const name = `#${body.id} ${body.sequence.sequence_id || ""}`.trim();
-      return status === 201
-        ? `${plural(frames, "frame")} → ${name}, ${sources} sources${queued(search, status, body)}`
-        : `already stored as ${name}${queued(search, status, body)}`;
+      return [status === 201 ? `${plural(frames, "frame")} → ${name}, ${sources} sources` : `already stored as ${name}`,
+        queued(search, status, body)];
     }, "reading the frames and detecting the stars...");
   return outcome;
 }
@@ -167,6 +181,7 @@ export async function loadSequences({ periodic = false } = {}) {
     return;
   }
   state.queueIds = page.items.map((s) => s.id);
+  noteSearched(page.items);   // before the unchanged-page return: a line may have been added since
   // Redrawn only when something changed, so a periodic refresh never moves a row under the pointer.
   const key = JSON.stringify([page, state.detail?.id]);
   if (key === lastQueueKey) return;
