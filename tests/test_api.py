@@ -154,6 +154,32 @@ def test_search_identifies_clean_sequence_within_truth(api, uploaded, sample_dir
     assert all(truth_hip_of_track[m["track"]] == m["hip"] for m in matches)
 
 
+def test_a_focal_length_the_stars_contradict_is_a_member_of_the_stored_search(api, uploaded, tmp_path):
+    """A camera 8 % longer than declared (5 % tolerance): the search finds nothing credible, and its
+    document names the focal length the stars fit (the simulator's truth, to 0.5 %), as returned and as
+    read back from the archive; a clean sample's search has none."""
+    from app.cli import main as cli_main
+
+    assert cli_main(["simulate", str(tmp_path), "--n", "1", "--seed", "5", "--scenario", "single",
+                     "--focal-error", "0.08"]) == 0
+    [path] = [p for p in tmp_path.glob("*.json") if not p.name.endswith(".truth.json")]
+    true_focal = json.loads(path.with_name(path.stem + ".truth.json").read_text())["true_camera"]["focal_length_px"]
+    r = api.post(f"/api/sequences?filename={path.name}", content=path.read_bytes(),
+                 headers={"Content-Type": "application/json"})
+    assert r.status_code == 201, r.text
+    sid = r.json()["id"]
+    searched = api.post(f"/api/sequences/{sid}/search").json()
+    assert searched["status"] != "identified"
+    found = searched["focal_length_contradiction"]
+    assert found["focal_length_px"] == pytest.approx(true_focal, rel=0.005)
+    assert found["offset"] == pytest.approx(found["focal_length_px"] / found["declared_focal_length_px"] - 1, abs=1e-6)
+    assert f"{found['focal_length_px']:.1f} px" in found["note"] and "outside its tolerance" in found["note"]
+    assert not any("bright triangles fit" in note for note in searched["notes"])  # said once, there
+    assert api.get(f"/api/sequences/{sid}").json()["search"]["focal_length_contradiction"] == found
+    clean = api.post(f"/api/sequences/{uploaded['01-clean.json']}/search").json()
+    assert clean["status"] == "identified" and clean["focal_length_contradiction"] is None
+
+
 def test_candidate_sky_section_puts_stars_on_their_sources(api, uploaded, sample_dir):
     sid = uploaded["01-clean.json"]
     if api.get(f"/api/sequences/{sid}").json()["search"] is None:

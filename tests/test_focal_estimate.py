@@ -4,6 +4,7 @@ optics, exact pinhole geometry), issue 16's fourth round."""
 from __future__ import annotations
 
 import dataclasses
+import json
 from datetime import datetime, timedelta, timezone
 from itertools import combinations
 from types import SimpleNamespace
@@ -178,18 +179,21 @@ def test_a_focal_length_declared_wrong_beyond_its_tolerance_is_named_never_searc
             extraction = extract(sequence)
             solution = identify(extraction.pattern, CAMERA, sequence.snapshots[extraction.reference].time, sky)
             assert solution.status != "identified"
-            said = [n for n in solution.notes if "outside its tolerance of 5.0%" in n]
-            assert len(said) <= 1, solution.notes
-            if said:
+            found = solution.focal_length_contradiction
+            assert not any("bright triangles" in n for n in solution.notes), solution.notes  # said once, there
+            if found is not None:
                 named += 1
-                fitted = float(said[0].split("focal length of ")[1].split(" px")[0])
-                assert fitted == pytest.approx(p_true.focal_length_px, rel=0.005)
+                assert found.focal_length_px == pytest.approx(p_true.focal_length_px, rel=0.005)
+                assert (found.declared_focal_length_px, found.declared_tolerance) == (CAMERA.focal_length_px, 0.05)
                 # ... and where the camera pointed, to say where those stars are.
-                ra = float(said[0].split("near RA ")[1].split(" deg")[0])
-                dec = float(said[0].split("Dec ")[1].split(" deg")[0])
+                ra, dec, _ = found.radec_roll_deg
                 R_true = np.asarray(truth["rotation_matrices"][extraction.reference])
                 ra_true, dec_true, _ = radec_roll_from_rotation(R_true)
                 assert angle_between(_unit(ra, dec), _unit(ra_true, dec_true)) < np.radians(0.2)
+                # Its sentence says the same numbers, as printed.
+                said = found.note()
+                assert f"{found.focal_length_px:.1f} px" in said and f"near RA {ra:.1f} deg" in said
+                assert "outside its tolerance of 5.0%" in said
     assert named >= 7
 
 
@@ -200,17 +204,20 @@ def test_random_points_are_not_given_a_focal_length_even_far_from_the_declared(s
         pattern = SimpleNamespace(xy=xy, vectors=CAMERA.pixels_to_vectors(xy), sigma_px=np.full(12, 0.3),
                                   brightness=np.linspace(200, 100, 12), track_ids=np.arange(12))
         solution = identify(pattern, CAMERA, datetime(2011, 3, 4, tzinfo=timezone.utc) + timedelta(days=50 * k), sky)
+        assert solution.focal_length_contradiction is None
         assert not any("bright triangles" in n for n in solution.notes), solution.notes
 
 
 def test_solve_prints_the_focal_length_a_wrong_declaration_hides(tmp_path, capsys):
-    """`simulate --focal-error 0.08` then `solve`: the table's notes name the true focal length."""
+    """`simulate --focal-error 0.08` then `solve`: the table's notes name the true focal length, and
+    `solve --json` gives it as a member (parsed here as plain JSON)."""
     from app.cli import main as cli_main
 
     assert cli_main(["simulate", str(tmp_path), "--n", "1", "--seed", "5", "--scenario", "single",
                      "--focal-error", "0.08"]) == 0
     capsys.readouterr()
     [telemetry] = [p for p in tmp_path.glob("*.json") if not p.name.endswith(".truth.json")]
+    truth = json.loads(telemetry.with_name(telemetry.stem + ".truth.json").read_text())
     assert cli_main(["solve", str(telemetry)]) == 0
     out = capsys.readouterr().out
     line = next(line for line in out.splitlines() if "bright triangles fit a focal length" in line)
@@ -218,6 +225,17 @@ def test_solve_prints_the_focal_length_a_wrong_declaration_hides(tmp_path, capsy
     fitted = float(line.split("focal length of ")[1].split(" px")[0])
     assert fitted == pytest.approx(CAMERA.focal_length_px * 1.08, rel=0.005)
     assert "no_match" in out.splitlines()[0]
+
+    assert cli_main(["solve", "--json", str(telemetry)]) == 0
+    doc = json.loads(capsys.readouterr().out.splitlines()[0])
+    found = doc["focal_length_contradiction"]
+    assert found["focal_length_px"] == pytest.approx(CAMERA.focal_length_px * 1.08, rel=0.005)
+    assert found["offset"] == pytest.approx(0.08, abs=0.005)
+    assert (found["declared_focal_length_px"], found["declared_tolerance"]) == (CAMERA.focal_length_px, 0.05)
+    assert found["n_matched"] >= 6 and found["n_points"] >= found["n_matched"]
+    R_true = np.asarray(truth["rotation_matrices"][doc["reference_snapshot"]])
+    ra_true, dec_true, _ = radec_roll_from_rotation(R_true)
+    assert angle_between(_unit(found["ra_deg"], found["dec_deg"]), _unit(ra_true, dec_true)) < np.radians(0.2)
 
 
 def test_triangle_features_stay_an_independent_opinion(sky, monkeypatch):

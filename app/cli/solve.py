@@ -111,8 +111,10 @@ def print_summary(doc) -> None:
     print(f"  {'rank':>4} {'RA deg':>10} {'Dec deg':>9} {'roll deg':>9} {'matched':>7} {'rms as':>7} "
           f"{'dev px/pt':>9} {'P(false)':>9}  stars")
     _print_candidates(doc.candidates)
-    for note in doc.notes:  # how the search went; a focal length declared wrong beyond its tolerance is named here
+    for note in doc.notes:  # how the search went
         print(f"  note: {note}")
+    if doc.focal_length_contradiction is not None:  # a focal length declared wrong beyond its tolerance
+        print(f"  note: {doc.focal_length_contradiction.note}")
     if doc.tf_candidates is not None:
         print(f"  triangle-feature method: {doc.tf_status}, "
               f"{'agrees' if doc.methods_agree else 'DISAGREES'} with the bright-pair method")

@@ -31,14 +31,15 @@ from app.identification.methods import METHODS, Method
 from app.identification.near_prior import identify_near_prior
 from app.identification.optics import ADOPT_PROBABILITY, HINT_PROBABILITY, departs
 from app.identification.options import SearchOptions
-from app.identification.result import (AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, PlanetMatch, Solution,
-                                       StarMatch)
+from app.identification.result import (AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, FocalLengthContradiction,
+                                       PlanetMatch, Solution, StarMatch)
 from app.identification.sightings import (identified_sightings, observations, sighting_noise_px,
                                           source_match_tolerance_rad, sources_field, stars_at)
 from app.identification.sky import Sky
 from app.telemetry import Sequence
 
-__all__ = ["AMBIGUOUS", "IDENTIFIED", "METHODS", "NO_MATCH", "Candidate", "Method", "PlanetMatch", "Prior",
+__all__ = ["AMBIGUOUS", "IDENTIFIED", "METHODS", "NO_MATCH", "Candidate", "FocalLengthContradiction", "Method",
+           "PlanetMatch", "Prior",
            "SearchOptions", "Sky", "Solution", "SolvedSequence", "StarMatch", "classify", "fit_sequence",
            "identify", "identify_near_prior", "solve_sequence", "source_stars"]
 

@@ -17,14 +17,14 @@ from typing import Callable
 
 import numpy as np
 
-from app.attitude import radec_roll_from_rotation, rotation_angles_between
+from app.attitude import rotation_angles_between
 from app.camera import Camera
 from app.identification.candidates import build_candidate, prepare_pattern
 from app.identification.focal_estimate import CHECK_RADIUS_PX, FocalEstimate, focal_estimate
 from app.identification.methods import METHODS
 from app.identification.optics import focal_lengths_to_try, prepared_with_camera, refine_optics
 from app.identification.options import SearchOptions
-from app.identification.result import AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, Solution
+from app.identification.result import AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, FocalLengthContradiction, Solution
 from app.identification.sky import Sky
 from app.identification.verify import check_hypotheses, refine, refine_many
 
@@ -33,8 +33,9 @@ from app.identification.verify import check_hypotheses, refine, refine_many
 #: sequences of the 20 deg camera, 0-5 % off), so an exact camera never leaves its own search (closer, the
 #: triangles' match is refined as a hypothesis of the declared camera).
 ESTIMATE_MIN_OFFSET = 0.005
-#: When nothing is identified, the bright triangles look this far (a fraction) from the declared focal
-#: length for a declaration that is wrong beyond its tolerance (a note for the operator; never searched).
+#: When the bright triangles fit no focal length within the declared tolerance (or nothing is identified),
+#: they are looked up this far (a fraction) from the declared focal length, for a declaration wrong beyond
+#: its tolerance: said to the operator, never searched.
 DIAGNOSIS_TOLERANCE = 0.2
 
 
@@ -91,23 +92,33 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
 
     settled_at = None
     tried_before_focal_search = None
-    contradicted = False  # the bright triangles fit a focal length outside the declared tolerance
+    contradiction = None  # the bright triangles fit a focal length outside the declared tolerance
+    looked_wide = False  # the bright triangles were looked up DIAGNOSIS_TOLERANCE from the declared focal length
 
     def phases():
         """(focal length (None: the declared), features to try) in turn, until one settles (or, when the
-        bright triangles' own match settles the declared camera, none more)."""
-        nonlocal settled_at, contradicted
+        bright triangles' own match settles the declared camera, or contradicts it, none more)."""
+        nonlocal settled_at, contradiction, looked_wide
         if not searched:
             yield None, None
             return
         yield None, 1
         estimate = focal_estimate(declared, sky.bright_triangles(), options)
+        if estimate is None:
+            # Nothing within the tolerance: a declaration wrong beyond it shows further out.
+            looked_wide = True
+            estimate = focal_estimate(declared, sky.bright_triangles(), options, DIAGNOSIS_TOLERANCE)
+            if estimate is not None and not _outside_tolerance(estimate.focal_length_px / camera.focal_length_px - 1,
+                                                               camera):
+                estimate = None  # only the lookup within the tolerance chooses where to search
         offset = None if estimate is None else estimate.focal_length_px / camera.focal_length_px - 1
         if estimate is not None and _outside_tolerance(offset, camera):
-            # Optics outside the declaration never make a credible answer: not searched there, but said.
-            notes.append(_outside_tolerance_note(estimate, camera))
-            contradicted = True
-        elif estimate is not None and abs(offset) < ESTIMATE_MIN_OFFSET:
+            # Optics outside the declaration never make a credible answer: not searched there, but said.  Nor
+            # within the declaration: the stars fit that focal length beyond chance (the estimate's test), so a
+            # search there would cost a dozen searches (0.5-1 s) to find chance fits.
+            contradiction = _contradiction(estimate, camera)
+            return
+        if estimate is not None and abs(offset) < ESTIMATE_MIN_OFFSET:
             if METHODS[method].bright_triangles:
                 # The declared focal length holds, and the match found is a hypothesis of this method's own
                 # (the shape matches checked count among the hypotheses tried).
@@ -157,17 +168,18 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     candidates.sort(key=lambda c: (-c.n_matched, c.false_match_probability, c.deviation_arcsec))
     candidates = [replace(c, rank=i + 1) for i, c in enumerate(candidates)]
     status = classify(candidates, options)
-    if status != IDENTIFIED and not contradicted:
+    if status != IDENTIFIED and contradiction is None and not looked_wide:
         # A focal length declared wrong beyond its tolerance identifies nothing: say so when the pattern's
         # triangles fit one, so that an operator can correct the declaration (or calibrate) and search again.
         wide = focal_estimate(declared, sky.bright_triangles(), options, DIAGNOSIS_TOLERANCE)
         if wide is not None and _outside_tolerance(wide.focal_length_px / camera.focal_length_px - 1, camera):
-            notes.append(_outside_tolerance_note(wide, camera))
-    notes.insert(0, f"{search.n_tried} {method} hypotheses from {search.used} pattern features"
+            contradiction = _contradiction(wide, camera)
+    features = f"{search.used} pattern feature{'s' * (search.used != 1)}"
+    notes.insert(0, f"{search.n_tried} {method} hypotheses from {features}"
                  + (f" at {n_scales} focal lengths within {camera.focal_tolerance:.1%} of the declared one"
                     if n_scales > 1 else ""))
     return Solution(status=status, candidates=tuple(candidates), elapsed_s=_time.perf_counter() - started,
-                    notes=tuple(notes))
+                    notes=tuple(notes), focal_length_contradiction=contradiction)
 
 
 class _Search:
@@ -363,16 +375,13 @@ def _outside_tolerance(offset: float, camera: Camera) -> bool:
     return abs(offset) > camera.focal_tolerance + ESTIMATE_MIN_OFFSET
 
 
-def _outside_tolerance_note(estimate: FocalEstimate, camera: Camera) -> str:
-    """What an operator needs to act on a declaration the stars contradict: the focal length they fit, where
-    the camera then points, and what to change."""
-    offset = estimate.focal_length_px / camera.focal_length_px - 1
-    ra, dec, _ = radec_roll_from_rotation(estimate.rotation)
-    return (f"the pattern's bright triangles fit a focal length of {estimate.focal_length_px:.1f} px ({offset:+.1%} "
-            f"of the declared), outside its tolerance of {camera.focal_tolerance:.1%}, with {estimate.n_matched} "
-            f"of {estimate.n_points} points on stars near RA {ra:.1f} deg, "
-            f"Dec {dec:+.1f} deg: if that is where the camera pointed, correct the camera's focal length (or its "
-            "focal_length_tolerance) in the telemetry, or calibrate the camera, and search again")
+def _contradiction(estimate: FocalEstimate, camera: Camera) -> FocalLengthContradiction:
+    """What an operator needs to act on a declaration the stars contradict: the focal length they fit and
+    where the camera then points."""
+    return FocalLengthContradiction(
+        focal_length_px=estimate.focal_length_px, declared_focal_length_px=camera.focal_length_px,
+        declared_tolerance=camera.focal_tolerance, n_matched=estimate.n_matched, n_points=estimate.n_points,
+        rotation_matrix=estimate.rotation)
 
 
 def _candidate(c: dict, declared: Camera, sky: Sky, n_tried: int, options: SearchOptions, planets) -> Candidate:

@@ -73,11 +73,46 @@ class Candidate:
 
 
 @dataclass(frozen=True, eq=False)
+class FocalLengthContradiction:
+    """The stars contradict the declared focal length: the pattern's bright triangles fit one outside the
+    declared tolerance (:mod:`app.identification.focal_estimate`).  Such optics are never searched, since
+    nothing found with them would be credible; an operator who recognises the pointing corrects the
+    camera (or calibrates it) and searches again."""
+
+    focal_length_px: float  # the focal length the triangles fit, refitted on every point they caught
+    declared_focal_length_px: float
+    declared_tolerance: float  # a fraction of the declared focal length
+    n_matched: int  # pattern points on stars at that focal length
+    n_points: int
+    rotation_matrix: np.ndarray  # ICRS -> camera, the attitude at that focal length
+
+    @property
+    def offset(self) -> float:
+        """The fitted focal length's departure from the declared one, a fraction."""
+        return self.focal_length_px / self.declared_focal_length_px - 1
+
+    @property
+    def radec_roll_deg(self) -> tuple[float, float, float]:
+        return radec_roll_from_rotation(self.rotation_matrix)
+
+    def note(self) -> str:
+        """What it means for an operator, in a sentence."""
+        ra, dec, _ = self.radec_roll_deg
+        return (f"the pattern's bright triangles fit a focal length of {self.focal_length_px:.1f} px "
+                f"({self.offset:+.1%} of the declared), outside its tolerance of {self.declared_tolerance:.1%}, "
+                f"with {self.n_matched} of {self.n_points} points on stars near RA {ra:.1f} deg, Dec {dec:+.1f} deg: "
+                "if that is where the camera pointed, correct the camera's focal length (or its "
+                "focal_length_tolerance) in the telemetry, or calibrate the camera, and search again")
+
+
+@dataclass(frozen=True, eq=False)
 class Solution:
     status: str
     candidates: tuple[Candidate, ...]
     elapsed_s: float = 0.0
     notes: tuple[str, ...] = field(default_factory=tuple)
+    #: Set when the stars fit a focal length outside the declared tolerance (said here, not in ``notes``).
+    focal_length_contradiction: FocalLengthContradiction | None = None
 
     @property
     def best(self) -> Candidate | None:

@@ -310,6 +310,33 @@ class CandidateDocument(Document):
         return list(q / np.linalg.norm(q))
 
 
+class FocalLengthContradictionDocument(Document):
+    """The stars contradict the declared focal length (:class:`app.identification.FocalLengthContradiction`):
+    the pattern's bright triangles fit one outside the declared tolerance, where nothing is searched."""
+
+    focal_length_px: float = Field(description="the focal length the stars fit")
+    declared_focal_length_px: float
+    offset: float = Field(description="focal_length_px / declared_focal_length_px - 1")
+    declared_tolerance: float = Field(description="the declared focal_length_tolerance, a fraction")
+    n_matched: int = Field(description="pattern points on stars at that focal length")
+    n_points: int
+    ra_deg: float = Field(description="where the camera points at that focal length")
+    dec_deg: float
+    roll_deg: float
+    note: str = Field(description="what it means for the operator, in a sentence")
+
+    @classmethod
+    def of(cls, contradiction) -> "FocalLengthContradictionDocument | None":
+        if contradiction is None:
+            return None
+        ra, dec, roll = contradiction.radec_roll_deg
+        return cls(focal_length_px=round(contradiction.focal_length_px, 3),
+                   declared_focal_length_px=round(contradiction.declared_focal_length_px, 3),
+                   offset=round(contradiction.offset, 6), declared_tolerance=contradiction.declared_tolerance,
+                   n_matched=contradiction.n_matched, n_points=contradiction.n_points,
+                   ra_deg=round(ra, 4), dec_deg=round(dec, 4), roll_deg=round(roll, 4), note=contradiction.note())
+
+
 class SearchResult(Document):
     """What one identification run found: the archive stores exactly this."""
 
@@ -322,6 +349,7 @@ class SearchResult(Document):
     candidates: list[CandidateDocument]
     notes: list[str]
     elapsed_ms: float
+    focal_length_contradiction: FocalLengthContradictionDocument | None = None
 
     def candidate(self, rank: int) -> CandidateDocument | None:
         return next((c for c in self.candidates if c.rank == rank), None)
@@ -355,6 +383,7 @@ class SolveDocument(Document):
     candidates: list[CandidateDocument] = Field(default_factory=list)
     elapsed_ms: float | None = None
     notes: list[str] = Field(default_factory=list)
+    focal_length_contradiction: FocalLengthContradictionDocument | None = None
     tf_status: str | None = None
     tf_candidates: list[CandidateDocument] | None = None
     methods_agree: bool | None = None

@@ -18,7 +18,8 @@ from app.identification import Prior, SearchOptions, Sky, solve_sequence, source
 from app.telemetry import Sequence
 from app.telemetry.errors import TelemetryError
 from app.telemetry.formats import load_telemetry_file
-from app.workflow.documents import CandidateDocument, ExtractDocument, ExtractionDocument, SolveDocument
+from app.workflow.documents import (CandidateDocument, ExtractDocument, ExtractionDocument,
+                                    FocalLengthContradictionDocument, SolveDocument)
 
 #: Two first candidates closer than this (rotation angle) are the same attitude.
 AGREE_DEG = 0.1
@@ -127,7 +128,8 @@ def solve_document(path: str, sequence: Sequence, sky: Sky, *, options: SearchOp
         sources=[[int(t) if t >= 0 else None for t in per] for per in solved.extraction.track_of_source],
         source_stars=source_stars(solved, sky),
         candidates=[CandidateDocument.of(c, solved.sequence_fits.get(c.rank)) for c in s.candidates],
-        elapsed_ms=round(s.elapsed_s * 1000, 2), notes=list(solved.extraction.notes) + list(s.notes))
+        elapsed_ms=round(s.elapsed_s * 1000, 2), notes=list(solved.extraction.notes) + list(s.notes),
+        focal_length_contradiction=FocalLengthContradictionDocument.of(s.focal_length_contradiction))
     if compare_tf and prior is None:
         tf = solve_sequence(sequence, sky, options=options, extraction=solved.extraction, pattern=solved.pattern,
                             method="tf").solution

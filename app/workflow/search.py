@@ -29,7 +29,8 @@ from app.timefmt import utc_text
 from app.workflow.archive import current_pattern_version, definition_of, loaded, pattern_from_definition, \
     require_sequence
 from app.workflow.context import AppContext
-from app.workflow.documents import CandidateDocument, CandidateView, PatternPoint, SearchDocument, SearchResult
+from app.workflow.documents import (CandidateDocument, CandidateView, FocalLengthContradictionDocument, PatternPoint,
+                                    SearchDocument, SearchResult)
 from app.workflow.errors import Conflict, Invalid, NotFound
 
 #: 1-sigma of a prior propagated from the spacecraft's last confirmation with its fitted rate, and
@@ -126,7 +127,9 @@ def search_result(solved, method: str, pattern_version: int | None) -> SearchRes
                         candidates=[CandidateDocument.of(c, solved.sequence_fits.get(c.rank))
                                     for c in solution.candidates],
                         notes=list(solved.extraction.notes) + list(solution.notes),
-                        elapsed_ms=round(solution.elapsed_s * 1000, 2))
+                        elapsed_ms=round(solution.elapsed_s * 1000, 2),
+                        focal_length_contradiction=FocalLengthContradictionDocument.of(
+                            solution.focal_length_contradiction))
 
 
 def compute_search(job: SearchJob, *, sky) -> SearchResult:

@@ -66,10 +66,22 @@ export function renderCandidates() {
       wrap.scrollTop = Math.max(0, top);
     }
   }
+  renderContradiction();
   renderVerdict();
   renderDecision();
   renderAudit();
   return review;
+}
+
+// A focal length the stars contradict: nothing found with it is credible, so the search never looks there,
+// and this is where an operator looks first (above the verdict), whether or not any candidate is shown.
+function renderContradiction() {
+  const box = $("focal-contradiction");
+  const found = state.detail?.search?.focal_length_contradiction;
+  box.hidden = !found;
+  if (!found) { box.replaceChildren(); return; }
+  const text = found.note.charAt(0).toUpperCase() + found.note.slice(1);
+  box.replaceChildren(el("strong", {}, "⚠ The stars contradict the declared focal length"), el("div", {}, `${text}.`));
 }
 
 export function renderVerdict() {

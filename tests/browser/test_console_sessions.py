@@ -679,10 +679,11 @@ def test_bulk_aem_export_from_the_console(server, api, new_page, tmp_path):
     assert watched.errors == [] or all("404" in e for e in watched.errors)
 
 
-def test_a_focal_length_the_stars_contradict_is_named_in_the_search_summary(server, api, new_page, tmp_path):
-    """A single snapshot seen 8 % off a camera declared to 5 %: nothing is identified, and the summary names
-    the focal length the stars fit and where they put the camera; the header counts one snapshot (not
-    "1 snapshots") and a whole sample sixteen."""
+def test_a_focal_length_the_stars_contradict_is_named_above_the_verdict(server, api, new_page, tmp_path):
+    """A single snapshot seen 8 % off a camera declared to 5 %: nothing is identified, and a warning above
+    the verdict (where an operator looks first) names the focal length the stars fit and where they put the
+    camera, once (not again in the search summary); a clean sample shows none.  The header counts one
+    snapshot (not "1 snapshots") and a whole sample sixteen."""
     from app.cli import main as cli_main
 
     assert cli_main(["simulate", str(tmp_path), "--n", "1", "--seed", "5", "--scenario", "single",
@@ -694,11 +695,18 @@ def test_a_focal_length_the_stars_contradict_is_named_in_the_search_summary(serv
     watched = operator_on(new_page, server, "Focal Watcher", seq_id, name)
     page = watched.page
     expect_text(page.locator("#seq-meta"), r"· 1 snapshot from ")
-    expect_text(page.locator("#search-summary"),
-                r"bright triangles fit a focal length of 2\d{3}\.\d px \(\+8\.\d% of the declared\), outside its "
-                r"tolerance of 5\.0%, with \d+ of \d+ points on stars near RA \d+\.\d deg")
+    warning = page.locator("#focal-contradiction")
+    expect_text(warning, r"^⚠ The stars contradict the declared focal length\s*The pattern's bright triangles fit a "
+                         r"focal length of 2\d{3}\.\d px \(\+8\.\d% of the declared\), outside its tolerance of "
+                         r"5\.0%, with \d+ of \d+ points on stars near RA \d+\.\d deg, Dec [+-]\d+\.\d deg: .*search "
+                         r"again\.$")
+    found = search["focal_length_contradiction"]
+    assert f"{found['focal_length_px']:.1f} px" in warning.inner_text()
+    assert "bright triangles" not in page.locator("#search-summary").inner_text()
+    warning.scroll_into_view_if_needed()
     watched.screenshot("17-focal-length-contradicted")
     clean_id = api("/api/sequences", "POST", raw=fresh_copy("01-clean.json", "focal", tmp_path).read_bytes())["id"]
     open_sequence(page, clean_id, "01-clean-focal")
     expect_text(page.locator("#seq-meta"), r"· 16 snapshots from ")
+    expect_visible(warning, False)
     assert unexpected_errors(watched) == []
