@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from app.cli.batch import summary
 from app.identification import SearchOptions
 from app.storage import Storage
 from app.workflow import AppContext
@@ -88,7 +89,7 @@ def test_files_to_json_lines_match_solve_and_a_rerun_skips_what_is_done(cluster,
 
 
 def test_files_to_the_archive_store_searches_as_the_server_does_and_a_rerun_skips_them(
-        cluster, sky, sample_dir, archive_url):
+        cluster, sky, sample_dir, archive_url, tmp_path):
     files = _sample_files(sample_dir)[:5]
     report = batch.to_archive(archive_url, cluster, paths=files + files[:1])  # one file twice: stored once
     assert (report.processed, report.skipped, report.failed, report.invalid) == (len(files), 1, 0, 0), report.errors
@@ -119,6 +120,18 @@ def test_files_to_the_archive_store_searches_as_the_server_does_and_a_rerun_skip
         assert (redo.processed, redo.skipped, redo.failed) == (1, len(files) - 1, 0)
         newest = ctx.storage.latest_search(edited)
         assert newest.pattern_version == 2 and ctx.storage.health()["counts"]["searches"] == len(files) + 1
+
+        # The same telemetry in other bytes (CRLF line endings) is another upload: the report names the one
+        # stored before, as `upload` does, and so does the command's summary.
+        crlf = tmp_path / "crlf-copy.json"
+        crlf.write_bytes(Path(files[0]).read_bytes().replace(b"\n", b"\r\n"))
+        first = next(row for row in rows if row.filename == Path(files[0]).name)
+        other = batch.to_archive(archive_url, cluster, paths=[str(crlf)])
+        assert other.processed == 1 and other.notes == [
+            f"{crlf}: another stored upload (#{first.id}) has the same spacecraft and sequence id; its telemetry "
+            "differs in bytes (line endings, byte-order mark or content)"]
+        assert f"  note: {other.notes[0]}" in summary(other).splitlines()
+        assert again.notes == [] and redo.notes == []
     finally:
         ctx.close()
     # The workers closed the archive after the batch (the plugin's teardown).

@@ -155,11 +155,11 @@ def test_batch_names_a_missing_input_before_starting_a_cluster(tmp_path, sample_
 
 
 def test_batch_names_an_invalid_file_once(tmp_path):
-    from app.workflow.batch import BatchReport
+    from app.workflow.batch import BatchReport, Outcome
 
     report = BatchReport(mode="files to JSON lines")
-    report.add("/d/a.json", "invalid", "/d/a.json: invalid telemetry: file: not valid JSON")
-    report.add("/d/b.json", "failed", "KilledWorker: gone")
+    report.add("/d/a.json", Outcome("invalid", "/d/a.json: invalid telemetry: file: not valid JSON"))
+    report.add("/d/b.json", Outcome("failed", "KilledWorker: gone"))
     assert report.errors == ["/d/a.json: invalid telemetry: file: not valid JSON", "/d/b.json: KilledWorker: gone"]
 
 

@@ -157,4 +157,5 @@ def summary(report) -> str:
              f"processing {report.processing_s:.2f} s"
              + (f" = {rate} sequences/s" if rate is not None else "")]
     lines += [f"  {message}" for message in report.errors[:10]]
+    lines += [f"  note: {note}" for note in report.notes[:10]]
     return "\n".join(lines)

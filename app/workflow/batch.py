@@ -57,6 +57,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
+from typing import NamedTuple
 
 import dask
 from distributed import Client, LocalCluster, WorkerPlugin, as_completed
@@ -91,9 +92,16 @@ LOCAL_CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False,
 
 Progress = Callable[[int, int, str], None]
 
-#: Outcomes of one sequence on a worker: (kind, detail) with kind "processed" (detail: the search's
-#: status), "skipped" (its latest search is reused), "invalid" or "failed" (detail: the message).
-Outcome = tuple[str, str | None]
+class Outcome(NamedTuple):
+    """What became of one sequence on a worker."""
+
+    #: "processed" (detail: the search's status), "skipped" (its latest search is reused), "invalid" or
+    #: "failed" (detail: the message).
+    kind: str
+    detail: str | None = None
+    #: For the operator, of a file stored now: other stored uploads have its spacecraft and sequence id
+    #: (:func:`app.workflow.archive.same_sequence_note`), as ``upload`` says it.
+    note: str | None = None
 
 
 # ---------------------------------------------------------------------------
@@ -196,7 +204,7 @@ def solve_files_task(paths: list[str], driver_cwd: str, method: str,
         except Exception as exc:  # noqa: BLE001 - one file's failure must not end the batch
             doc = failed_document(path, f"{path}: could not be processed ({type(exc).__name__}: {exc}); the file "
                                         "passed validation, so this is a bug: please report it with the file")
-        outcome = ("invalid", doc.error) if doc.status == "invalid" else ("processed", doc.status)
+        outcome = Outcome("invalid", doc.error) if doc.status == "invalid" else Outcome("processed", doc.status)
         out.append((outcome, doc.model_dump_json()))
     return out
 
@@ -204,11 +212,11 @@ def solve_files_task(paths: list[str], driver_cwd: str, method: str,
 def _search_one(ctx: AppContext, seq_id: int, method: str, max_candidates: int | None) -> Outcome:
     """The server's search of a stored sequence (prepare, compute, store) unless its latest one is reused."""
     if reusable_search(ctx, seq_id, method, max_candidates) is not None:
-        return "skipped", None
+        return Outcome("skipped")
     job = prepare_search(ctx, seq_id, method, max_candidates)
     result = compute_search(job, sky=ctx.sky)
     store_search(ctx, job, result)
-    return "processed", result.status
+    return Outcome("processed", result.status)
 
 
 def _file_one(ctx: AppContext, path: str, method: str, max_candidates: int | None) -> Outcome:
@@ -219,12 +227,14 @@ def _file_one(ctx: AppContext, path: str, method: str, max_candidates: int | Non
             data = stream.read(limit + 1)  # parse_upload refuses what is over the limit, with the message
         upload = parse_upload(ctx, data, Path(path).name)
     except OSError as exc:
-        return "invalid", f"cannot read the file: {exc.strerror or type(exc).__name__}"
+        return Outcome("invalid", f"cannot read the file: {exc.strerror or type(exc).__name__}")
     except TelemetryError as exc:
-        return "invalid", str(exc)
+        return Outcome("invalid", str(exc))
     row = ctx.storage.find_sequence(content_sha256(upload.raw_text))
-    seq_id = row.id if row is not None else store_upload(ctx, upload, extraction_job(upload.sequence, upload.known_hot)).id
-    return _search_one(ctx, seq_id, method, max_candidates)
+    if row is not None:
+        return _search_one(ctx, row.id, method, max_candidates)
+    stored = store_upload(ctx, upload, extraction_job(upload.sequence, upload.known_hot))
+    return _search_one(ctx, stored.id, method, max_candidates)._replace(note=stored.note)
 
 
 def archive_task(items: list, database: str, driver_cwd: str | None, method: str,
@@ -239,7 +249,7 @@ def archive_task(items: list, database: str, driver_cwd: str | None, method: str
             else:
                 out.append(_search_one(ctx, item, method, max_candidates))
         except Exception as exc:  # noqa: BLE001 - reported per sequence, the batch goes on
-            out.append(("failed", f"{type(exc).__name__}: {exc}"))
+            out.append(Outcome("failed", f"{type(exc).__name__}: {exc}"))
     return out
 
 
@@ -313,13 +323,17 @@ class BatchReport:
     startup_s: float = 0.0
     processing_s: float = 0.0
     errors: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)  # the first 20 of the operator's notes, each naming its file
 
     @property
     def sequences_per_s(self) -> float | None:
         return round(self.processed / self.processing_s, 2) if self.processing_s > 0 and self.processed else None
 
-    def add(self, label: str, kind: str, detail: str | None) -> None:
-        """One sequence's outcome (see :data:`Outcome`)."""
+    def add(self, label: str, outcome: Outcome) -> None:
+        """One sequence's outcome."""
+        kind, detail, note = outcome
+        if note is not None and len(self.notes) < 20:
+            self.notes.append(f"{label}: {note}")
         if kind == "processed":
             self.processed += 1
             self.statuses[detail] = self.statuses.get(detail, 0) + 1
@@ -335,7 +349,7 @@ class BatchReport:
                 "invalid": self.invalid, "failed": self.failed, "statuses": self.statuses, "workers": self.workers,
                 "threads": self.threads, "startup_s": round(self.startup_s, 2),
                 "processing_s": round(self.processing_s, 3), "sequences_per_s": self.sequences_per_s,
-                "errors": self.errors}
+                "errors": self.errors, "notes": self.notes}
 
 
 def chunk_size(n: int, threads: int) -> int:
@@ -407,10 +421,10 @@ def files_to_jsonl(cluster: Cluster, paths: list[str], out_path: Path, *, method
         def collect(chunk: list[str], results: list[tuple[Outcome, str]] | None, error: str | None) -> None:
             nonlocal finished
             if error is not None:
-                results = [(("failed", error), failed_document(path, f"{path}: {error}").model_dump_json())
+                results = [(Outcome("failed", error), failed_document(path, f"{path}: {error}").model_dump_json())
                            for path in chunk]
-            for path, ((kind, detail), _) in zip(chunk, results):
-                report.add(path, kind, detail)
+            for path, (outcome, _) in zip(chunk, results):
+                report.add(path, outcome)
             out.write("".join(line + "\n" for _, line in results))
             out.flush()
             finished += len(chunk)
@@ -463,8 +477,8 @@ def to_archive(database: str, cluster: Cluster, *, paths: list[str] | None = Non
 
     def collect(chunk: list, outcomes: list[Outcome] | None, error: str | None) -> None:
         nonlocal finished
-        for item, (kind, detail) in zip(chunk, outcomes or [("failed", error)] * len(chunk)):
-            report.add(item if isinstance(item, str) else f"sequence {item}", kind, detail)
+        for item, outcome in zip(chunk, outcomes or [Outcome("failed", error)] * len(chunk)):
+            report.add(item if isinstance(item, str) else f"sequence {item}", outcome)
         finished += len(chunk)
         if progress:
             progress(finished, report.total, "")
