@@ -93,31 +93,35 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     settled_at = None
     tried_before_focal_search = None
     contradiction = None  # the bright triangles fit a focal length outside the declared tolerance
-    looked_wide = False  # the bright triangles were looked up DIAGNOSIS_TOLERANCE from the declared focal length
+    looked_wide = False
+
+    def wide_contradiction() -> FocalLengthContradiction | None:
+        """The bright triangles looked up DIAGNOSIS_TOLERANCE from the declared focal length: what they fit
+        outside the declared tolerance (within it, only the lookup within the tolerance chooses a focal length)."""
+        nonlocal looked_wide
+        looked_wide = True
+        wide = focal_estimate(declared, sky.bright_triangles(), options, DIAGNOSIS_TOLERANCE)
+        return _contradiction(wide, camera) if wide is not None and _outside_tolerance(wide, camera) else None
 
     def phases():
         """(focal length (None: the declared), features to try) in turn, until one settles (or, when the
         bright triangles' own match settles the declared camera, or contradicts it, none more)."""
-        nonlocal settled_at, contradiction, looked_wide
+        nonlocal settled_at, contradiction
         if not searched:
             yield None, None
             return
         yield None, 1
         estimate = focal_estimate(declared, sky.bright_triangles(), options)
-        if estimate is None:
-            # Nothing within the tolerance: a declaration wrong beyond it shows further out.
-            looked_wide = True
-            estimate = focal_estimate(declared, sky.bright_triangles(), options, DIAGNOSIS_TOLERANCE)
-            if estimate is not None and not _outside_tolerance(estimate.focal_length_px / camera.focal_length_px - 1,
-                                                               camera):
-                estimate = None  # only the lookup within the tolerance chooses where to search
-        offset = None if estimate is None else estimate.focal_length_px / camera.focal_length_px - 1
-        if estimate is not None and _outside_tolerance(offset, camera):
+        if estimate is None:  # nothing within the tolerance: a declaration wrong beyond it shows further out
+            contradiction = wide_contradiction()
+        elif _outside_tolerance(estimate, camera):
+            contradiction = _contradiction(estimate, camera)
+        if contradiction is not None:
             # Optics outside the declaration never make a credible answer: not searched there, but said.  Nor
             # within the declaration: the stars fit that focal length beyond chance (the estimate's test), so a
-            # search there would cost a dozen searches (0.5-1 s) to find chance fits.
-            contradiction = _contradiction(estimate, camera)
+            # search there would cost a dozen searches (0.3-0.5 s) to find chance fits.
             return
+        offset = None if estimate is None else _offset(estimate, camera)
         if estimate is not None and abs(offset) < ESTIMATE_MIN_OFFSET:
             if METHODS[method].bright_triangles:
                 # The declared focal length holds, and the match found is a hypothesis of this method's own
@@ -171,9 +175,7 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     if status != IDENTIFIED and contradiction is None and not looked_wide:
         # A focal length declared wrong beyond its tolerance identifies nothing: say so when the pattern's
         # triangles fit one, so that an operator can correct the declaration (or calibrate) and search again.
-        wide = focal_estimate(declared, sky.bright_triangles(), options, DIAGNOSIS_TOLERANCE)
-        if wide is not None and _outside_tolerance(wide.focal_length_px / camera.focal_length_px - 1, camera):
-            contradiction = _contradiction(wide, camera)
+        contradiction = wide_contradiction()
     features = f"{search.used} pattern feature{'s' * (search.used != 1)}"
     notes.insert(0, f"{search.n_tried} {method} hypotheses from {features}"
                  + (f" at {n_scales} focal lengths within {camera.focal_tolerance:.1%} of the declared one"
@@ -369,10 +371,15 @@ class _Search:
             self.consider(p, rot[h], pe[h], cp[h], float(hyp_tol[h]), key=h)
 
 
-def _outside_tolerance(offset: float, camera: Camera) -> bool:
-    """Whether an estimated focal length ``offset`` (a fraction of the declared) lies outside the declared
-    tolerance by more than the estimate's own uncertainty."""
-    return abs(offset) > camera.focal_tolerance + ESTIMATE_MIN_OFFSET
+def _offset(estimate: FocalEstimate, camera: Camera) -> float:
+    """The estimated focal length's departure from the declared one, a fraction."""
+    return estimate.focal_length_px / camera.focal_length_px - 1
+
+
+def _outside_tolerance(estimate: FocalEstimate, camera: Camera) -> bool:
+    """Whether an estimated focal length lies outside the declared tolerance by more than the estimate's own
+    uncertainty."""
+    return abs(_offset(estimate, camera)) > camera.focal_tolerance + ESTIMATE_MIN_OFFSET
 
 
 def _contradiction(estimate: FocalEstimate, camera: Camera) -> FocalLengthContradiction:
