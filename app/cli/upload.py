@@ -49,7 +49,8 @@ IMAGE_SUFFIXES = (".fits", ".fit", ".fts", ".fits.gz", ".fit.gz", ".png", ".jpg"
 #: A folder's sidecar, and a single image's (``<stem>.frames.json``).
 FOLDER_SIDECAR = "frames.json"
 SIDECAR_SUFFIX = ".frames.json"
-#: The simulator's answers beside its telemetry: left out of directories.
+#: The simulator's answers beside its telemetry, left out (app.workflow.files.TRUTH_SUFFIX, repeated for the
+#: same reason).
 TRUTH_SUFFIX = ".truth.json"
 #: --fov-deg's bounds (the API's fov_deg field).
 FOV_MIN_DEG, FOV_MAX_DEG = 0.1, 120.0
@@ -108,7 +109,8 @@ class FramePass:
 
 def inputs(paths: list[str]) -> tuple[list[Path | FramePass], list[Path]]:
     """``(what to send, truth files left out)``: explicit files as given, then the telemetry files of each
-    directory in name order, leaving out its ``*.truth.json`` files.
+    directory in name order, leaving out ``*.truth.json`` files, named or in a directory (a shell glob such
+    as ``sample_telemetry/*.json`` names them), as ``solve`` does.
 
     An explicit image file is a :class:`FramePass` of its own; a directory holding images gives one
     :class:`FramePass` of them all (its ``frames.json`` the sidecar), before its spot-list files.
@@ -129,13 +131,15 @@ def inputs(paths: list[str]) -> tuple[list[Path | FramePass], list[Path]]:
             files += [p for p in spot_lists if not p.name.lower().endswith(TRUTH_SUFFIX)]
         elif is_image(path):
             files.append(FramePass(path, (path,), _image_sidecar(path)))
+        elif path.name.lower().endswith(TRUTH_SUFFIX):
+            truth.append(path)
         else:
             files.append(path)
     return files, truth
 
 
 def truth_note(count: int) -> str:
-    """The line saying how many truth files a directory gave that were not sent."""
+    """The line saying how many truth files were left out."""
     return f"skipped {count} truth file{'s' * (count != 1)} (*{TRUTH_SUFFIX}): the simulator's answers, not telemetry"
 
 
