@@ -7,6 +7,7 @@ archive tests run on both backends (SQLite, and the session's PostgreSQL server)
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import subprocess
@@ -86,6 +87,32 @@ def test_files_to_json_lines_match_solve_and_a_rerun_skips_what_is_done(cluster,
     assert third.skipped == len(paths) - 1 and third.processed + third.invalid == 1
     redone = [json.loads(line) for line in out.read_text().splitlines()]
     assert sorted(d["file"] for d in redone) == sorted(paths) and redone[-1]["file"] == cut
+
+
+def test_a_file_changed_since_its_line_is_solved_again_and_its_line_replaced(cluster, sample_dir, tmp_path):
+    """A re-run goes by content (input_sha256), not by path: the broken file mended, or one file's telemetry
+    replaced by another's at the same path, is solved again, and the output keeps one line per file."""
+    first, second = tmp_path / "a.json", tmp_path / "b.json"
+    first.write_bytes((sample_dir / "01-clean.json").read_bytes())
+    second.write_text('{"format": "tubsat-snapshots/1", "snapshots": "no"}')
+    paths, out = [str(first), str(second)], tmp_path / "results.jsonl"
+    report = batch.files_to_jsonl(cluster, paths, out)
+    assert (report.processed, report.invalid, report.again) == (1, 1, 0)
+    lines = {doc["file"]: doc for doc in map(json.loads, out.read_text().splitlines())}
+    assert lines[str(first)]["input_sha256"] == hashlib.sha256(b"a.json\0" + first.read_bytes()).hexdigest()
+
+    first.write_bytes((sample_dir / "04-big-dipper.json").read_bytes())
+    second.write_bytes((sample_dir / "03-jupiter.json").read_bytes())
+    again = batch.files_to_jsonl(cluster, paths, out)
+    assert (again.skipped, again.again, again.processed, again.invalid) == (0, 2, 2, 0)
+    assert f"{again.skipped} skipped as done, 2 solved again (changed since their line, or failed)" in summary(again)
+    now = [json.loads(line) for line in out.read_text().splitlines()]
+    assert sorted(doc["file"] for doc in now) == sorted(paths)  # one line per file
+    by_file = {doc["file"]: doc for doc in now}
+    assert by_file[str(first)]["sequence_id"] == json.loads(first.read_text())["sequence_id"] != lines[str(first)][
+        "sequence_id"]
+    assert by_file[str(second)]["status"] != "invalid"
+    assert batch.files_to_jsonl(cluster, paths, out).skipped == 2
 
 
 def test_files_to_the_archive_store_searches_as_the_server_does_and_a_rerun_skips_them(

@@ -11,10 +11,12 @@ Extraction and identification of many sequences on Dask (issue 14; see
   calibration version), by the workers themselves;
 * ``--archive``: every archived sequence is searched again.
 
-Directories are read (not recursively) for ``*.json`` and ``*.csv``,
-leaving out ``*.truth.json`` (stderr says how many).  A re-run skips what
-is done (files already in the output; sequences whose latest search would
-be reused); ``--redo`` starts the JSON-lines output afresh.  By default a
+Directories are read (not recursively) for ``*.json`` and ``*.csv``;
+``*.truth.json`` files are left out, named or in a directory (stderr says how
+many).  A re-run skips what is done (files whose line in the output was made
+from the same content, ``input_sha256``; sequences whose latest search would
+be reused) and solves again a file changed since its line, replacing it;
+``--redo`` starts the JSON-lines output afresh.  By default a
 local cluster of ``--workers`` processes (one per core) runs the work;
 ``--scheduler tcp://host:8786`` uses an existing Dask cluster, whose workers need this
 package installed, the files at the same paths (shared storage) and, to
@@ -151,7 +153,9 @@ def summary(report) -> str:
     statuses = ", ".join(f"{n} {status}" for status, n in sorted(report.statuses.items())) or "none"
     rate = report.sequences_per_s
     lines = [f"{report.mode}: {report.total} sequences, {report.processed} processed ({statuses}), "
-             f"{report.skipped} skipped as done, {report.invalid} invalid, {report.failed} failed",
+             f"{report.skipped} skipped as done, "
+             + (f"{report.again} solved again (changed since their line, or failed), " if report.again else "")
+             + f"{report.invalid} invalid, {report.failed} failed",
              f"{report.workers} worker{'s' if report.workers != 1 else ''} ({report.threads} thread"
              f"{'s' if report.threads != 1 else ''}), start-up {report.startup_s:.1f} s; "
              f"processing {report.processing_s:.2f} s"

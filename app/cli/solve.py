@@ -84,8 +84,7 @@ def parse_prior(text: str):
 
 def run(args: argparse.Namespace) -> int:
     from app.identification import SearchOptions, Sky
-    from app.workflow.documents import SolveDocument
-    from app.workflow.files import solve_document
+    from app.workflow.files import invalid_solve_document, solve_document
 
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     sky = Sky()
@@ -96,15 +95,14 @@ def run(args: argparse.Namespace) -> int:
                               method="tf" if args.method == "tf" else "bright_pair", prior=args.prior,
                               compare_tf=args.method == "both")
 
-    def invalid(path, message):
-        return SolveDocument(file=path, sequence_id=None, status="invalid", error=message)
-
-    return for_each_file(args.files, solve_one, invalid, args.json, print_summary, fov_deg=args.fov_deg)
+    return for_each_file(args.files, solve_one, invalid_solve_document, args.json, print_summary,
+                         fov_deg=args.fov_deg)
 
 
 def print_summary(doc) -> None:
     """A table of candidates per file (an :class:`app.workflow.documents.SolveDocument`)."""
-    print(f"{doc.file}: {doc.sequence_id or '-'}  {doc.status}")
+    at = "" if doc.reference_snapshot is None else f"  (attitudes at snapshot {doc.reference_snapshot}, the reference)"
+    print(f"{doc.file}: {doc.sequence_id or '-'}  {doc.status}{at}")
     if doc.error:
         print("  " + doc.error.replace("\n", "\n  "))
         return

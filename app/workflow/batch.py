@@ -67,8 +67,7 @@ from app.storage import Storage, backend_of, content_sha256
 from app.telemetry.errors import TelemetryError
 from app.workflow.archive import extraction_job, parse_upload, store_upload
 from app.workflow.context import AppContext
-from app.workflow.documents import SolveDocument
-from app.workflow.files import solve_document, telemetry_files
+from app.workflow.files import input_sha256, invalid_solve_document, solve_document, telemetry_files
 from app.workflow.search import compute_search, prepare_search, reusable_search, search_options_record, store_search
 
 log = logging.getLogger(__name__)
@@ -178,10 +177,6 @@ def worker_info() -> dict:
             "cwd": os.getcwd()}
 
 
-def failed_document(path: str, message: str) -> SolveDocument:
-    return SolveDocument(file=path, sequence_id=None, status="invalid", error=message)
-
-
 def _local(path: str, driver_cwd: str) -> str:
     """The path a worker opens: as given when it runs where the driver does, else made absolute."""
     return path if os.path.isabs(path) or os.getcwd() == driver_cwd else os.path.join(driver_cwd, path)
@@ -195,15 +190,18 @@ def solve_files_task(paths: list[str], driver_cwd: str, method: str,
     options = SearchOptions() if max_candidates is None else SearchOptions(max_candidates=max_candidates)
     out = []
     for path in paths:
-        [(_, sequence, problem)] = telemetry_files([_local(path, driver_cwd)])
+        local = _local(path, driver_cwd)
+        digest = input_sha256(local)  # before reading it: a file changed meanwhile is answered again next time
+        [(_, sequence, problem)] = telemetry_files([local])
         try:
             if problem is not None:
-                doc = failed_document(path, str(problem))
+                doc = invalid_solve_document(path, str(problem), digest)
             else:
-                doc = solve_document(path, sequence, sky, options=options, method=method)
+                doc = solve_document(path, sequence, sky, options=options, method=method, digest=digest)
         except Exception as exc:  # noqa: BLE001 - one file's failure must not end the batch
-            doc = failed_document(path, f"{path}: could not be processed ({type(exc).__name__}: {exc}); the file "
-                                        "passed validation, so this is a bug: please report it with the file")
+            doc = invalid_solve_document(
+                path, f"{path}: could not be processed ({type(exc).__name__}: {exc}); the file passed validation, "
+                      "so this is a bug: please report it with the file", digest)
         outcome = Outcome("invalid", doc.error) if doc.status == "invalid" else Outcome("processed", doc.status)
         out.append((outcome, doc.model_dump_json()))
     return out
@@ -315,6 +313,7 @@ class BatchReport:
     total: int = 0
     processed: int = 0
     skipped: int = 0
+    again: int = 0  # files to JSON lines: answered before, but changed since (or failed): solved again
     invalid: int = 0
     failed: int = 0
     statuses: dict[str, int] = field(default_factory=dict)
@@ -346,6 +345,7 @@ class BatchReport:
 
     def to_json(self) -> dict:
         return {"mode": self.mode, "total": self.total, "processed": self.processed, "skipped": self.skipped,
+                "again": self.again,
                 "invalid": self.invalid, "failed": self.failed, "statuses": self.statuses, "workers": self.workers,
                 "threads": self.threads, "startup_s": round(self.startup_s, 2),
                 "processing_s": round(self.processing_s, 3), "sequences_per_s": self.sequences_per_s,
@@ -384,45 +384,70 @@ def _run_chunks(cluster: Cluster, items: list, size: int, submit: Callable, coll
             collect(chunk, None, f"{type(exc).__name__}: {exc}")
 
 
-def done_files(out_path: Path) -> set[str]:
-    """The files already in a JSON-lines output; a last line cut short (a crash mid-write) is removed."""
+def answered_files(out_path: Path) -> dict[str, str | None]:
+    """Each file's ``input_sha256`` in a JSON-lines output (its last line's); a last line cut short (a crash
+    mid-write) is removed."""
     if not out_path.exists():
-        return set()
+        return {}
     data = out_path.read_bytes()
     end = data.rfind(b"\n") + 1
     if end < len(data):
         with out_path.open("r+b") as f:
             f.truncate(end)
-    done = set()
+    answered = {}
     for line in data[:end].splitlines():
         try:
-            done.add(json.loads(line)["file"])
-        except (ValueError, KeyError, TypeError):
+            doc = json.loads(line)
+            answered[doc["file"]] = doc.get("input_sha256")
+        except (ValueError, KeyError, TypeError, AttributeError):
             continue
-    return done
+    return answered
+
+
+def _drop_lines(out_path: Path, files: set[str]) -> None:
+    """Remove the lines of ``files`` from a JSON-lines output (written anew, then moved into place)."""
+    kept = []
+    for line in out_path.read_bytes().splitlines(keepends=True):
+        try:
+            if json.loads(line)["file"] in files:
+                continue
+        except (ValueError, KeyError, TypeError):
+            pass
+        kept.append(line)
+    tmp = out_path.with_name(out_path.name + ".tmp")
+    tmp.write_bytes(b"".join(kept))
+    tmp.replace(out_path)
 
 
 def files_to_jsonl(cluster: Cluster, paths: list[str], out_path: Path, *, method: str = "bright_pair",
                    max_candidates: int | None = None, redo: bool = False,
                    progress: Progress | None = None) -> BatchReport:
-    """Identify ``paths`` on the cluster; append one ``solve --json`` line per file to ``out_path``."""
+    """Identify ``paths`` on the cluster; append one ``solve --json`` line per file to ``out_path``.
+
+    A file whose line is there with the same ``input_sha256`` as the file has now is skipped as done; the
+    others are solved (again: a changed file, a line of a worker's failure, or of a version before the
+    digest), and their older lines removed, so that the output keeps one line per file.
+    """
     check_method(method)
     report = BatchReport(mode="files to JSON lines", total=len(paths), workers=len(cluster.workers),
                          threads=cluster.threads, startup_s=cluster.startup_s)
     if redo and out_path.exists():
         out_path.unlink()
-    done = done_files(out_path)
-    todo = [p for p in paths if p not in done]
-    report.skipped = len(paths) - len(todo)
+    answered = answered_files(out_path)
+    todo = [p for p in paths if p not in answered or answered[p] is None or answered[p] != input_sha256(p)]
+    again = {p for p in todo if p in answered}
+    if again:
+        _drop_lines(out_path, again)
+    report.skipped, report.again = len(paths) - len(todo), len(again)
     finished = report.skipped
     cwd = os.getcwd()
     t0 = time.perf_counter()
     with out_path.open("a", encoding="utf-8") as out:
         def collect(chunk: list[str], results: list[tuple[Outcome, str]] | None, error: str | None) -> None:
             nonlocal finished
-            if error is not None:
-                results = [(Outcome("failed", error), failed_document(path, f"{path}: {error}").model_dump_json())
-                           for path in chunk]
+            if error is not None:  # no digest: solved again next time
+                results = [(Outcome("failed", error), invalid_solve_document(path, f"{path}: {error}", None)
+                            .model_dump_json()) for path in chunk]
             for path, (outcome, _) in zip(chunk, results):
                 report.add(path, outcome)
             out.write("".join(line + "\n" for _, line in results))

@@ -377,6 +377,9 @@ class SolveDocument(Document):
     sequence_id: str | None
     status: Literal["identified", "ambiguous", "no_match", "invalid"]
     error: str | None = None
+    input_sha256: str | None = Field(
+        default=None, description="what the answer was made from (app.workflow.files.input_sha256): a re-run of "
+                                  "batch --out solves a file again when this changed; null if it could not be read")
     reference_snapshot: int | None = None
     sources: list[list[int | None]] = Field(default_factory=list)
     source_stars: list[list[int | None]] | None = None

@@ -8,6 +8,7 @@ error, and the batch goes on.
 
 from __future__ import annotations
 
+import hashlib
 import math
 from collections.abc import Iterator
 from pathlib import Path
@@ -106,6 +107,42 @@ def _load(path: str, fov_deg: float | None) -> Sequence:
         raise TelemetryError(exc.problems, filename=path, truncated=exc.truncated) from None
 
 
+def input_sha256(path: str) -> str | None:
+    """SHA-256 of everything an input may be read from, to tell a changed input from one answered before:
+    a file's bytes (an image's with the sidecars it may take, ``<stem>.frames.json`` and its folder's
+    ``frames.json``); a folder's files, each by name and bytes, in name order.  Taking in a file the input
+    may not need only makes a re-run redo it; None when it cannot be read (it is reported when processed).
+    """
+    from app.workflow.frames import FOLDER_SIDECAR, SIDECAR_SUFFIX, is_frames_path
+
+    source = Path(path)
+    try:
+        if source.is_dir():
+            members = sorted(p for p in source.iterdir() if p.is_file())
+        else:
+            members = [source]
+            if is_frames_path(path):
+                stem = source.name.split(".")[0]
+                members += [p for p in (source.with_name(stem + SIDECAR_SUFFIX), source.with_name(FOLDER_SIDECAR))
+                            if p.is_file()]
+        digest = hashlib.sha256()
+        for member in members:
+            digest.update(member.name.encode() + b"\0")
+            with member.open("rb") as stream:
+                for chunk in iter(lambda: stream.read(1 << 20), b""):
+                    digest.update(chunk)
+        return digest.hexdigest()
+    except OSError:
+        return None
+
+
+def invalid_solve_document(path: str, message: str, digest: str | None = None) -> SolveDocument:
+    """The ``solve --json`` line of an input that cannot be identified (``digest``: its
+    :func:`input_sha256`, taken here when not given)."""
+    return SolveDocument(file=path, sequence_id=None, status="invalid", error=message,
+                         input_sha256=digest if digest is not None else input_sha256(path))
+
+
 def extract_document(path: str, sequence: Sequence) -> ExtractDocument:
     extraction = ExtractionDocument.of(extract(sequence))
     return ExtractDocument(file=path, sequence_id=sequence.sequence_id, status="ok",
@@ -113,17 +150,20 @@ def extract_document(path: str, sequence: Sequence) -> ExtractDocument:
 
 
 def solve_document(path: str, sequence: Sequence, sky: Sky, *, options: SearchOptions,
-                   method: str = "bright_pair", prior: Prior | None = None, compare_tf: bool = False) -> SolveDocument:
+                   method: str = "bright_pair", prior: Prior | None = None, compare_tf: bool = False,
+                   digest: str | None = None) -> SolveDocument:
     """Identify one file's sequence; with ``compare_tf`` also by triangle features, and say whether they agree.
 
     ``source_stars`` gives, per snapshot and source in input order, the HIP
     number the first candidate's attitude assigns it (null: no star there),
-    or is null when that candidate is not credible.
+    or is null when that candidate is not credible.  ``digest``: the input's
+    :func:`input_sha256` (taken here from ``path`` when not given).
     """
     solved = solve_sequence(sequence, sky, options=options, method=method, prior=prior)
     s = solved.solution
     doc = SolveDocument(
         file=path, sequence_id=sequence.sequence_id, status=s.status,
+        input_sha256=digest if digest is not None else input_sha256(path),
         reference_snapshot=int(solved.extraction.reference),
         sources=[[int(t) if t >= 0 else None for t in per] for per in solved.extraction.track_of_source],
         source_stars=source_stars(solved, sky),
