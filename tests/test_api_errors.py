@@ -119,6 +119,14 @@ def test_422_bad_request_bodies_and_parameters(env):
     doc = _error(client.put(f"/api/sequences/{sid}/pattern", content=b"{not json",
                             headers={"Content-Type": "application/json"}), 422)
     assert "JSON" in doc["detail"]
+    # Located at the body, with the character FastAPI's offset names (it had read "body[0]", an item).
+    doc = _error(client.post(f"/api/sequences/{sid}/search", content=b"garbage",
+                             headers={"Content-Type": "application/json"}), 422)
+    assert doc["problems"] == [{"location": "body", "message": "the body is not valid JSON (Expecting value at "
+                                                                 "character 0)"}]
+    doc = _error(client.post(f"/api/sequences/{sid}/confirm", content=b'{"rank": 1e20, "operator": "x"}',
+                             headers={"Content-Type": "application/json"}), 422)
+    assert doc["problems"] == [{"location": "body.rank", "message": "the number is too large for an integer"}]
     _error(client.put(f"/api/sequences/{sid}/pattern", content=b'{"manual_points": [{"snapshot": 0, "x": NaN, "y": 1}]}',
                       headers={"Content-Type": "application/json"}), 422)
     _error(client.post(f"/api/sequences/{sid}/search", json={"method": "guess"}), 422)

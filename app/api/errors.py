@@ -85,12 +85,18 @@ def validation_problems(errors) -> list[dict]:
         message = str(error.get("msg", "invalid value"))
         if error.get("type") == "value_error":
             message = message.removeprefix("Value error, ")  # pydantic's prefix for our own validators' words
+        loc = tuple(error.get("loc", ()))
         if error.get("type") == "json_invalid":
-            message = "the body is not valid JSON" + (f" ({error['ctx']['error']})"
-                                                       if error.get("ctx", {}).get("error") else "")
+            # FastAPI locates it at ("body", offset): the offset is a character of the text, not an item.
+            at = f" at character {loc[-1]}" if loc and isinstance(loc[-1], int) else ""
+            loc = tuple(part for part in loc if not isinstance(part, int))
+            message = "the body is not valid JSON" + (f" ({error['ctx']['error']}{at})"
+                                                       if error.get("ctx", {}).get("error") else at)
+        elif error.get("type") == "int_parsing_size":
+            message = "the number is too large for an integer"
         elif error.get("type") in _RANGE_ERRORS and _not_finite(error.get("input")):
             message = f"must be a finite number, got {error.get('input')}"
-        problems.append({"location": _location(error.get("loc", ())), "message": message})
+        problems.append({"location": _location(loc), "message": message})
     return problems
 
 
