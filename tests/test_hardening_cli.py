@@ -154,6 +154,19 @@ def test_batch_names_a_missing_input_before_starting_a_cluster(tmp_path, sample_
     assert capsys.readouterr().err.strip() == f"batch: no such file or directory: {missing}"
 
 
+@pytest.mark.parametrize("command", ["solve", "extract"])
+def test_the_table_names_an_invalid_file_once(command, tmp_path, capsys):
+    """The file's line names it; the message under it does not again (--json keeps it whole)."""
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"format": "tubsat-snapshots/1", "snapshots": "no"}')
+    assert cli_main([command, str(bad)]) == 2
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith(f"{bad}: ") and out[0].endswith("invalid")
+    assert out[1] == "  invalid telemetry: snapshots: must be an array of snapshots, got a string ('no')"
+    assert cli_main([command, "--json", str(bad)]) == 2
+    assert json.loads(capsys.readouterr().out)["error"].startswith(f"{bad}: invalid telemetry: ")
+
+
 def test_batch_names_an_invalid_file_once(tmp_path):
     from app.workflow.batch import BatchReport, Outcome
 

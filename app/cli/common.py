@@ -31,6 +31,12 @@ def command_line_inputs(paths: list[str]) -> list[str]:
     return inputs
 
 
+def indented_error(doc) -> str:
+    """A document's error under its file's line: indented, without the file's name again (the message
+    names it, to stand alone in --json)."""
+    return "  " + doc.error.removeprefix(f"{doc.file}: ").replace("\n", "\n  ")
+
+
 def for_each_file(paths: list[str], process: Callable[[str, object], Document],
                   invalid: Callable[[str, str], Document], as_json: bool,
                   print_summary: Callable[[Document], None], *, fov_deg: float | None = None) -> int:

@@ -24,7 +24,7 @@ from __future__ import annotations
 import argparse
 from collections import Counter
 
-from app.cli.common import add_fov_argument, for_each_file
+from app.cli.common import add_fov_argument, for_each_file, indented_error
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
 def print_summary(doc) -> None:
     """A few readable lines per file (an :class:`app.workflow.documents.ExtractDocument`)."""
     if doc.status != "ok":
-        print(f"{doc.file}: invalid\n  {doc.error}")
+        print(f"{doc.file}: invalid\n{indented_error(doc)}")
         return
     n_sources = sum(len(s) for s in doc.sources)
     reasons = Counter(r for per in doc.rejected for r in per if r is not None)

@@ -29,7 +29,7 @@ import logging
 import math
 import sys
 
-from app.cli.common import add_fov_argument, for_each_file
+from app.cli.common import add_fov_argument, for_each_file, indented_error
 
 #: The lost-in-space identifiers a file can be solved with, and both compared.
 METHODS = ("bright_pair", "tf", "both")
@@ -104,7 +104,7 @@ def print_summary(doc) -> None:
     at = "" if doc.reference_snapshot is None else f"  (attitudes at snapshot {doc.reference_snapshot}, the reference)"
     print(f"{doc.file}: {doc.sequence_id or '-'}  {doc.status}{at}")
     if doc.error:
-        print("  " + doc.error.replace("\n", "\n  "))
+        print(indented_error(doc))
         return
     print(f"  {'rank':>4} {'RA deg':>10} {'Dec deg':>9} {'roll deg':>9} {'matched':>7} {'rms as':>7} "
           f"{'dev px/pt':>9} {'P(false)':>9}  stars")
