@@ -13,7 +13,12 @@ What it shows (scene units: see :mod:`app.viewer.scene`):
   named.
 
 The GUI has Prev / Next, the magnitude slider and Confirm (operator name,
-optional comment).  Every action goes through :mod:`app.workflow`, the
+optional comment).  Confirm takes the credible best candidate only; a
+confirmation that needs the console's second step (another rank, or one
+replacing the sequence's verdict) is sent to the console it draws
+(:func:`confirm_from_3d`, :func:`request_session`), which opens that step.
+Status codes are shown in the console's words (:data:`STATUS_TEXT`).
+Every action goes through :mod:`app.workflow`, the
 same code the REST API runs, and a poll thread redraws whenever the shared
 state or the archive behind it changes, so the console and this view stay
 in step without talking to each other.
@@ -39,6 +44,7 @@ from app.workflow import AppContext, archive, confirm as confirming, search as s
 from app.workflow.documents import ViewerDocument
 from app.workflow.errors import WorkflowError
 from app.workflow.review import review
+from app.workflow.view_state import DEFAULT_SESSION
 
 log = logging.getLogger(__name__)
 
@@ -46,26 +52,79 @@ log = logging.getLogger(__name__)
 VIEWER_HOST = "127.0.0.1"
 #: Characters that start markup in CommonMark (all ASCII punctuation may be backslash-escaped there).
 _MARKDOWN_PUNCTUATION = frozenset("!\"#$%&'()*+,-./:;<=>?@[\\]^_`{|}~")
+#: A sequence's status in the console's words (static/js/queue.js STATUS_TEXT); the others read as they are.
+STATUS_TEXT = {"no_match": "no match", "rejected": "no valid attitude"}
+
+
+def status_text(status: str | None) -> str:
+    """A status as the console shows it: "no match", "no valid attitude", "identified" (plain text)."""
+    return STATUS_TEXT.get(status, status or "unknown")
+
+
+def request_session(session: str) -> str:
+    """The request box of a console session: the view session into which the 3D view drawing ``session``
+    writes the sequence and rank whose confirmation it sends to that console (static/js/main.js
+    requestSession, the same rule).  A write there is a request; the console reads the box and opens its
+    second step for that rank.  ("3d-" and at most 61 characters of the session: a valid session id, and
+    never the session itself; console-made ids, "c-" and 24 hex digits, never name another's box.)"""
+    box = "3d-" + session[-61:]
+    return box if box != session else "3D-" + session[-61:]
+
+
+def _time_text(text: str | None) -> str:
+    """An API time as the console prints it (static/js/dom.js fmtTime): ``2026-11-23 18:57:41Z``."""
+    if not text:
+        return "-"
+    day, _, clock = text.partition("T")
+    return f"{day} {clock.split('.')[0].rstrip('Z')}Z" if clock else text
+
+
+def _verdict_text(confirmed, rejected) -> str:
+    """The sequence's current verdict in the console's words (static/js/decision.js describeCurrent), as Markdown."""
+    if confirmed is not None:
+        return (f"attitude {confirmed.id} (rank {confirmed.rank}) confirmed by {markdown_text(confirmed.operator)} "
+                f"at {markdown_text(_time_text(confirmed.confirmed_at))}")
+    return (f"\"no valid attitude\" recorded by {markdown_text(rejected.operator)} at "
+            f"{markdown_text(_time_text(rejected.rejected_at))}: {markdown_text(rejected.reason)}")
 
 
 def confirm_from_3d(ctx: AppContext, sequence: int | None, rank: int | None, operator: str,
-                    comment: str | None) -> str:
+                    comment: str | None, session: str | None = None) -> str:
     """What the 3D view's Confirm does, and the panel's answer (Markdown).
 
     The panel has one click and no second step: it confirms the credible
-    best candidate only.  Any other rank needs the reason the audit record
-    keeps, which the console's second step asks for, so the panel says so
-    in those words (the API's would name a request field).
+    best candidate only.  A confirmation that needs the second step (a rank
+    that is not the credible best, whose reason the audit record keeps, or
+    one that would replace the sequence's verdict) is sent to the console
+    drawing ``session`` (default: the one the 3D view draws): the request
+    goes into that session's :func:`request_session` box, and the console
+    opens its second step for that rank.  The panel says so in an operator's
+    words (the API's would name request fields).
     """
     if sequence is None or rank is None:
         return "Nothing to confirm: no candidate is shown."
+    judged = review(ctx, sequence)
+    verdict = next((v for v in judged.candidates if v.rank == rank), None)
+    confirmed, rejected = judged.confirmation, judged.rejection
+    this_one = confirmed is not None and confirmed.search_id == judged.search_id and confirmed.rank == rank
+    if verdict is not None and not this_one and (not verdict.credible or confirmed or rejected):
+        session = ctx.view.followed if session is None else session
+        view.set_view(ctx, {"sequence": sequence, "rank": rank}, "viewer", session=request_session(session))
+        why = (f"Rank {rank} is not the credible best candidate: {markdown_text('; '.join(verdict.reasons))}."
+               if not verdict.credible else
+               f"Rank {rank} would replace the sequence's verdict: {_verdict_text(confirmed, rejected)}.")
+        # No console opened this 3D view (its default session): nobody reads the box, so it is not "sent".
+        where = "Confirm it in the console" if session == DEFAULT_SESSION else "Sent to the console"
+        step = "asks for the reason, which the audit record keeps" if not verdict.credible \
+            else "asks you to confirm the replacement"
+        kept = " The comment typed here is not sent: type it in the console." if comment else ""
+        return f"{why} {where}: its second step {step}.{kept}"
     if not operator:
         return "**Error:** enter the operator's name before confirming."
-    verdict = next((v for v in review(ctx, sequence).candidates if v.rank == rank), None)
-    if verdict is not None and not verdict.credible:
-        return (f"Rank {rank} is not the credible best candidate: {markdown_text('; '.join(verdict.reasons))}. "
-                "Confirm it in the console: its second step asks for the reason, which the audit record keeps.")
-    result = confirming.confirm(ctx, sequence, rank, operator, comment)
+    result, stored = confirming.record_confirmation(ctx, sequence, rank, operator, comment)
+    if not stored:  # this very candidate was the verdict already: maybe another operator's, just before
+        return (f"Rank {result.rank} was confirmed already by {markdown_text(result.operator)} at "
+                f"{markdown_text(_time_text(result.confirmed_at))} (attitude {result.id}); nothing new stored.")
     return f"Confirmed rank {result.rank} as attitude {result.id} by {markdown_text(operator)}."
 
 
@@ -130,10 +189,15 @@ class SkyModel:
         return self.vectors[rows] if rows else np.zeros((0, 3))
 
 
+def _selection(doc) -> tuple:
+    """What the 3D view shows, as far as a message about it goes: the console drawn, its sequence, search, rank."""
+    return (doc.session, doc.sequence, doc.search_id, doc.rank)
+
+
 def panel_title(sequence_id, spacecraft: str | None, status: str) -> str:
     """The panel's first line: the sequence (bold), its spacecraft and status, all shown as text."""
     return (f"**{markdown_text(sequence_id)}** ({markdown_text(spacecraft or 'unknown spacecraft')}), "
-            f"status {markdown_text(status)}")
+            f"status {markdown_text(status_text(status))}")
 
 
 class Viewer:
@@ -146,6 +210,7 @@ class Viewer:
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._drawn_key = None
+        self._message_about = None  # the selection the panel's message was written for (_selection)
         self._drawn_mag = None
         self._camera_key = None
         self._candidate_nodes: list = []
@@ -218,6 +283,10 @@ class Viewer:
             log.exception("3D view action failed")
             message = f"**Error:** {markdown_text(exc)}"
         self._message.content = message or ""
+        try:  # what the message is about: it goes when another candidate, sequence or console is drawn
+            self._message_about = _selection(view.view_document(self._ctx))
+        except Exception:
+            self._message_about = None
         self._wake.set()
 
     def _write_view(self, changes: dict) -> str:
@@ -239,7 +308,7 @@ class Viewer:
         def action() -> str:
             doc = view.view_document(self._ctx)
             return confirm_from_3d(self._ctx, doc.sequence, doc.rank, self._operator.value.strip(),
-                                   self._comment.value.strip() or None)
+                                   self._comment.value.strip() or None, doc.session)
         self._act(action)
 
     def _toggle(self, definition_change) -> None:
@@ -293,6 +362,9 @@ class Viewer:
                 if key != self._drawn_key:
                     self._draw_candidate(doc)
                     self._drawn_key = key
+                if self._message_about is not None and _selection(doc) != self._message_about:
+                    self._message.content = ""  # it was about what was drawn before
+                    self._message_about = None
                 self._follow_operator(doc.operator)
             except Exception:  # a bad record must not kill the view; try again next time
                 log.exception("3D view could not draw the shared state")

@@ -26,6 +26,10 @@ function shownIsConfirmed() {
   return !!c && c.search_id === state.review.search_id && c.rank === state.rank;
 }
 
+// Who confirmed an attitude and when (UTC), for the words that name a confirmation given already: it may be
+// another operator's, landed between this console's look and its click.
+const confirmedBy = (c) => `by ${c.operator} at ${fmtTime(c.confirmed_at)}`;
+
 function describeCurrent() {
   const r = state.review;
   if (r.confirmation) return `attitude #${r.confirmation.id} (rank ${r.confirmation.rank}) confirmed by ${r.confirmation.operator}`;
@@ -132,17 +136,25 @@ export function cancelSteps() {
 export async function confirmClick() {
   const v = verdictOf(state.rank);
   if (!v || shownIsConfirmed()) {
-    if (shownIsConfirmed()) toast(`Rank ${state.rank} is confirmed already (attitude #${state.review.confirmation.id})`);
+    const c = state.review?.confirmation;
+    if (shownIsConfirmed()) toast(`Rank ${state.rank} is confirmed already ${confirmedBy(c)} (attitude #${c.id})`);
     return;
   }
   if (!operatorName()) return;
-  const current = currentVerdict();
-  if (v.credible && !current) { await sendConfirmation(false); return; }
+  if (v.credible && !currentVerdict()) { await sendConfirmation(false); return; }
+  openOverrideStep(v);
+}
+
+// The second step for the rank shown: what the confirmation would override, the reason field when the
+// candidate is not the credible best; `sender` names where the confirmation was asked for, if not here.
+function openOverrideStep(v, sender = null) {
   cancelSteps();
+  const current = currentVerdict();
   const reasons = [...(v.credible ? [] : v.reasons)];
   if (current) reasons.push(`replaces the current verdict: ${describeCurrent()}`);
-  $("override-title").textContent = v.credible ? `Replace the verdict with rank ${state.rank}?`
-    : `Rank ${state.rank} is not the credible best: confirm anyway?`;
+  const sent = sender ? ` (sent from ${sender})` : "";
+  $("override-title").textContent = v.credible ? `Replace the verdict with rank ${state.rank}${sent}?`
+    : `Rank ${state.rank}${sent} is not the credible best: confirm anyway?`;
   $("override-reasons").replaceChildren(...reasons.map((r) => el("li", {}, r)));
   $("override-reason").hidden = v.credible;
   $("override-reason").value = "";
@@ -150,6 +162,26 @@ export async function confirmClick() {
   $("override-step").hidden = false;
   (v.credible ? $("confirm-override") : $("override-reason")).focus();
   $("override-step").scrollIntoView({ block: "nearest" });
+}
+
+// A confirmation of the rank shown asked for elsewhere (the 3D view's Confirm, whose panel has no second
+// step): the second step opens here, and nothing is confirmed without the operator's click in it.
+export function confirmSentFrom(sender) {
+  const v = verdictOf(state.rank);
+  if (!v) return;
+  const from = sender.charAt(0).toUpperCase() + sender.slice(1);   // the toast's first word
+  if (shownIsConfirmed()) {
+    const c = state.review.confirmation;
+    toast(`${from} asked to confirm rank ${state.rank}: it is confirmed already ${confirmedBy(c)} (attitude #${c.id})`);
+    return;
+  }
+  if (v.credible && !currentVerdict()) {   // the credible best since: one click here confirms it, as there
+    toast(`${from} asked to confirm rank ${state.rank}, the credible best: press Confirm to confirm it`);
+    return;
+  }
+  openOverrideStep(v, sender);
+  const ask = v.credible ? "confirm replacing the verdict" : "give the reason to confirm it anyway";
+  toast(`${from} sent rank ${state.rank} here: ${ask}`);
 }
 
 function operatorName() {
@@ -182,9 +214,12 @@ async function sendConfirmation(secondStep) {
     cancelSteps();
     await hooks.afterVerdict();
     $("confirmed").scrollIntoView({ block: "nearest" });
-    toast(status === 201
+    // 200: this very candidate was the verdict already, maybe another operator's landed just before.
+    const stored = status === 201;
+    toast(stored
       ? `Attitude #${c.id} confirmed by ${c.operator}: RA ${fmt(c.ra_deg, 3)}°, Dec ${fmt(c.dec_deg, 3)}°, roll ${fmt(c.roll_deg, 2)}°`
-      : `Rank ${c.rank} was confirmed already (attitude #${c.id}); nothing new stored`);
+      : `Rank ${c.rank} was confirmed already ${confirmedBy(c)} (attitude #${c.id}); nothing new stored`,
+    stored ? "ok" : "warn");
   } catch (err) {
     toast(`The confirmation failed: ${errorText(err)}`, "error");
     if (err.status === 409) {   // someone else's verdict or search: the step asked about what was; show what is

@@ -20,9 +20,10 @@ export function el(tag, attrs = {}, ...children) {
 }
 
 let toastTimer = null;
-// Show the result of an action (kind "ok" or "error") in the status line of the header. The
-// status line has its own place in the sticky header, so it never covers a list or a link;
-// long messages are cut to one line there and shown whole on hover and in the message log.
+// Show the result of an action (kind "ok", "warn" or "error") in the status line of the header. The
+// status line has its own place in the sticky header, so it never covers a list or a link; a long
+// "ok" is cut to one line there and shown whole on hover and in the message log, while a warning or
+// an error wraps, to be read whole, and stays longer.
 export function toast(message, kind = "ok") {
   const box = $("toast");
   box.textContent = message.split("\n")[0];
@@ -31,11 +32,12 @@ export function toast(message, kind = "ok") {
   box.hidden = false;
   const log = $("message-log");
   if (log) {
-    log.prepend(el("li", { class: kind }, el("time", {}, new Date().toLocaleTimeString()), " ", message));
+    const now = new Date().toISOString();   // UTC, written as every other time of the console (fmtTime)
+    log.prepend(el("li", { class: kind }, el("time", { datetime: now }, fmtTime(now)), " ", message));
     while (log.children.length > 30) log.lastChild.remove();
   }
   clearTimeout(toastTimer);
-  toastTimer = setTimeout(() => { box.hidden = true; }, kind === "error" ? 12000 : 5000);
+  toastTimer = setTimeout(() => { box.hidden = true; }, kind === "ok" ? 5000 : 12000);
 }
 
 // "1 candidate", "3 candidates".
@@ -78,6 +80,19 @@ export function fmtProbability(p) {
 
 export function fmtTime(text) {
   return text ? text.replace("T", " ").replace(/\.\d+Z$/, "Z") : "-";
+}
+
+// A snapshot named as the CLI and the API name it: by its 0-based position in the file (snapshots[2],
+// "reference_snapshot": 2), which is also its "index" in files numbered from 0. Given the sequence's
+// telemetry snapshots, `count` adds its position in words that cannot be taken for the index, and a file
+// numbering its snapshots otherwise has that index said too: "snapshot 2 (3 of 16, reference)".
+export function snapshotName(position, { snapshots = null, reference = null, count = false } = {}) {
+  const fileIndex = snapshots?.[position]?.index;
+  const notes = [count && snapshots ? `${position + 1} of ${snapshots.length}` : null,
+    position === reference ? "reference" : null,
+    fileIndex !== undefined && fileIndex !== null && fileIndex !== position ? `index ${fileIndex} in the file` : null];
+  const said = notes.filter(Boolean);
+  return `snapshot ${position}${said.length ? ` (${said.join(", ")})` : ""}`;
 }
 
 // Browser storage that never throws (private windows, disabled storage): the console still works.

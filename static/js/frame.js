@@ -6,7 +6,7 @@
 // for the whole frame; a click on a detection takes its track in or out of the pattern, as a
 // click in the player does. Telemetry strings only ever reach the page as text.
 import * as api from "./api.js";
-import { $, placeLabel, trackColour } from "./dom.js";
+import { $, placeLabel, snapshotName, trackColour } from "./dom.js";
 
 const MAX_ZOOM = 32;            // screen pixels per sensor pixel at most
 const ZOOM_STEP = 1.5;          // one +/- press
@@ -238,8 +238,10 @@ export class FrameView {
     this.hits = [];
     const info = this.current();
     const snapshots = this.detail?.telemetry?.snapshots || [];
+    // Named as the player names it: by its index in the file, its position in words.
+    const name = snapshotName(this.index, { snapshots, reference: this.detail?.extraction.reference_snapshot, count: true });
     $("frame-caption").textContent = this.frames && this.frames.size
-      ? `snapshot ${this.index + 1}/${snapshots.length}` + (info ? ` · ${info.width}×${info.height} px` +
+      ? name + (info ? ` · ${info.width}×${info.height} px` +
         (info.scale > 1 ? `, shown 1:${info.scale}` : "") : " · no image kept of this snapshot")
       : "";
     $("frame-zoom-label").textContent = `${Math.round(this.zoom * 100)} %`;

@@ -7,14 +7,14 @@
 // hands: another console's search or pattern edit of the same sequence is announced, and a
 // confirmation names the search it was made on. Every action ends in a visible result or error.
 import * as api from "./api.js";
-import { $, el, toast, errorText, fmt, fmtProbability, fmtTime, plural, store, stored } from "./dom.js";
+import { $, el, toast, errorText, fmt, fmtProbability, fmtTime, plural, snapshotName, store, stored } from "./dom.js";
 import { FrameView } from "./frame.js";
 import { SnapshotPlayer } from "./player.js";
 import { drawSky, hitAt } from "./sky.js";
 import { SESSION, state } from "./state.js";
 import { loadAttitudes, loadSequences, loadSpacecraft, markSelected, noteSearched, setupQueue,
   statusText } from "./queue.js";
-import { cancelSteps, confirmClick, openReject, renderCandidates, setupDecision,
+import { cancelSteps, confirmClick, confirmSentFrom, openReject, renderCandidates, setupDecision,
   verdictSummary } from "./decision.js";
 import { calibrate, showCalibration } from "./calibration.js";
 
@@ -27,7 +27,7 @@ const onToggleTrack = (track) => editPattern((def) => toggleTrack(def, track), `
 const player = new SnapshotPlayer({
   onToggleTrack,
   onPick: (snapshot, x, y) => editPattern((def) => ({ ...def, manual_points: [...(def.manual_points || []), { snapshot, x, y }] }),
-    `a point at (${x}, ${y}) of snapshot ${snapshot + 1}`),
+    `a point at (${x}, ${y}) of ${snapshotName(snapshot, { snapshots: state.detail?.telemetry.snapshots })}`),
   onRemoveManual: (k) => editPattern((def) => ({ ...def, manual_points: def.manual_points.filter((_, i) => i !== k) }),
     `hand-picked point ${k + 1}`),
   onMessage: (text) => toast(text),
@@ -204,7 +204,7 @@ function renderPattern() {
     rows.push(el("tr", { class: "manual", dataset: { manual: k } },
       el("td", {}, el("button", { class: "small", title: "remove this point",
         onclick: () => editPattern((def) => ({ ...def, manual_points: def.manual_points.filter((_, i) => i !== k) }), `hand-picked point ${k + 1}`) }, "×")),
-      el("td", {}, `◆ hand ${k + 1}`), el("td", {}, `snap. ${m.snapshot + 1}`), el("td", {}, `${fmt(m.x, 1)}, ${fmt(m.y, 1)}`), el("td", {}, "")));
+      el("td", {}, `◆ hand ${k + 1}`), el("td", { title: `picked in ${snapshotName(m.snapshot, { snapshots: d.telemetry.snapshots, count: true })}` }, `snap. ${m.snapshot}`), el("td", {}, `${fmt(m.x, 1)}, ${fmt(m.y, 1)}`), el("td", {}, "")));
   });
   $("pattern-rows").replaceChildren(...rows);
   const wrap = $("pattern-wrap");
@@ -212,7 +212,7 @@ function renderPattern() {
   $("pattern-more").hidden = !hiddenRows;
   $("pattern-more").textContent = `${rows.length} rows: scroll the table for ${hiddenRows} more`;
   $("pattern-caption").textContent = `version ${pattern.version ?? "-"} (${pattern.kind}${pattern.operator ? `, ${pattern.operator}` : ""}): ` +
-    `${pattern.points.length} points, reference snapshot ${pattern.reference_snapshot + 1}`;
+    `${pattern.points.length} points, reference ${snapshotName(pattern.reference_snapshot, { snapshots: d.telemetry.snapshots })}`;
 }
 
 // A search method as the method menu names it ("triangle features", not "tf").
@@ -559,6 +559,12 @@ async function pollView() {
   try { doc = await api.get(viewPath()); } catch { return; /* the health badge reports an unreachable server */ }
   if (state.busy) return;
   note3D(doc);
+  await followView(doc);
+  await takeRequest(doc);
+}
+
+// What the view state read says changed (elsewhere, or by the 3D view drawing this session): shown and announced.
+async function followView(doc) {
   const d = state.detail, review = state.review;
   const selectionChanged = doc.revision > state.viewRevision;   // only the 3D view writes this session besides us
   const sameSequence = d && doc.sequence === d.id;
@@ -590,6 +596,45 @@ async function pollView() {
   });
 }
 
+// The 3D view's Confirm of a rank that needs the second step (not the credible best, or replacing the
+// sequence's verdict) is sent to the console it draws: the 3D view writes that sequence and rank into this
+// session's request box, a view session of its own named by the same rule as app/viewer/server.py
+// request_session, and the console opens its second step for that rank on its Sequence tab.
+function requestSession(session) {
+  const box = `3d-${session.slice(-61)}`;
+  return box !== session ? box : `3D-${session.slice(-61)}`;
+}
+let lastRequest = null;   // the request box as last read (revision and time): a request is a change of it
+
+async function takeRequest(doc) {
+  if (!doc.followed_by_3d) return;
+  let box;
+  try { box = await api.get(`/api/view?session=${encodeURIComponent(requestSession(SESSION))}`); } catch { return; }
+  if (state.busy) return;   // read again next time, when this console's own action is done
+  const key = `${box.revision} ${box.updated_at}`;
+  if (key === lastRequest) return;
+  const first = lastRequest === null;
+  lastRequest = key;
+  // The first read only learns where the box stands: a request older than this page is not replayed.
+  if (first || box.sequence === null || box.rank === null) return;
+  await action("Taking the 3D view's confirmation", async () => {
+    const d = state.detail;
+    if (!d || box.sequence !== d.id || (d.search?.search_id ?? null) !== box.search_id) {
+      toast(`The 3D view asked to confirm rank ${box.rank} of sequence #${box.sequence}, which this console ` +
+        "no longer shows as it was: open it and confirm it here", "error");
+      return;
+    }
+    await openPanel("panel-work");
+    if (box.rank !== state.rank) {
+      cancelSteps();
+      state.rank = box.rank;
+      await writeView({ rank: box.rank });
+      await showCandidate();
+    }
+    confirmSentFrom("the 3D view");
+  });
+}
+
 // ---------------------------------------------------------------- 3D view tab
 
 function note3D(doc) {
@@ -613,36 +658,38 @@ async function follow3D() {
   }
 }
 
+// Each tab keeps its own scroll position: the 3D view opens at its top (not at the depth the operator
+// had scrolled to in the sequence tab, where it showed an empty panel), and coming back finds the
+// sequence tab where it was left.
+const scrolled = {};
+
+async function openPanel(panelId) {
+  const from = document.querySelector(".tab.active")?.dataset.panel;
+  if (from === panelId) return;
+  if (from) scrolled[from] = window.scrollY;
+  for (const tab of document.querySelectorAll(".tab")) {
+    const active = tab.dataset.panel === panelId;
+    tab.classList.toggle("active", active);
+    tab.setAttribute("aria-selected", active);
+    $(tab.dataset.panel).hidden = !active;
+  }
+  window.scrollTo(0, scrolled[panelId] ?? 0);
+  if (panelId !== "panel-3d") return;
+  try {
+    const info = await api.get("/api/viewer");
+    if (!info.available) { $("viewer-note").textContent = info.detail || "The 3D view is not running."; return; }
+    // The 3D view draws one console at a time: the one that opened it last.
+    const url = `${info.url}?session=${encodeURIComponent(SESSION)}`;
+    $("viewer-frame").dataset.url = url;
+    await follow3D();
+    if ($("viewer-frame").src !== url) $("viewer-frame").src = url;
+  } catch (err) {
+    $("viewer-note").textContent = `The 3D view is not available: ${errorText(err)}`;
+  }
+}
+
 function setup3D() {
-  // Each tab keeps its own scroll position: the 3D view opens at its top (not at the depth the operator
-  // had scrolled to in the sequence tab, where it showed an empty panel), and coming back finds the
-  // sequence tab where it was left.
-  const scrolled = {};
-  const open = async (panelId) => {
-    const from = document.querySelector(".tab.active")?.dataset.panel;
-    if (from === panelId) return;
-    if (from) scrolled[from] = window.scrollY;
-    for (const tab of document.querySelectorAll(".tab")) {
-      const active = tab.dataset.panel === panelId;
-      tab.classList.toggle("active", active);
-      tab.setAttribute("aria-selected", active);
-      $(tab.dataset.panel).hidden = !active;
-    }
-    window.scrollTo(0, scrolled[panelId] ?? 0);
-    if (panelId !== "panel-3d") return;
-    try {
-      const info = await api.get("/api/viewer");
-      if (!info.available) { $("viewer-note").textContent = info.detail || "The 3D view is not running."; return; }
-      // The 3D view draws one console at a time: the one that opened it last.
-      const url = `${info.url}?session=${encodeURIComponent(SESSION)}`;
-      $("viewer-frame").dataset.url = url;
-      await follow3D();
-      if ($("viewer-frame").src !== url) $("viewer-frame").src = url;
-    } catch (err) {
-      $("viewer-note").textContent = `The 3D view is not available: ${errorText(err)}`;
-    }
-  };
-  for (const tab of document.querySelectorAll(".tab")) tab.addEventListener("click", () => open(tab.dataset.panel));
+  for (const tab of document.querySelectorAll(".tab")) tab.addEventListener("click", () => openPanel(tab.dataset.panel));
 }
 
 // ---------------------------------------------------------------- start

@@ -1,7 +1,7 @@
 // Snapshot player: the sequence on the sensor frame, sources coloured by track,
 // rejected sources marked by reason, tracks drawn as trails; play / step / slider;
 // clicks toggle tracks in or out of the pattern, or pick points by hand.
-import { $, placeLabel, trackColour } from "./dom.js";
+import { $, placeLabel, snapshotName, trackColour } from "./dom.js";
 
 const CLICK_RADIUS_CSS = 10;   // how close (CSS pixels) a click must be to a source or trail
 const SNAP_RADIUS_PX = 6;      // a picked point snaps to a reported source this close (sensor pixels)
@@ -100,7 +100,10 @@ export class SnapshotPlayer {
     const ex = this.detail.extraction;
     this.slider.value = this.index;
     const ref = ex.reference_snapshot;
-    $("snapshot-label").textContent = `${this.index + 1}/${snapshots.length}` + (this.index === ref ? " (reference)" : "");
+    // Named by its index in the file (0-based, as the API and the CLI name it), with its position.
+    const name = snapshotName(this.index, { snapshots, reference: ref, count: true });
+    $("snapshot-label").textContent = name;
+    this.slider.setAttribute("aria-valuetext", name);
     $("player-caption").textContent = snapshots[this.index]?.time ?? "";
 
     // Trails: every track through all its sightings, faint; dashed grey when out of the pattern.

@@ -86,7 +86,9 @@ def test_the_frame_panel_shows_zooms_follows_and_edits(server, api, new_page):
     assert card.is_visible()
     index = int(page.locator("#frame-canvas").get_attribute("data-snapshot"))
     wait_for_frame(page, index)
-    expect_text(page.locator("#frame-caption"), rf"snapshot {index + 1}/4 · 752×582 px")
+    # Named by its index in the pass (as the API's frames and reference_snapshot are), its position in words.
+    assert index == detail["extraction"]["reference_snapshot"]
+    expect_text(page.locator("#frame-caption"), rf"^snapshot {index} \({index + 1} of 4, reference\) · 752×582 px")
 
     # One detection marker per reported source, each labelled with its track as the player names it.
     shown = markers(page)
@@ -140,6 +142,7 @@ def test_the_frame_panel_shows_zooms_follows_and_edits(server, api, new_page):
     page.click("#step-fwd")
     following = (index + 1) % 4
     wait_for_frame(page, following)
+    expect_text(page.locator("#frame-caption"), rf"^snapshot {following} \({following + 1} of 4\) · 752×582 px")
     assert canvas_pixels_hash(page) != picture
     detections = [m for m in markers(page) if m["kind"] == "detection"]
     assert len(detections) == len(detail["telemetry"]["snapshots"][following]["sources"])

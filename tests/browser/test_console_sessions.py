@@ -28,6 +28,18 @@ def expect_text(locator, pattern: str, timeout: int = TIMEOUT_MS) -> None:
     expect(locator).to_contain_text(re.compile(pattern), timeout=timeout)
 
 
+def supersede_rank_2_with_rank_1(page, api, seq_id: int, replaced_id: int) -> list[dict]:
+    """The second step open to supersede attitude ``replaced_id`` (rank 2) with rank 1: confirmed there, and the
+    audit trail keeps both, rank 1 current; returns the trail."""
+    expect_visible(page.locator("#override-step"))
+    expect_text(page.locator("#override-reasons"), f"replaces the current verdict: attitude #{replaced_id}")
+    page.click("#confirm-override")
+    expect_text(page.locator("#confirm"), r"Confirmed ✓")
+    audit = wait_for(lambda: api(f"/api/sequences/{seq_id}/review")["audit"], lambda a: len(a) == 2)
+    assert [(e["rank"], e["current"]) for e in audit] == [(2, False), (1, True)]
+    return audit
+
+
 def expect_in_viewport(locator, timeout: int = TIMEOUT_MS) -> None:
     from playwright.sync_api import expect
 
@@ -204,12 +216,7 @@ def test_a_non_credible_candidate_is_confirmed_only_after_a_second_step_with_a_r
     page.locator("#candidate-rows tr[data-rank='1']").click()
     expect_text(page.locator("#confirm"), "Supersede with rank 1…")
     page.keyboard.press("c")
-    expect_visible(page.locator("#override-step"))
-    expect_text(page.locator("#override-reasons"), f"replaces the current verdict: attitude #{c['id']}")
-    page.click("#confirm-override")
-    expect_text(page.locator("#confirm"), r"Confirmed ✓")
-    audit = wait_for(lambda: api(f"/api/sequences/{seq_id}/review")["audit"], lambda a: len(a) == 2)
-    assert [(e["rank"], e["current"]) for e in audit] == [(2, False), (1, True)]
+    audit = supersede_rank_2_with_rank_1(page, api, seq_id, c["id"])
     assert api(f"/api/attitudes/{c['id']}")["superseded_by"] == audit[1]["id"]
     assert watched.errors == []
 
