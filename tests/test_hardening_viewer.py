@@ -76,48 +76,35 @@ def test_the_status_words_are_the_consoles():
     assert dict(re.findall(r'(\w+): "([^"]*)"', mapping)) == STATUS_TEXT
 
 
-def test_a_request_box_is_a_valid_session_of_its_own():
-    """The 3D view's requests to a console go into a view session named after it (static/js/main.js
-    requestSession, the same rule): a valid session id, never the console's own, for any valid session id."""
-    from app.viewer.server import request_session
-    from app.workflow.view_state import check_session
-
-    for session in ("c-0123456789abcdef01234567", "shared", "x", "A" * 64, "3d-" + "b" * 61):
-        box = request_session(session)
-        assert check_session(box) == box and box != session and box[1:3] in ("d-", "D-")
-    # The console computes the same name (the rule written out there).
-    source = (Path(__file__).resolve().parents[1] / "static" / "js" / "main.js").read_text()
-    assert "const box = `3d-${session.slice(-61)}`;\n  return box !== session ? box : `3D-${session.slice(-61)}`;" \
-        in source
-
-
 def test_the_3d_view_confirms_the_credible_best_and_sends_any_other_rank_to_the_console(tmp_path, sky, sample_dir):
     """The panel has no second step: another rank, or a confirmation replacing the sequence's verdict, is sent
-    to the console drawn (its request box gets the sequence and rank) in an operator's words (no API field
+    to the console drawn (its view state's confirm_request names the sequence, rank and search) in an operator's
+    words (no API field
     names), nothing is stored; the credible best is confirmed under the operator's name, and confirming it
     again names who confirmed it and when."""
     from app.storage import Storage
-    from app.viewer.server import confirm_from_3d, request_session
+    from app.viewer.server import confirm_from_3d
     from app.workflow import AppContext, archive, confirm as confirming, search as searching
+    from app.workflow.view import view_document
 
     ctx = AppContext(storage=Storage.open(tmp_path / "v.sqlite3"), sky=sky)
     console = "c-0123456789abcdef01234567"
-    box = request_session(console)
     try:
         upload = archive.parse_upload(ctx, (sample_dir / "04-big-dipper.json").read_bytes(), "04-big-dipper.json")
         doc = archive.store_upload(ctx, upload, archive.extraction_job(upload.sequence, upload.known_hot))
         job = searching.prepare_search(ctx, doc.id, "bright_pair", None)
         result = searching.store_search(ctx, job, searching.compute_search(job, sky=ctx.sky))
         assert result.status == "identified" and len(result.candidates) >= 2
-        assert ctx.view.get(box).revision == 0
+        assert view_document(ctx, console).confirm_request is None
 
         said = confirm_from_3d(ctx, doc.id, 2, "Vera", "typed in 3D", console)
         assert said.startswith("Rank 2 is not the credible best candidate: ") and "override_reason" not in said
         assert "Sent to the console: its second step asks for the reason, which the audit record keeps." in said
         assert "The comment typed here is not sent" in said
-        sent = ctx.view.get(box)
-        assert (sent.sequence, sent.rank, sent.revision, sent.updated_by) == (doc.id, 2, 1, "viewer")
-        assert ctx.view.get(console).revision == 0  # the console's own selection is not touched
+        sent = view_document(ctx, console)
+        assert sent.confirm_request.model_dump() == {"sequence": doc.id, "rank": 2, "search_id": result.search_id,
+                                                     "number": 1}
+        assert (sent.sequence, sent.rank, sent.updated_by) == (None, None, "viewer")  # the selection is not touched
         assert ctx.storage.current_verdict(doc.id) is None
         # Without a console (the 3D view's default session) nothing is said to be sent.
         assert "Confirm it in the console: its second step" in confirm_from_3d(ctx, doc.id, 2, "Vera", None)
@@ -141,8 +128,8 @@ def test_the_3d_view_confirms_the_credible_best_and_sends_any_other_rank_to_the_
         assert text.startswith('Rank 1 would replace the sequence\'s verdict: "no valid attitude" recorded by Rex at ')
         assert ": <b>a ghost</b> pattern. Sent to the console: its second step asks you to confirm the replacement." \
             in text and tags == ["p"]
-        sent = ctx.view.get(box)
-        assert (sent.sequence, sent.rank, sent.revision) == (doc.id, 1, 2)
+        request = view_document(ctx, console).confirm_request
+        assert (request.sequence, request.rank, request.number) == (doc.id, 1, 2)  # a new request
         assert ctx.storage.current_verdict(doc.id).operator == "Rex"
     finally:
         ctx.close()

@@ -16,7 +16,8 @@ The GUI has Prev / Next, the magnitude slider and Confirm (operator name,
 optional comment).  Confirm takes the credible best candidate only; a
 confirmation that needs the console's second step (another rank, or one
 replacing the sequence's verdict) is sent to the console it draws
-(:func:`confirm_from_3d`, :func:`request_session`), which opens that step.
+(:func:`confirm_from_3d`, :func:`app.workflow.view.request_confirmation`),
+which opens that step.
 Status codes are shown in the console's words (:data:`STATUS_TEXT`).
 Every action goes through :mod:`app.workflow`, the
 same code the REST API runs, and a poll thread redraws whenever the shared
@@ -61,16 +62,6 @@ def status_text(status: str | None) -> str:
     return STATUS_TEXT.get(status, status or "unknown")
 
 
-def request_session(session: str) -> str:
-    """The request box of a console session: the view session into which the 3D view drawing ``session``
-    writes the sequence and rank whose confirmation it sends to that console (static/js/main.js
-    requestSession, the same rule).  A write there is a request; the console reads the box and opens its
-    second step for that rank.  ("3d-" and at most 61 characters of the session: a valid session id, and
-    never the session itself; console-made ids, "c-" and 24 hex digits, never name another's box.)"""
-    box = "3d-" + session[-61:]
-    return box if box != session else "3D-" + session[-61:]
-
-
 def _time_text(text: str | None) -> str:
     """An API time as the console prints it (static/js/dom.js fmtTime): ``2026-11-23 18:57:41Z``."""
     if not text:
@@ -97,9 +88,10 @@ def confirm_from_3d(ctx: AppContext, sequence: int | None, rank: int | None, ope
     that is not the credible best, whose reason the audit record keeps, or
     one that would replace the sequence's verdict) is sent to the console
     drawing ``session`` (default: the one the 3D view draws): the request
-    goes into that session's :func:`request_session` box, and the console
-    opens its second step for that rank.  The panel says so in an operator's
-    words (the API's would name request fields).
+    goes into that session's view state
+    (:func:`app.workflow.view.request_confirmation`), and the console opens
+    its second step for that rank.  The panel says so in an operator's words
+    (the API's would name request fields).
     """
     if sequence is None or rank is None:
         return "Nothing to confirm: no candidate is shown."
@@ -109,11 +101,11 @@ def confirm_from_3d(ctx: AppContext, sequence: int | None, rank: int | None, ope
     this_one = confirmed is not None and confirmed.search_id == judged.search_id and confirmed.rank == rank
     if verdict is not None and not this_one and (not verdict.credible or confirmed or rejected):
         session = ctx.view.followed if session is None else session
-        view.set_view(ctx, {"sequence": sequence, "rank": rank}, "viewer", session=request_session(session))
+        view.request_confirmation(ctx, sequence, rank, judged.search_id, session=session)
         why = (f"Rank {rank} is not the credible best candidate: {markdown_text('; '.join(verdict.reasons))}."
                if not verdict.credible else
                f"Rank {rank} would replace the sequence's verdict: {_verdict_text(confirmed, rejected)}.")
-        # No console opened this 3D view (its default session): nobody reads the box, so it is not "sent".
+        # No console opened this 3D view (its default session): no console reads it, so it is not "sent".
         where = "Confirm it in the console" if session == DEFAULT_SESSION else "Sent to the console"
         step = "asks for the reason, which the audit record keeps" if not verdict.credible \
             else "asks you to confirm the replacement"

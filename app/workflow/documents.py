@@ -553,6 +553,16 @@ class CandidateView(Document):
     sky: dict[str, Any]
 
 
+class ConfirmRequestDocument(Document):
+    """A confirmation the 3D view sent to this session's console (:class:`app.workflow.view_state.ConfirmRequest`):
+    the console opens its second step for that rank of that search."""
+
+    sequence: int
+    rank: int
+    search_id: int | None
+    number: int = Field(description="grows with every request: a console takes each one once")
+
+
 class ViewDocument(Document):
     """The shared view state and what the archive says about its sequence now."""
 
@@ -572,6 +582,8 @@ class ViewDocument(Document):
     rejection_id: int | None = Field(default=None, description="the current verdict, when it is 'no valid attitude'")
     operator: str | None = Field(default=None, description="the operator named in this session's console (the 3D "
                                                             "view's Confirm uses it)")
+    confirm_request: ConfirmRequestDocument | None = Field(
+        default=None, description="the 3D view's latest confirmation that needs this console's second step")
 
 
 class ViewerDocument(Document):

@@ -11,7 +11,7 @@ from __future__ import annotations
 from app.storage import ConfirmationRow
 from app.timefmt import utc_text
 from app.workflow.context import AppContext
-from app.workflow.documents import ViewDocument
+from app.workflow.documents import ConfirmRequestDocument, ViewDocument
 from app.workflow.errors import Invalid
 from app.workflow.view_state import check_session
 
@@ -36,9 +36,13 @@ def view_document(ctx: AppContext, session: str | None = None) -> ViewDocument:
     """
     name = _session(ctx, session)
     state = ctx.view.get(name)
+    request = state.confirm_request
     doc = ViewDocument(sequence=state.sequence, rank=state.rank, mag=state.mag, revision=state.revision,
                        updated_by=state.updated_by, updated_at=utc_text(state.updated_at), session=name,
-                       followed_by_3d=name == ctx.view.followed, operator=state.operator)
+                       followed_by_3d=name == ctx.view.followed, operator=state.operator,
+                       confirm_request=None if request is None else ConfirmRequestDocument(
+                           sequence=request.sequence, rank=request.rank, search_id=request.search_id,
+                           number=request.number))
     row = ctx.storage.get_sequence(state.sequence) if state.sequence is not None else None
     if row is not None:
         search = ctx.storage.latest_search(row.id)
@@ -77,6 +81,18 @@ def set_view(ctx: AppContext, changes: dict, writer_name: str, session: str | No
                       location="body.rank", message=f"not in 1..{n_candidates}")
     try:
         ctx.view.update(session=name, **changes, updated_by=writer_name)
+    except ValueError as exc:
+        raise Invalid(str(exc)) from None
+    return view_document(ctx, name)
+
+
+def request_confirmation(ctx: AppContext, sequence: int, rank: int, search_id: int | None,
+                         session: str | None = None) -> ViewDocument:
+    """Send the confirmation of ``rank`` of ``sequence`` (of its search ``search_id``) to the console of
+    ``session``, which opens its second step for it: the 3D view's Confirm of a rank that needs one."""
+    name = _session(ctx, session)
+    try:
+        ctx.view.request_confirmation(name, sequence, rank, search_id)
     except ValueError as exc:
         raise Invalid(str(exc)) from None
     return view_document(ctx, name)

@@ -44,6 +44,17 @@ MAX_SESSIONS = 1000
 
 
 @dataclass(frozen=True)
+class ConfirmRequest:
+    """A confirmation the 3D view sends to the console of its session: a rank whose confirmation needs the
+    console's second step (a reason, or the replacement of the verdict), which the 3D panel does not have."""
+
+    sequence: int
+    rank: int
+    search_id: int | None  # the search whose rank it is: a console showing another search does not take it
+    number: int  # the session's revision when it was sent: each request is taken once
+
+
+@dataclass(frozen=True)
 class ViewState:
     """One immutable snapshot of a session's view."""
 
@@ -55,6 +66,7 @@ class ViewState:
     updated_at: datetime | None = None
     session: str = DEFAULT_SESSION
     operator: str | None = None  # the name typed in this session's console: the 3D view confirms under it
+    confirm_request: ConfirmRequest | None = None  # the 3D view's latest, for this session's console
 
 
 _UNSET = object()
@@ -97,8 +109,18 @@ class ViewStateStore:
             name = self._resolve(session)
             return self._states.get(name) or ViewState(session=name)
 
+    def request_confirmation(self, session: str | None, sequence: int, rank: int, search_id: int | None) -> ViewState:
+        """Send a confirmation of ``rank`` of ``sequence`` to the session's console (one write by the 3D view)."""
+        sequence, rank = _optional_positive_int("sequence", sequence), _optional_positive_int("rank", rank)
+        if sequence is None or rank is None:
+            raise ValueError("a confirmation request names a sequence and a rank")
+        with self._lock:
+            number = (self._states.get(self._resolve(session)) or ViewState()).revision + 1
+        return self.update(session=session, confirm_request=ConfirmRequest(sequence, rank, search_id, number),
+                           updated_by="viewer")
+
     def update(self, *, session: str | None = None, sequence=_UNSET, rank=_UNSET, mag=_UNSET, operator=_UNSET,
-               updated_by: str = "server") -> ViewState:
+               confirm_request=_UNSET, updated_by: str = "server") -> ViewState:
         """Apply the given fields to one session as one write; ValueError for a value out of its range."""
         changes = {}
         if sequence is not _UNSET:
@@ -109,6 +131,10 @@ class ViewStateStore:
             changes["mag"] = check_mag(mag)
         if operator is not _UNSET:
             changes["operator"] = check_operator(operator)
+        if confirm_request is not _UNSET:
+            if confirm_request is not None and not isinstance(confirm_request, ConfirmRequest):
+                raise ValueError(f"not a confirmation request: {confirm_request!r}")
+            changes["confirm_request"] = confirm_request
         if updated_by not in WRITERS:
             raise ValueError(f"unknown writer {updated_by!r}")
         with self._lock:

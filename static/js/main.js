@@ -597,38 +597,31 @@ async function followView(doc) {
 }
 
 // The 3D view's Confirm of a rank that needs the second step (not the credible best, or replacing the
-// sequence's verdict) is sent to the console it draws: the 3D view writes that sequence and rank into this
-// session's request box, a view session of its own named by the same rule as app/viewer/server.py
-// request_session, and the console opens its second step for that rank on its Sequence tab.
-function requestSession(session) {
-  const box = `3d-${session.slice(-61)}`;
-  return box !== session ? box : `3D-${session.slice(-61)}`;
-}
-let lastRequest = null;   // the request box as last read (revision and time): a request is a change of it
+// sequence's verdict) is sent to the console it draws: this session's view state carries the request
+// (`confirm_request`, app/workflow/view.py request_confirmation), and the console opens its second step
+// for that rank on its Sequence tab, once per request.
+let lastRequest = null;   // the number of the request last seen (null: none read yet; 0: there was none)
 
 async function takeRequest(doc) {
-  if (!doc.followed_by_3d) return;
-  let box;
-  try { box = await api.get(`/api/view?session=${encodeURIComponent(requestSession(SESSION))}`); } catch { return; }
-  if (state.busy) return;   // read again next time, when this console's own action is done
-  const key = `${box.revision} ${box.updated_at}`;
-  if (key === lastRequest) return;
+  const request = doc.confirm_request;
+  const number = request ? request.number : 0;
   const first = lastRequest === null;
-  lastRequest = key;
-  // The first read only learns where the box stands: a request older than this page is not replayed.
-  if (first || box.sequence === null || box.rank === null) return;
+  if (number === lastRequest) return;
+  lastRequest = number;
+  // The first read only learns where the requests stand: one older than this page is not replayed.
+  if (first || !request) return;
   await action("Taking the 3D view's confirmation", async () => {
     const d = state.detail;
-    if (!d || box.sequence !== d.id || (d.search?.search_id ?? null) !== box.search_id) {
-      toast(`The 3D view asked to confirm rank ${box.rank} of sequence #${box.sequence}, which this console ` +
-        "no longer shows as it was: open it and confirm it here", "error");
+    if (!d || request.sequence !== d.id || (d.search?.search_id ?? null) !== request.search_id) {
+      toast(`The 3D view asked to confirm rank ${request.rank} of sequence #${request.sequence}, which this ` +
+        "console no longer shows as it was: open it and confirm it here", "error");
       return;
     }
     await openPanel("panel-work");
-    if (box.rank !== state.rank) {
+    if (request.rank !== state.rank) {
       cancelSteps();
-      state.rank = box.rank;
-      await writeView({ rank: box.rank });
+      state.rank = request.rank;
+      await writeView({ rank: request.rank });
       await showCandidate();
     }
     confirmSentFrom("the 3D view");
