@@ -155,8 +155,8 @@ def test_files_to_the_archive_store_searches_as_the_server_does_and_a_rerun_skip
         first = next(row for row in rows if row.filename == Path(files[0]).name)
         other = batch.to_archive(archive_url, cluster, paths=[str(crlf)])
         assert other.processed == 1 and other.notes == [
-            f"{crlf}: another stored upload (#{first.id}) has the same spacecraft and sequence id; its telemetry "
-            "differs in bytes (line endings, byte-order mark or content)"]
+            f'{crlf}: another stored upload (#{first.id} "{first.filename}") has the same spacecraft and sequence id; '
+            "its telemetry differs in bytes (line endings, byte-order mark or content)"]
         assert f"  note: {other.notes[0]}" in summary(other).splitlines()
         assert again.notes == [] and redo.notes == []
     finally:

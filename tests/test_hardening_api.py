@@ -248,8 +248,8 @@ def test_upload_command_says_when_a_sequence_is_stored_again_in_other_bytes(live
     assert status == 0
     assert out[0].endswith("a-lf.json: created id=1 sequence_id=01-clean")
     assert out[1].endswith("b-crlf.json: created id=2 sequence_id=01-clean")
-    assert out[2] == ("  note: another stored upload (#1) has the same spacecraft and sequence id; its telemetry "
-                      "differs in bytes (line endings, byte-order mark or content)")
+    assert out[2] == ('  note: another stored upload (#1 "a-lf.json") has the same spacecraft and sequence id; '
+                      "its telemetry differs in bytes (line endings, byte-order mark or content)")
     assert len(out) == 3
 
 

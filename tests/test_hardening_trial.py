@@ -260,16 +260,17 @@ def test_the_upload_document_describes_the_new_fields(api):
 
 def test_storage_finds_the_uploads_of_a_spacecraft_and_sequence_id(archive_url):
     with Storage.open(archive_url) as storage:
-        a, _ = storage.add_sequence(raw_text="a", sequence_id="pass-1", spacecraft="SAT-1")
+        a, _ = storage.add_sequence(raw_text="a", sequence_id="pass-1", spacecraft="SAT-1", filename="a.json")
         b, _ = storage.add_sequence(raw_text="a\r\n", sequence_id="pass-1", spacecraft="SAT-1")
         storage.add_sequence(raw_text="c", sequence_id="pass-1", spacecraft="SAT-2")
         storage.add_sequence(raw_text="d", sequence_id="pass-2", spacecraft="SAT-1")
         n1, _ = storage.add_sequence(raw_text="e", sequence_id="pass-1", spacecraft=None)
         n2, _ = storage.add_sequence(raw_text="f", sequence_id="pass-1", spacecraft=None)
-        assert storage.same_sequence_ids("SAT-1", "pass-1") == [a.id, b.id]
-        assert storage.same_sequence_ids("SAT-1", "pass-1", other_than=a.id) == [b.id]
-        assert storage.same_sequence_ids(None, "pass-1") == [n1.id, n2.id]  # no spacecraft matches no spacecraft
-        assert storage.same_sequence_ids("SAT-3", "pass-1") == []
+        assert storage.same_sequence_uploads("SAT-1", "pass-1") == [(a.id, "a.json"), (b.id, None)]
+        assert storage.same_sequence_uploads("SAT-1", "pass-1", other_than=a.id) == [(b.id, None)]
+        # No spacecraft matches no spacecraft.
+        assert storage.same_sequence_uploads(None, "pass-1") == [(n1.id, None), (n2.id, None)]
+        assert storage.same_sequence_uploads("SAT-3", "pass-1") == []
 
 
 # ---------------------------------------------------------------------------

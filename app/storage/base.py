@@ -225,10 +225,10 @@ class Storage:
                                 [*params, limit, offset]).fetchall()
         return [_sequence_row(r, full=False) for r in rows], total
 
-    def same_sequence_ids(self, spacecraft: str | None, sequence_id: str | None, *,
-                          other_than: int | None = None) -> list[int]:
-        """Ids of the stored uploads of this spacecraft and sequence id, oldest first (None matches None),
-        leaving out ``other_than``.
+    def same_sequence_uploads(self, spacecraft: str | None, sequence_id: str | None, *,
+                              other_than: int | None = None) -> list[tuple[int, str | None]]:
+        """(id, file name) of the stored uploads of this spacecraft and sequence id, oldest first (None
+        matches None), leaving out ``other_than``.
 
         Uploads are told apart by their exact content (:func:`content_sha256`), so the same telemetry
         sent again with other line endings or a byte-order mark is a second sequence; this says which
@@ -246,8 +246,9 @@ class Storage:
             where.append("id <> ?")
             params.append(other_than)
         with self._transaction(write=False) as conn:
-            rows = conn.execute(f"SELECT id FROM sequences WHERE {' AND '.join(where)} ORDER BY id", params).fetchall()
-        return [r[0] for r in rows]
+            rows = conn.execute(f"SELECT id, filename FROM sequences WHERE {' AND '.join(where)} ORDER BY id",
+                                params).fetchall()
+        return [(r[0], r[1]) for r in rows]
 
     def spacecraft_names(self) -> list[tuple[str | None, int]]:
         """Every spacecraft name in the archive (None: files without one) with its number of sequences."""

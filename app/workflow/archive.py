@@ -219,23 +219,24 @@ def store_upload(ctx: AppContext, upload: ParsedUpload, extraction) -> UploadDoc
 def upload_document(ctx: AppContext, row: SequenceRow, created: bool) -> UploadDocument:
     """The answer to an upload stored as ``row``, naming the other uploads of its spacecraft and sequence id."""
     item = loaded(ctx, row)
-    same = ctx.storage.same_sequence_ids(row.spacecraft, row.sequence_id, other_than=row.id)
+    same = ctx.storage.same_sequence_uploads(row.spacecraft, row.sequence_id, other_than=row.id)
     return UploadDocument(id=row.id, created=created, sequence=SequenceSummary.of(row),
                           extraction=ExtractionDocument.model_validate(row.extraction),
                           pattern=pattern_document(item, ctx.storage.current_pattern(row.id)),
-                          same_sequence_id_as=same, note=same_sequence_note(same))
+                          same_sequence_id_as=[i for i, _ in same], note=same_sequence_note(same))
 
 
-def same_sequence_note(ids: list[int]) -> str | None:
-    """The operator's sentence about other stored uploads of the same spacecraft and sequence id (None: none).
+def same_sequence_note(uploads: list[tuple[int, str | None]]) -> str | None:
+    """The operator's sentence about other stored uploads (id, file name) of the same spacecraft and sequence
+    id (None: none).
 
     Uploads are deduplicated by their exact bytes only: telemetry read the same but sent with other line
     endings or a byte-order mark is a second sequence, and the work queue shows both.
     """
-    if not ids:
+    if not uploads:
         return None
-    listed = ", ".join(f"#{i}" for i in ids)
-    others, have, its = ("another stored upload", "has", "its") if len(ids) == 1 else \
+    listed = ", ".join(f"#{i}" + (f' "{name}"' if name else "") for i, name in uploads)
+    others, have, its = ("another stored upload", "has", "its") if len(uploads) == 1 else \
         ("other stored uploads", "have", "their")
     return (f"{others} ({listed}) {have} the same spacecraft and sequence id; {its} telemetry differs in bytes "
             "(line endings, byte-order mark or content)")

@@ -148,8 +148,8 @@ def test_uploads_of_the_same_sequence_are_told_apart(server, api, new_page, tmp_
     page.check("#auto-search")
     page.set_input_files("#file-input", [str(dos)])
     second = page.locator(".upload-item[data-file='told-apart-crlf.csv']")
-    expect_text(second.locator(".upload-note"), rf"another stored upload \(#{first_id}\) has the same spacecraft "
-                                                 "and sequence id")
+    expect_text(second.locator(".upload-note"), rf'another stored upload \(#{first_id} "told-apart.csv"\) has the '
+                                                 "same spacecraft and sequence id")
     page.set_input_files("#file-input", [str(unix)])
     # The line says the search was queued, and once the console sees the sequence searched, its outcome
     # (the search can finish before the line is looked at: either words say a search was asked for).
