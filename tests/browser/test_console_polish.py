@@ -11,44 +11,13 @@ from __future__ import annotations
 
 import json
 import re
-from pathlib import Path
 
 import httpx
 import numpy as np
 
-TIMEOUT_MS = 20_000
-SAMPLES = Path(__file__).resolve().parents[2] / "sample_telemetry"
+from test_console_sessions import TIMEOUT_MS, console, expect_text, fresh_copy, open_sequence
+
 STATUS_TEXT = {"no_match": "no match", "rejected": "no valid attitude"}  # as the console's statusText says
-
-
-def expect_text(locator, pattern: str, timeout: int = TIMEOUT_MS) -> None:
-    from playwright.sync_api import expect
-
-    expect(locator).to_contain_text(re.compile(pattern), timeout=timeout)
-
-
-def fresh_copy(sample: str, tag: str, directory: Path) -> tuple[Path, str]:
-    """The sample under its own sequence id (new content: a new sequence in the shared archive); its path
-    and sequence id."""
-    doc = json.loads((SAMPLES / sample).read_text())
-    doc["sequence_id"] = f"{doc['sequence_id']}-{tag}"
-    path = directory / f"{doc['sequence_id']}.json"
-    path.write_text(json.dumps(doc))
-    return path, doc["sequence_id"]
-
-
-def open_console(new_page, server: str):
-    watched = new_page()
-    watched.page.goto(server + "/")
-    watched.page.wait_for_selector("body[data-ready='1']")
-    return watched
-
-
-def open_sequence(page, seq_id: int, name: str) -> None:
-    """Open a sequence from the work queue as an operator does: search its id, click it."""
-    page.fill("#filter-search", name)
-    page.locator(f"#sequence-list li[data-id='{seq_id}']").click()
-    expect_text(page.locator("#seq-title"), re.escape(name))
 
 
 def inside(box: dict, width: float, height: float) -> bool:
@@ -60,8 +29,9 @@ def inside(box: dict, width: float, height: float) -> bool:
 def test_an_upload_line_says_what_its_queued_search_found(server, api, new_page, tmp_path):
     """The line next to an uploaded file said ", search queued" for good; once the console reads the
     sequence searched, it says the search's outcome as the status badge does."""
-    path, name = fresh_copy("07-single.json", "upload-line", tmp_path)
-    watched = open_console(new_page, server)
+    path = fresh_copy("07-single.json", "upload-line", tmp_path)
+    name = path.stem  # the sequence id
+    watched, _ = console(new_page, server)
     page = watched.page
     page.check("#auto-search")
     page.set_input_files("#file-input", [str(path)])
@@ -84,7 +54,7 @@ def test_an_upload_line_says_what_its_queued_search_found(server, api, new_page,
 def test_label_placement_keeps_labels_inside_the_canvas(server, new_page):
     """placeLabel (static/js/dom.js), the one rule of both canvases: upper right of the marker, to its
     left past the right edge, below it past the top."""
-    watched = open_console(new_page, server)
+    watched, _ = console(new_page, server)
     place = ("(args) => import('/js/dom.js').then((m) => m.placeLabel(args))")
     common = {"r": 5, "w": 20, "h": 11, "width": 560, "gap": 3, "above": 1}
     assert watched.page.evaluate(place, {"cx": 100, "cy": 100, **common}) == {"x": 108, "y": 88, "w": 20, "h": 11}
@@ -101,12 +71,13 @@ def test_label_placement_keeps_labels_inside_the_canvas(server, new_page):
 def test_a_track_at_the_sensor_edge_keeps_its_name_on_the_player(server, api, new_page, tmp_path):
     """T0 of 07-single sits at x = 750 of 752 sensor pixels: its name was drawn past the player canvas's
     right edge (cut off); it is drawn whole, to the left of its circle."""
-    path, name = fresh_copy("07-single.json", "edge-label", tmp_path)
+    path = fresh_copy("07-single.json", "edge-label", tmp_path)
+    name = path.stem
     seq_id = api("/api/sequences", "POST", raw=path.read_bytes())["id"]
     detail = api(f"/api/sequences/{seq_id}")
     track = detail["extraction"]["tracks"][0]
     assert track["id"] == 0 and track["xy"][0][0] >= 749  # the sample's source at the right edge
-    watched = open_console(new_page, server)
+    watched, _ = console(new_page, server)
     page = watched.page
     open_sequence(page, seq_id, name)
     page.wait_for_function("JSON.parse(document.getElementById('player-canvas').dataset.labels || '[]')"
@@ -145,7 +116,7 @@ def test_a_detection_at_the_canvas_corner_keeps_its_label_on_the_frame_panel(ser
     r = httpx.post(server + "/api/frames", files=[("files", ("frames-edge.fits", data, "application/fits"))],
                    data={"sequence_id": "frames-edge"}, timeout=120)
     assert r.status_code == 201, r.text
-    watched = open_console(new_page, server)
+    watched, _ = console(new_page, server)
     page = watched.page
     open_sequence(page, r.json()["id"], "frames-edge")
     page.wait_for_function("(() => { const c = document.getElementById('frame-canvas');"
@@ -184,11 +155,12 @@ def test_a_detection_at_the_canvas_corner_keeps_its_label_on_the_frame_panel(ser
 def test_the_search_summary_reads_as_sentences(server, api, new_page, tmp_path):
     """The notes of a search followed the summary's full stop in lower case, joined by semicolons
     ("...). single snapshot: ...; 5698 bright_pair hypotheses ..."): each is a sentence now."""
-    path, name = fresh_copy("07-single.json", "summary", tmp_path)
+    path = fresh_copy("07-single.json", "summary", tmp_path)
+    name = path.stem
     seq_id = api("/api/sequences", "POST", raw=path.read_bytes())["id"]
     search = api(f"/api/sequences/{seq_id}/search", "POST", body={"method": "bright_pair"})
     assert search["notes"][0].startswith("single snapshot: ")  # the sample's lower-case first note
-    watched = open_console(new_page, server)
+    watched, _ = console(new_page, server)
     page = watched.page
     open_sequence(page, seq_id, name)
     summary = page.locator("#search-summary")
