@@ -40,6 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app.timefmt import parse_utc
 from app.viewer import scene as geo
 from app.workflow import AppContext, archive, confirm as confirming, search as searching, view
 from app.workflow.documents import ViewerDocument
@@ -64,10 +65,7 @@ def status_text(status: str | None) -> str:
 
 def _time_text(text: str | None) -> str:
     """An API time as the console prints it (static/js/dom.js fmtTime): ``2026-11-23 18:57:41Z``."""
-    if not text:
-        return "-"
-    day, _, clock = text.partition("T")
-    return f"{day} {clock.split('.')[0].rstrip('Z')}Z" if clock else text
+    return parse_utc(text).strftime("%Y-%m-%d %H:%M:%SZ") if text else "-"
 
 
 def _verdict_text(confirmed, rejected) -> str:

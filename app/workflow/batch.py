@@ -434,7 +434,7 @@ def files_to_jsonl(cluster: Cluster, paths: list[str], out_path: Path, *, method
     if redo and out_path.exists():
         out_path.unlink()
     answered = answered_files(out_path)
-    todo = [p for p in paths if p not in answered or answered[p] is None or answered[p] != input_sha256(p)]
+    todo = [p for p in paths if answered.get(p) is None or answered[p] != input_sha256(p)]
     again = {p for p in todo if p in answered}
     if again:
         _drop_lines(out_path, again)

@@ -113,7 +113,7 @@ def input_sha256(path: str) -> str | None:
     ``frames.json``); a folder's files, each by name and bytes, in name order.  Taking in a file the input
     may not need only makes a re-run redo it; None when it cannot be read (it is reported when processed).
     """
-    from app.workflow.frames import FOLDER_SIDECAR, SIDECAR_SUFFIX, is_frames_path
+    from app.workflow.frames import FOLDER_SIDECAR, image_sidecar, is_frames_path
 
     source = Path(path)
     try:
@@ -122,9 +122,7 @@ def input_sha256(path: str) -> str | None:
         else:
             members = [source]
             if is_frames_path(path):
-                stem = source.name.split(".")[0]
-                members += [p for p in (source.with_name(stem + SIDECAR_SUFFIX), source.with_name(FOLDER_SIDECAR))
-                            if p.is_file()]
+                members += [p for p in (image_sidecar(source), source.with_name(FOLDER_SIDECAR)) if p.is_file()]
         digest = hashlib.sha256()
         for member in members:
             digest.update(member.name.encode() + b"\0")

@@ -479,6 +479,17 @@ def is_frames_path(path: str) -> bool:
         return False
 
 
+def image_sidecar(image: Path) -> Path:
+    """A single image's own sidecar, ``<stem>.frames.json`` beside it (the stem: the name less its image
+    suffix, ``.fits.gz`` whole)."""
+    base = image.name
+    for suffix in sorted(ALL_SUFFIXES, key=len, reverse=True):
+        if base.lower().endswith(suffix):
+            base = base[: -len(suffix)]
+            break
+    return image.with_name(base + SIDECAR_SUFFIX)
+
+
 def frames_sequence_from_path(path: str, *, fov_deg: float | None = None) -> Sequence:
     """One pass from an image file (with ``<stem>.frames.json`` beside it, if any) or a folder of frames
     (every image in it, with its ``frames.json``, if any; the folder's name is the default id).
@@ -497,13 +508,8 @@ def frames_sequence_from_path(path: str, *, fov_deg: float | None = None) -> Seq
             default_id = folder.resolve().name
         else:
             images = [folder]
-            base = folder.name
-            for suffix in sorted(ALL_SUFFIXES, key=len, reverse=True):
-                if base.lower().endswith(suffix):
-                    base = base[: -len(suffix)]
-                    break
-            sidecar_path = folder.with_name(base + SIDECAR_SUFFIX)
-            default_id = base
+            sidecar_path = image_sidecar(folder)
+            default_id = sidecar_path.name[: -len(SIDECAR_SUFFIX)]
         if len(images) > limits.max_frames:
             raise TelemetryError.at("file", f"{len(images)} images; at most {limits.max_frames} frames per pass")
         total = 0

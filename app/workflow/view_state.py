@@ -51,7 +51,7 @@ class ConfirmRequest:
     sequence: int
     rank: int
     search_id: int | None  # the search whose rank it is: a console showing another search does not take it
-    number: int  # the session's revision when it was sent: each request is taken once
+    number: int  # the revision of the session's write that sent it (set by the store): each is taken once
 
 
 @dataclass(frozen=True)
@@ -114,9 +114,7 @@ class ViewStateStore:
         sequence, rank = _optional_positive_int("sequence", sequence), _optional_positive_int("rank", rank)
         if sequence is None or rank is None:
             raise ValueError("a confirmation request names a sequence and a rank")
-        with self._lock:
-            number = (self._states.get(self._resolve(session)) or ViewState()).revision + 1
-        return self.update(session=session, confirm_request=ConfirmRequest(sequence, rank, search_id, number),
+        return self.update(session=session, confirm_request=ConfirmRequest(sequence, rank, search_id, number=0),
                            updated_by="viewer")
 
     def update(self, *, session: str | None = None, sequence=_UNSET, rank=_UNSET, mag=_UNSET, operator=_UNSET,
@@ -140,6 +138,8 @@ class ViewStateStore:
         with self._lock:
             name = self._resolve(session)
             old = self._states.get(name) or ViewState(session=name)
+            if changes.get("confirm_request") is not None:  # numbered by the write that sends it: taken once
+                changes["confirm_request"] = replace(changes["confirm_request"], number=old.revision + 1)
             state = replace(old, **changes, revision=old.revision + 1, updated_by=updated_by,
                             updated_at=datetime.now(timezone.utc))
             self._states[name] = state
