@@ -125,6 +125,11 @@ def test_pattern_edit_manual_point_and_reset(api, uploaded):
     # A point picked in the reference snapshot stays where it was picked.
     assert edited["points"][-1]["x"] == pytest.approx(100.5, abs=1e-3)
     assert edited["points"][-1]["y"] == pytest.approx(200.25, abs=1e-3)
+    # The sky view names a hand-picked point by its place among the hand-picked points, as the pattern's
+    # errors do ("manual point 0"), not by its row in the pattern (after every tracked point).
+    assert api.post(f"/api/sequences/{sid}/search").status_code == 200
+    sky_points = api.get(f"/api/sequences/{sid}/candidates/1").json()["sky"]["pattern_points"]
+    assert [(p["track"], p["hand"]) for p in sky_points] == [(t, None) for t in tracks[1:]] + [(None, 0)]
     r = api.post(f"/api/sequences/{sid}/pattern/reset", json={"operator": "bob"})
     assert r.status_code == 200
     reset = r.json()

@@ -132,10 +132,14 @@ def sky_section(*, rotation: np.ndarray, camera: Camera, t: datetime, catalogue:
     planet_pixel = {p["name"]: (p["x"], p["y"]) for p in planet_rows}
 
     points = []
+    # Points picked by hand follow the tracked ones; each is named by its place among them
+    # (``manual_points[k]``, as the pattern's errors name it).
+    n_tracked = sum(row.track is not None for row in pattern)
     for i, row in enumerate(pattern):
         match = match_of_point.get(i)
         planet = planet_of_point.get(i)
-        point = {"index": i, "track": row.track, "x": row.x, "y": row.y,
+        point = {"index": i, "track": row.track, "hand": None if row.track is not None else i - n_tracked,
+                 "x": row.x, "y": row.y,
                  "hip": None, "name": None, "planet": None, "star_x": None, "star_y": None,
                  "residual_x": None, "residual_y": None, "residual_arcsec": None}
         target = None

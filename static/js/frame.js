@@ -317,7 +317,7 @@ export class FrameView {
         }
         const what = track !== null ? `T${track}${inside ? "" : " (out of the pattern)"}` : (reason ? reason.replaceAll("_", " ") : "untracked");
         this.hits.push({ kind: "detection", x: cx, y: cy, r, track, reason,
-          text: `${what} · source ${d.source + 1} at (${d.x.toFixed(2)}, ${d.y.toFixed(2)}), brightness ${Math.round(d.brightness ?? 0)}` +
+          text: `${what} · source ${d.source} at (${d.x.toFixed(2)}, ${d.y.toFixed(2)}), brightness ${Math.round(d.brightness ?? 0)}` +
             (d.flags.length ? ` · ${reasonText(d.flags.join("+"))}` : "") + (track !== null ? " · click: in / out of the pattern" : "") });
         markers.push({ kind: "detection", x: cx, y: cy, track, source: d.source,
           label: box && { text: label, x: round1(box.x), y: round1(box.y), w: round1(box.w), h: box.h } });

@@ -29,7 +29,7 @@ const player = new SnapshotPlayer({
   onPick: (snapshot, x, y) => editPattern((def) => ({ ...def, manual_points: [...(def.manual_points || []), { snapshot, x, y }] }),
     `a point at (${x}, ${y}) of ${snapshotName(snapshot, { snapshots: state.detail?.telemetry.snapshots })}`),
   onRemoveManual: (k) => editPattern((def) => ({ ...def, manual_points: def.manual_points.filter((_, i) => i !== k) }),
-    `hand-picked point ${k + 1}`),
+    `hand-picked point ${k}`),
   onMessage: (text) => toast(text),
   onShow: (index) => frameView.show(index),   // the frame panel follows the snapshot shown
 });
@@ -203,8 +203,8 @@ function renderPattern() {
   (pattern.definition.manual_points || []).forEach((m, k) => {
     rows.push(el("tr", { class: "manual", dataset: { manual: k } },
       el("td", {}, el("button", { class: "small", title: "remove this point",
-        onclick: () => editPattern((def) => ({ ...def, manual_points: def.manual_points.filter((_, i) => i !== k) }), `hand-picked point ${k + 1}`) }, "×")),
-      el("td", {}, `◆ hand ${k + 1}`), el("td", { title: `picked in ${snapshotName(m.snapshot, { snapshots: d.telemetry.snapshots, count: true })}` }, `snap. ${m.snapshot}`), el("td", {}, `${fmt(m.x, 1)}, ${fmt(m.y, 1)}`), el("td", {}, "")));
+        onclick: () => editPattern((def) => ({ ...def, manual_points: def.manual_points.filter((_, i) => i !== k) }), `hand-picked point ${k}`) }, "×")),
+      el("td", {}, `◆ hand ${k}`), el("td", { title: `picked in ${snapshotName(m.snapshot, { snapshots: d.telemetry.snapshots, count: true })}` }, `snap. ${m.snapshot}`), el("td", {}, `${fmt(m.x, 1)}, ${fmt(m.y, 1)}`), el("td", {}, "")));
   });
   $("pattern-rows").replaceChildren(...rows);
   const wrap = $("pattern-wrap");

@@ -188,7 +188,7 @@ export function drawSky(canvas, view, options) {
       ctx.beginPath(); ctx.moveTo(cx, cy);
       ctx.lineTo(cx + p.residual_x * factor * scale, cy + p.residual_y * factor * scale); ctx.stroke();
     }
-    const label = p.track !== null ? `T${p.track}` : `hand ${p.index + 1}`;
+    const label = p.track !== null ? `T${p.track}` : `hand ${p.hand}`;
     const target = p.name || (p.hip !== null ? `HIP ${p.hip}` : p.planet ? `planet ${p.planet}` : "no star");
     hits.push({ x: cx, y: cy, r: POINT_RADIUS + 2, kind: "point", track: p.track, index: p.index,
       text: `${label} → ${target}` + (p.residual_arcsec !== null ? `, residual ${p.residual_arcsec.toFixed(1)}″` : "") +

@@ -109,6 +109,8 @@ def test_the_frame_panel_shows_zooms_follows_and_edits(server, api, new_page):
     some = next(m for m in detections if m["track"] is not None)
     page.mouse.move(*to_page(page, some))
     expect_text(page.locator("#frame-tip"), rf"T{some['track']}\b")
+    # ... and its source by its index in the snapshot, as the extraction and the errors number it.
+    expect_text(page.locator("#frame-tip"), rf"· source {some['source']} at ")
 
     # Zoom: the + button, then the wheel about a source; the markers grow apart.
     before = markers(page)

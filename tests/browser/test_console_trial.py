@@ -59,6 +59,7 @@ def test_snapshots_are_named_by_their_index_in_the_file(server, api, new_page, t
     expect_text(page.locator("#toast"), r"of snapshot 3 changed")
     row = page.locator("#pattern-rows tr.manual")
     expect_text(row, r"snap\. 3")
+    expect_text(row, r"◆ hand 0")   # manual_points[0], as the pattern's errors name it
     assert row.locator("td").nth(2).get_attribute("title") == "picked in snapshot 3 (4 of 16)"
     point = api(f"/api/sequences/{seq_id}")["pattern"]["definition"]["manual_points"][0]
     assert point["snapshot"] == 3
@@ -132,7 +133,7 @@ def test_the_3d_views_confirm_of_another_rank_opens_the_consoles_second_step(ser
     viewer.page.get_by_role("button", name="Next").click()
     expect_text(panel, rf"Candidate 2 of {n}")
     viewer.page.get_by_role("button", name="Confirm").click()
-    expect_text(panel, "Rank 2 is not the credible best candidate: not the best candidate")
+    expect_text(panel, "Rank 2 is not the credible best candidate (not the best candidate: rank 1 matches ")
     expect_text(panel, "Sent to the console: its second step asks for the reason, which the audit record keeps.")
     viewer.screenshot("trial-03-viewer-sent-rank-2")
 
