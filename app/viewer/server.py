@@ -100,7 +100,7 @@ def confirm_from_3d(ctx: AppContext, sequence: int | None, rank: int | None, ope
     if verdict is not None and not this_one and (not verdict.credible or confirmed or rejected):
         session = ctx.view.followed if session is None else session
         view.request_confirmation(ctx, sequence, rank, judged.search_id, session=session)
-        why = (f"Rank {rank} is not the credible best candidate: {markdown_text('; '.join(verdict.reasons))}."
+        why = (f"Rank {rank} is not the credible best candidate ({markdown_text('; '.join(verdict.reasons))})."
                if not verdict.credible else
                f"Rank {rank} would replace the sequence's verdict: {_verdict_text(confirmed, rejected)}.")
         # No console opened this 3D view (its default session): no console reads it, so it is not "sent".

@@ -200,8 +200,8 @@ def record_confirmation(ctx: AppContext, seq_id: int, rank: int, operator: str, 
     verdict = next(v for v in candidate_verdicts(result, current_pattern_version(ctx, seq_id)) if v.rank == rank)
     override_reason = (override_reason or "").strip() or None
     if not verdict.credible and override_reason is None:
-        raise Conflict(f"rank {rank} of sequence {seq_id} is not the credible best candidate: "
-                       f"{'; '.join(verdict.reasons)}. Confirming it anyway needs override_reason "
+        raise Conflict(f"rank {rank} of sequence {seq_id} is not the credible best candidate "
+                       f"({'; '.join(verdict.reasons)}). Confirming it anyway needs override_reason "
                        "(why you confirm it), which the audit record keeps")
     overridden = None if verdict.credible else verdict.reasons
     item = loaded(ctx, row)
