@@ -262,10 +262,10 @@ def test_upload_command_says_how_many_truth_files_it_skipped(live_server, sample
     captured = capsys.readouterr()
     assert status == 0
     assert len(captured.out.splitlines()) == 2  # the two telemetry files, nothing sent of the truth files
-    assert "skipped 2 truth files (*.truth.json): the simulator's answers, not telemetry" in captured.err.splitlines()
+    assert "left out 2 truth files (*.truth.json): the simulator's answers, not telemetry" in captured.err.splitlines()
     (folder / "08-csv.truth.json").unlink()
     cli_main(["upload", str(folder), "--server", live_server])
-    assert "skipped 1 truth file (*.truth.json): the simulator's answers, not telemetry" in \
+    assert "left out 1 truth file (*.truth.json): the simulator's answers, not telemetry" in \
         capsys.readouterr().err.splitlines()
     (folder / "01-clean.truth.json").unlink()
     cli_main(["upload", str(folder), "--server", live_server])

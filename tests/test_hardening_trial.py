@@ -285,14 +285,14 @@ def test_batch_says_how_many_truth_files_it_left_out(tmp_path, sample_dir, capsy
     status = cli_main(["batch", str(folder), "--out", str(tmp_path / "out.jsonl")])
     assert status == 2  # nothing to process: refused before any cluster starts
     assert capsys.readouterr().err.splitlines() == [
-        "batch: skipped 2 truth files (*.truth.json): the simulator's answers, not telemetry",
+        "batch: left out 2 truth files (*.truth.json): the simulator's answers, not telemetry",
         "batch: no .json or .csv files found"]
     # Named one by one, as a shell glob such as sample_telemetry/*.json names them: the same (they had been
     # sent as telemetry, and reported invalid).
     status = cli_main(["batch", *(str(p) for p in sorted(folder.iterdir())), "--out", str(tmp_path / "out.jsonl")])
     assert status == 2
     assert capsys.readouterr().err.splitlines() == [
-        "batch: skipped 2 truth files (*.truth.json): the simulator's answers, not telemetry",
+        "batch: left out 2 truth files (*.truth.json): the simulator's answers, not telemetry",
         "batch: no .json or .csv files found"]
 
 

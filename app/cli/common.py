@@ -7,7 +7,7 @@ import logging
 import sys
 from typing import Callable
 
-from app.cli.upload import fov_deg  # the one parser (upload.py needs only the standard library)
+from app.cli.upload import fov_deg, truth_note  # one parser, one wording (upload.py needs only the standard library)
 from app.workflow.documents import Document
 from app.workflow.files import input_files, telemetry_files
 
@@ -26,8 +26,7 @@ def command_line_inputs(paths: list[str]) -> list[str]:
     saying on stderr how many simulator truth files were left out."""
     inputs, truth = input_files(paths)
     if truth:
-        print(f"left out {len(truth)} truth file{'s' * (len(truth) != 1)} (*.truth.json: the simulator's "
-              "answers, not telemetry)", file=sys.stderr)
+        print(truth_note(len(truth)), file=sys.stderr)
     return inputs
 
 

@@ -140,7 +140,7 @@ def inputs(paths: list[str]) -> tuple[list[Path | FramePass], list[Path]]:
 
 def truth_note(count: int) -> str:
     """The line saying how many truth files were left out."""
-    return f"skipped {count} truth file{'s' * (count != 1)} (*{TRUTH_SUFFIX}): the simulator's answers, not telemetry"
+    return f"left out {count} truth file{'s' * (count != 1)} (*{TRUTH_SUFFIX}): the simulator's answers, not telemetry"
 
 
 def progress_bar(done: int, total: int, label: str = "") -> str:
