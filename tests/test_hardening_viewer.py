@@ -85,6 +85,7 @@ def test_the_3d_view_confirms_the_credible_best_and_sends_any_other_rank_to_the_
     from app.storage import Storage
     from app.viewer.server import confirm_from_3d
     from app.workflow import AppContext, archive, confirm as confirming, search as searching
+    from app.workflow.errors import Invalid
     from app.workflow.view import view_document
 
     ctx = AppContext(storage=Storage.open(tmp_path / "v.sqlite3"), sky=sky)
@@ -111,6 +112,13 @@ def test_the_3d_view_confirms_the_credible_best_and_sends_any_other_rank_to_the_
         assert "Confirm it in the console: its second step" in confirm_from_3d(ctx, doc.id, 2, "Vera", None)
 
         assert confirm_from_3d(ctx, doc.id, 1, "", None, console).startswith("**Error:** enter the operator's name")
+        # The panel's text boxes follow the API's rules for what goes into the audit record (the panel shows
+        # the refusal): a terminal's bell in the name, a comment beyond 2,000 characters; nothing is stored.
+        with pytest.raises(Invalid, match=r"^operator: must not contain the control character U\+0007"):
+            confirm_from_3d(ctx, doc.id, 1, "Ve\x07ra", None, console)
+        with pytest.raises(Invalid, match=r"^comment: must be at most 2000 characters, got 2001$"):
+            confirm_from_3d(ctx, doc.id, 1, "Vera", "c" * 2001, console)
+        assert ctx.storage.current_verdict(doc.id) is None
         said = confirm_from_3d(ctx, doc.id, 1, "Vera", "from the 3D view", console)
         assert said.startswith("Confirmed rank 1 as attitude ")
         stored = ctx.storage.current_verdict(doc.id)
@@ -121,6 +129,13 @@ def test_the_3d_view_confirms_the_credible_best_and_sends_any_other_rank_to_the_
         text, tags = rendered_text(said)
         assert text == f"Rank 1 was confirmed already by Vera at {at}Z (attitude {stored.id}); nothing new stored."
         assert tags == ["p"] and ctx.storage.current_verdict(doc.id).id == stored.id
+
+        # The workflow's other audit records refuse them too, whichever interface calls it.
+        with pytest.raises(Invalid, match=r"^reason: must not contain the control character U\+001B"):
+            confirming.reject(ctx, doc.id, "Rex", "clears the screen \x1b[2J", supersede=True)
+        with pytest.raises(Invalid, match=r"^operator: must not contain the control character U\+000A"):
+            archive.reset_pattern(ctx, doc.id, "Rex\nAdmin")
+        assert ctx.storage.current_verdict(doc.id).operator == "Vera"
 
         # Replacing a verdict takes the console's second step too, even for the credible best.
         confirming.reject(ctx, doc.id, "Rex", "<b>a ghost</b> pattern", supersede=True)

@@ -14,13 +14,11 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StringConstra
 from app.identification import METHODS
 from app.workflow.documents import ManualPointDefinition, PatternDefinition
 from app.workflow.search import PriorRequest
-from app.workflow.text import MAX_OPERATOR, NUL_MESSAGE, comment_problem, operator_name_problem
+from app.workflow.text import MAX_COMMENT, MAX_OPERATOR, NUL_MESSAGE, comment_problem, operator_name_problem
 from app.workflow.view_state import SESSION_PATTERN
 
 #: Largest list an edit may carry (a sequence has at most 64 x 64 sources).
 MAX_LIST = 4096
-#: Longest comment (the longest operator name is the workflow's rule).
-MAX_COMMENT = 2000
 #: Ids and ranks fit a 64-bit database integer.
 MAX_ID = 2**63 - 1
 #: Longest spacecraft name and search term.

@@ -42,6 +42,7 @@ from app.workflow.context import AppContext, LoadedSequence
 from app.workflow.documents import (AttitudeDocument, ExtractionDocument, PatternDefinition, PatternDocument, PatternPoint,
                                     SearchDocument, SequenceDetail, SequencePage, SequenceSummary, UploadDocument)
 from app.workflow.errors import Conflict, Invalid, NotFound
+from app.workflow.text import require_audit_text
 
 
 def automatic_definition() -> PatternDefinition:
@@ -312,6 +313,7 @@ def set_pattern(ctx: AppContext, seq_id: int, definition: PatternDefinition, ope
     (default: ``body.<field>``).
     """
     where = locate or (lambda field, key: f"body.{field}")
+    require_audit_text(operator=operator)
     row = require_sequence(ctx, seq_id)
     item = loaded(ctx, row)
     known = describe_track_ids(t.id for t in item.extraction.tracks)
@@ -334,6 +336,7 @@ def set_pattern(ctx: AppContext, seq_id: int, definition: PatternDefinition, ope
 
 
 def reset_pattern(ctx: AppContext, seq_id: int, operator: str | None) -> PatternDocument:
+    require_audit_text(operator=operator)
     row = require_sequence(ctx, seq_id)
     version = ctx.storage.add_pattern_version(seq_id, automatic_definition().model_dump(), kind="reset",
                                               operator=operator)

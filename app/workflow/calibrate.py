@@ -57,6 +57,7 @@ from app.workflow.context import AppContext
 from app.workflow.documents import (CalibrationDocument, CandidateDocument, ResidualCell, ResidualMap,
                                     StoredCalibration)
 from app.workflow.errors import Invalid, NotFound
+from app.workflow.text import require_audit_text
 
 #: What a calibration fits unless asked otherwise (see the module doc).
 DEFAULT_PARAMETERS = ("focal_length_px", "cx", "cy", "k1")
@@ -332,6 +333,7 @@ def archive_sequences(ctx: AppContext, spacecraft: str) -> ArchiveSelection:
 def calibrate_spacecraft(ctx: AppContext, spacecraft: str, operator: str | None = None,
                          parameters: Iterable[str] | None = None) -> StoredCalibration:
     """Fit the camera of ``spacecraft`` from its archive and store it as the next calibration version."""
+    require_audit_text(operator=operator)
     selection = archive_sequences(ctx, spacecraft)
     identified, camera, other_sensors = selection.sequences, selection.camera, selection.other_sensors
     if camera is None:

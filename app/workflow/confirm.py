@@ -39,6 +39,7 @@ from app.workflow.documents import (AttitudeDocument, AttitudePage, CandidateDoc
 from app.workflow.errors import Conflict, Invalid, NotFound
 from app.workflow.review import candidate_verdicts
 from app.workflow.search import candidate_of, latest_search
+from app.workflow.text import require_audit_text
 
 #: Originator written into the CCSDS messages.
 ORIGINATOR = "STARID GROUND STATION"
@@ -188,6 +189,7 @@ def record_confirmation(ctx: AppContext, seq_id: int, rank: int, operator: str, 
     ``search_id``, a candidate that needs ``override_reason`` without one, or
     a different current verdict without ``supersede``.
     """
+    require_audit_text(operator=operator, comment=comment, override_reason=override_reason)
     row = require_sequence(ctx, seq_id)
     search, result = latest_search(ctx, seq_id, missing=Conflict)
     if search_id is not None and search_id != search.id:
@@ -256,6 +258,7 @@ def reject(ctx: AppContext, seq_id: int, operator: str, reason: str | None, *,
     verdict already is a rejection).  A current confirmation is withdrawn
     only with ``supersede`` (Conflict otherwise); it stays in the audit trail.
     """
+    require_audit_text(operator=operator, reason=reason)
     row = require_sequence(ctx, seq_id)
     reason = (reason or "").strip()
     if not reason:

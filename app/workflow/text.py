@@ -22,12 +22,15 @@ U+0000 has its own sentence (PostgreSQL's text cannot hold it at all).
 from __future__ import annotations
 
 from app.text import described, refused_character
+from app.workflow.errors import Invalid
 
 #: Control characters a comment or a reason may hold: its lines and their indentation.
 LAYOUT = frozenset("\n\t")
 
 #: Longest operator name, in characters (the API refuses longer ones; so does the server's token list).
 MAX_OPERATOR = 100
+#: Longest comment or reason, in characters.
+MAX_COMMENT = 2000
 
 NUL_MESSAGE = "must not contain a NUL character (U+0000)"
 #: Why the rest is refused, as the end of the message.
@@ -49,5 +52,21 @@ def operator_name_problem(name: str) -> str | None:
 
 def comment_problem(text: str) -> str | None:
     """Why ``text`` cannot be a comment or a reason ("must not contain ..."), None when it can."""
+    if len(text) > MAX_COMMENT:
+        return f"must be at most {MAX_COMMENT} characters, got {len(text)}"
     ch = refused_character(text, LAYOUT)
     return None if ch is None else _problem(ch, COMMENT_RULE)
+
+
+def require_audit_text(*, operator: str | None = None, **texts: str | None) -> None:
+    """Refuse (:class:`app.workflow.errors.Invalid`, located at the argument's name) an operator name or a
+    comment or reason (``texts``, by name) that cannot go into an audit record.
+
+    The API's request bodies refuse them already; this is the rule for every
+    interface (the 3D view's text boxes, scripts calling the workflow), at the
+    one place each record is written."""
+    problems = [("operator", operator_name_problem(operator))] if operator is not None else []
+    problems += [(name, comment_problem(text)) for name, text in texts.items() if text is not None]
+    for name, problem in problems:
+        if problem:
+            raise Invalid(f"{name.replace('_', ' ')}: {problem}", location=name, message=problem)
