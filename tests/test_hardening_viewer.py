@@ -102,14 +102,15 @@ def test_the_3d_view_confirms_the_credible_best_and_sends_any_other_rank_to_the_
         assert said.replace("\\", "").startswith(  # as shown: Markdown's escapes gone
             "Rank 2 is not the credible best candidate (not the best candidate: rank 1 matches ") and "override_reason" not in said
         assert "Sent to the console: its second step asks for the reason, which the audit record keeps." in said
-        assert "The comment typed here is not sent" in said
+        assert "The comment typed here goes with it, into the console's comment box." in said
         sent = view_document(ctx, console)
         assert sent.confirm_request.model_dump() == {"sequence": doc.id, "rank": 2, "search_id": result.search_id,
-                                                     "number": 1}
+                                                     "number": 1, "comment": "typed in 3D"}
         assert (sent.sequence, sent.rank, sent.updated_by) == (None, None, "viewer")  # the selection is not touched
         assert ctx.storage.current_verdict(doc.id) is None
         # Without a console (the 3D view's default session) nothing is said to be sent.
-        assert "Confirm it in the console: its second step" in confirm_from_3d(ctx, doc.id, 2, "Vera", None)
+        alone = confirm_from_3d(ctx, doc.id, 2, "Vera", "typed in 3D")
+        assert "Confirm it in the console: its second step" in alone and "The comment typed here is not sent" in alone
 
         assert confirm_from_3d(ctx, doc.id, 1, "", None, console).startswith("**Error:** enter the operator's name")
         # The panel's text boxes follow the API's rules for what goes into the audit record (the panel shows

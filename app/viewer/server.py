@@ -99,7 +99,7 @@ def confirm_from_3d(ctx: AppContext, sequence: int | None, rank: int | None, ope
     this_one = confirmed is not None and confirmed.search_id == judged.search_id and confirmed.rank == rank
     if verdict is not None and not this_one and (not verdict.credible or confirmed or rejected):
         session = ctx.view.followed if session is None else session
-        view.request_confirmation(ctx, sequence, rank, judged.search_id, session=session)
+        view.request_confirmation(ctx, sequence, rank, judged.search_id, session=session, comment=comment)
         why = (f"Rank {rank} is not the credible best candidate ({markdown_text('; '.join(verdict.reasons))})."
                if not verdict.credible else
                f"Rank {rank} would replace the sequence's verdict: {_verdict_text(confirmed, rejected)}.")
@@ -107,7 +107,9 @@ def confirm_from_3d(ctx: AppContext, sequence: int | None, rank: int | None, ope
         where = "Confirm it in the console" if session == DEFAULT_SESSION else "Sent to the console"
         step = "asks for the reason, which the audit record keeps" if not verdict.credible \
             else "asks you to confirm the replacement"
-        kept = " The comment typed here is not sent: type it in the console." if comment else ""
+        kept = "" if not comment else (" The comment typed here goes with it, into the console's comment box."
+                                       if session != DEFAULT_SESSION else
+                                       " The comment typed here is not sent: type it in the console.")
         return f"{why} {where}: its second step {step}.{kept}"
     if not operator:
         return "**Error:** enter the operator's name before confirming."

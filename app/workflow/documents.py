@@ -561,6 +561,7 @@ class ConfirmRequestDocument(Document):
     rank: int
     search_id: int | None
     number: int = Field(description="grows with every request: a console takes each one once")
+    comment: str | None = Field(default=None, description="the comment typed with it in the 3D view")
 
 
 class ViewDocument(Document):

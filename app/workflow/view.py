@@ -13,6 +13,7 @@ from app.timefmt import utc_text
 from app.workflow.context import AppContext
 from app.workflow.documents import ConfirmRequestDocument, ViewDocument
 from app.workflow.errors import Invalid
+from app.workflow.text import require_audit_text
 from app.workflow.view_state import check_session
 
 
@@ -42,7 +43,7 @@ def view_document(ctx: AppContext, session: str | None = None) -> ViewDocument:
                        followed_by_3d=name == ctx.view.followed, operator=state.operator,
                        confirm_request=None if request is None else ConfirmRequestDocument(
                            sequence=request.sequence, rank=request.rank, search_id=request.search_id,
-                           number=request.number))
+                           number=request.number, comment=request.comment))
     row = ctx.storage.get_sequence(state.sequence) if state.sequence is not None else None
     if row is not None:
         search = ctx.storage.latest_search(row.id)
@@ -87,12 +88,14 @@ def set_view(ctx: AppContext, changes: dict, writer_name: str, session: str | No
 
 
 def request_confirmation(ctx: AppContext, sequence: int, rank: int, search_id: int | None,
-                         session: str | None = None) -> ViewDocument:
+                         session: str | None = None, comment: str | None = None) -> ViewDocument:
     """Send the confirmation of ``rank`` of ``sequence`` (of its search ``search_id``) to the console of
-    ``session``, which opens its second step for it: the 3D view's Confirm of a rank that needs one."""
+    ``session``, which opens its second step for it: the 3D view's Confirm of a rank that needs one.  The
+    ``comment`` typed with it goes along (the console puts it in its comment box)."""
+    require_audit_text(comment=comment)
     name = _session(ctx, session)
     try:
-        ctx.view.request_confirmation(name, sequence, rank, search_id)
+        ctx.view.request_confirmation(name, sequence, rank, search_id, comment)
     except ValueError as exc:
         raise Invalid(str(exc)) from None
     return view_document(ctx, name)

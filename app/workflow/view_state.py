@@ -52,6 +52,7 @@ class ConfirmRequest:
     rank: int
     search_id: int | None  # the search whose rank it is: a console showing another search does not take it
     number: int  # the revision of the session's write that sent it (set by the store): each is taken once
+    comment: str | None = None  # typed in the 3D view: the console puts it in its comment box
 
 
 @dataclass(frozen=True)
@@ -109,12 +110,15 @@ class ViewStateStore:
             name = self._resolve(session)
             return self._states.get(name) or ViewState(session=name)
 
-    def request_confirmation(self, session: str | None, sequence: int, rank: int, search_id: int | None) -> ViewState:
-        """Send a confirmation of ``rank`` of ``sequence`` to the session's console (one write by the 3D view)."""
+    def request_confirmation(self, session: str | None, sequence: int, rank: int, search_id: int | None,
+                             comment: str | None = None) -> ViewState:
+        """Send a confirmation of ``rank`` of ``sequence`` (and the comment typed with it) to the session's
+        console (one write by the 3D view)."""
         sequence, rank = _optional_positive_int("sequence", sequence), _optional_positive_int("rank", rank)
         if sequence is None or rank is None:
             raise ValueError("a confirmation request names a sequence and a rank")
-        return self.update(session=session, confirm_request=ConfirmRequest(sequence, rank, search_id, number=0),
+        return self.update(session=session, confirm_request=ConfirmRequest(sequence, rank, search_id, number=0,
+                                                                                  comment=comment),
                            updated_by="viewer")
 
     def update(self, *, session: str | None = None, sequence=_UNSET, rank=_UNSET, mag=_UNSET, operator=_UNSET,

@@ -625,6 +625,12 @@ async function takeRequest(doc) {
       await showCandidate();
     }
     confirmSentFrom("the 3D view");
+    // The comment typed with it in the 3D view, unless this console's box holds one of its own already.
+    const box = $("comment");
+    if (request.comment && !box.value.trim()) box.value = request.comment;
+    else if (request.comment && box.value.trim() !== request.comment) {
+      toast("The 3D view's comment was not put in the comment box, which holds yours: " + request.comment);
+    }
   });
 }
 

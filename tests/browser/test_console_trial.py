@@ -15,7 +15,7 @@ from pathlib import Path
 
 from playwright.sync_api import expect
 
-from test_console_sessions import (SAMPLES, expect_in_viewport, expect_text, expect_visible, fresh_copy,
+from test_console_sessions import (SAMPLES, expect_in_viewport, expect_text, expect_value, expect_visible, fresh_copy,
                                    hold_back_polling, open_sequence, operator_on, supersede_rank_2_with_rank_1,
                                    unexpected_errors, upload_and_search)
 
@@ -132,9 +132,13 @@ def test_the_3d_views_confirm_of_another_rank_opens_the_consoles_second_step(ser
     expect_text(panel, rf"Candidate 1 of {n}", timeout=VIEWER_TIMEOUT_MS)
     viewer.page.get_by_role("button", name="Next").click()
     expect_text(panel, rf"Candidate 2 of {n}")
+    typed = "seen from the 3D view: both heads"
+    # viser's labels name no input (their "for" is another id): the text box after the label.
+    viewer.page.locator("xpath=//label[normalize-space()='Comment']/following::input[1]").fill(typed)
     viewer.page.get_by_role("button", name="Confirm").click()
-    expect_text(panel, "Rank 2 is not the credible best candidate (not the best candidate: rank 1 matches ")
-    expect_text(panel, "Sent to the console: its second step asks for the reason, which the audit record keeps.")
+    expect_text(panel, re.escape("Rank 2 is not the credible best candidate (not the best candidate: rank 1 matches "))
+    expect_text(panel, "Sent to the console: its second step asks for the reason, which the audit record keeps. "
+                       "The comment typed here goes with it, into the console's comment box.")
     viewer.screenshot("trial-03-viewer-sent-rank-2")
 
     # The console opens its second step for rank 2, on its Sequence tab, and stores nothing yet.
@@ -148,6 +152,7 @@ def test_the_3d_views_confirm_of_another_rank_opens_the_consoles_second_step(ser
     expect(page.locator("#override-reason")).to_be_focused()
     expect_in_viewport(page.locator("#override-step"))
     expect_text(page.locator("#toast"), "The 3D view sent rank 2 here: give the reason to confirm it anyway")
+    expect_value(page.locator("#comment"), typed)   # the comment typed there came with it
     watched.screenshot("trial-04-console-second-step-from-3d")
     assert api(f"/api/sequences/{seq_id}/review")["audit"] == []
 
@@ -156,7 +161,7 @@ def test_the_3d_views_confirm_of_another_rank_opens_the_consoles_second_step(ser
     page.click("#confirm-override")
     expect_text(page.locator("#confirmed"), "override: rank 1 is a ghost pattern")
     c = api(f"/api/sequences/{seq_id}/review")["confirmation"]
-    assert (c["rank"], c["operator"], c["override_reason"]) == (2, "Vera Viewer", reason)
+    assert (c["rank"], c["operator"], c["override_reason"], c["comment"]) == (2, "Vera Viewer", reason, typed)
 
     # Rank 1 now would replace that verdict: the 3D view sends it to the console's second step too.
     page.click("#tab-3d")
