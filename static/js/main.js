@@ -180,6 +180,16 @@ async function loadDetail(id, { fresh = false } = {}) {
   return detail;
 }
 
+// A pattern point's position in the reference snapshot. A track seen only in other snapshots is carried
+// there by the fitted motion, and may then lie outside the sensor: said, so that it does not read as an error.
+function positionCell(point, camera) {
+  const outside = point.x !== null && point.y !== null && (point.x < -0.5 || point.x > camera.width - 0.5 ||
+    point.y < -0.5 || point.y > camera.height - 0.5);
+  return el("td", outside ? { class: "outside", title: "outside the sensor in the reference snapshot: this track " +
+      "was seen in other snapshots and carried here by the fitted motion" } : {},
+    `${fmt(point.x, 1)}, ${fmt(point.y, 1)}`, outside ? el("span", { class: "dim" }, " (off sensor)") : null);
+}
+
 function renderPattern() {
   const d = state.detail;
   const pattern = d.pattern;
@@ -191,7 +201,7 @@ function renderPattern() {
     el("td", {}, el("input", { type: "checkbox", checked: !!current, "aria-label": `track ${track} in pattern`,
       onchange: () => editPattern((def) => toggleTrack(def, track), `track T${track}`) })),
     el("td", {}, el("span", { class: "swatch", style: `background:hsla(${((track * 137.508) % 360).toFixed(1)}, 85%, 62%, 1)` }), `T${track}`),
-    el("td", {}, shown.sightings), el("td", {}, `${fmt(shown.x, 1)}, ${fmt(shown.y, 1)}`), el("td", {}, fmt(shown.brightness, 0)));
+    el("td", {}, shown.sightings), positionCell(shown, d.telemetry.camera), el("td", {}, fmt(shown.brightness, 0)));
   for (const p of automatic) {
     if (p.track === null) continue;
     seen.add(p.track);

@@ -49,6 +49,15 @@ def test_snapshots_are_named_by_their_index_in_the_file(server, api, new_page, t
     expect_text(page.locator("#snapshot-label"), r"^snapshot 2 \(3 of 16, reference\)$")
     assert page.locator("#snapshot-slider").get_attribute("aria-valuetext") == "snapshot 2 (3 of 16, reference)"
     expect_text(page.locator("#pattern-caption"), r"points, reference snapshot 2$")
+    # Tracks carried into the reference snapshot beyond the sensor's edge say so (the camera's bounds:
+    # pixel centres 0 .. width-1, so edges at -0.5 and width-0.5).
+    camera = detail["telemetry"]["camera"]
+    off = {p["track"] for p in detail["pattern"]["points"]
+           if not (-0.5 <= p["x"] <= camera["width"] - 0.5 and -0.5 <= p["y"] <= camera["height"] - 0.5)}
+    assert off and len(off) < len(detail["pattern"]["points"])
+    for p in detail["pattern"]["points"]:
+        cell = page.locator(f'#pattern-rows tr[data-track="{p["track"]}"] td').nth(3)
+        expect_text(cell, r"\(off sensor\)$" if p["track"] in off else r"^[-\d.]+, [-\d.]+$")
     page.click("#step-fwd")
     expect_text(page.locator("#snapshot-label"), r"^snapshot 3 \(4 of 16\)$")
 
