@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import math
 import re
+import textwrap
 import unicodedata
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -193,13 +194,14 @@ def text_value(text: str, keyword: str) -> str:
 
 
 def comment_lines(comments: Iterable[str]) -> list[str]:
-    """COMMENT lines (6.10.1): ASCII, one per input line, long ones wrapped at 254 characters."""
+    """COMMENT lines (6.10.1): ASCII, one per input line, long ones wrapped between words at 254 characters
+    (a word longer than a line is cut)."""
     width = MAX_LINE_LENGTH - len("COMMENT ")
     lines: list[str] = []
     for comment in comments:
         for part in _ascii_text(str(comment).replace("\r", "\n")).split("\n"):
             part = part.rstrip()
-            chunks = [part[i:i + width] for i in range(0, len(part), width)] or [""]
+            chunks = textwrap.wrap(part, width, break_on_hyphens=False) if len(part) > width else [part]
             lines.extend(f"COMMENT {chunk}".rstrip() for chunk in chunks)
     return lines
 

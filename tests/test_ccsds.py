@@ -17,6 +17,7 @@ from app.ccsds import (
     aem_kvn,
     apm_kvn,
     ccsds_quaternion_from_rotation,
+    comment_lines,
     rotation_from_ccsds_quaternion,
 )
 from kvn_reader import parse_epoch, parse_kvn
@@ -165,6 +166,15 @@ def test_lines_are_printable_ascii_within_254_characters():
     assert doc["data"]["COMMENT"][0] == "Operator Jurgen Muller: ok ?"
     assert "".join(doc["data"]["COMMENT"][1:]) == "x" * 600
     assert doc["metadata"]["OBJECT_NAME"] == "TUBSAT N"  # 6.8.6: all upper case
+
+
+def test_a_long_comment_is_wrapped_between_words():
+    """An operator's long override reason reads whole: each COMMENT line ends at a word (it once cut
+    "supersede" into "supers" / "ede"), and the words joined again are the text."""
+    words = [f"word{k}" if k % 7 else "supersede" for k in range(120)]
+    lines = comment_lines([" ".join(words)])
+    assert len(lines) > 2 and all(len(line) <= 254 and line.startswith("COMMENT ") for line in lines)
+    assert [w for line in lines for w in line[len("COMMENT "):].split(" ")] == words
 
 
 def test_negative_zero_is_never_written():

@@ -101,8 +101,8 @@ def test_a_non_credible_candidate_needs_a_reason_and_keeps_it(env):
     assert stored["rank"] == 2 and stored["override_reason"] == reason
     assert any("not the best candidate" in text for text in stored["overridden"])
     apm = client.get(stored["apm_url"]).text
-    # Comments are wrapped at the KVN line length: read them back as one text.
-    comments = "".join(line[len("COMMENT "):] for line in apm.splitlines() if line.startswith("COMMENT "))
+    # Comments are wrapped between words at the KVN line length: read them back as one text.
+    comments = " ".join(line[len("COMMENT "):] for line in apm.splitlines() if line.startswith("COMMENT "))
     assert "operator override" in comments and reason in comments
     assert _attitude_count(client) == before + 1
     audit = client.get(f"/api/sequences/{sid}/review").json()["audit"]
@@ -243,6 +243,7 @@ def test_bulk_aem_holds_one_segment_per_confirmed_sequence_in_the_range(env):
     assert one.status_code == 200 and len(parse_kvn(one.text)["segments"]) == 1
     # The header says the range in words (it once read "Time range - to -" for no range).
     assert "COMMENT Time range: every confirmed attitude" in r.text
+    assert "overlap" not in r.text  # their times are years apart
     assert "Time range: reference epochs from " in one.text and " to before " in one.text
     empty = client.get("/api/attitudes/aem", params={"spacecraft": "NOBODY"})
     assert empty.status_code == 404 and "NOBODY" in empty.json()["detail"]
@@ -250,6 +251,32 @@ def test_bulk_aem_holds_one_segment_per_confirmed_sequence_in_the_range(env):
                                                          "end": "2001-01-01T00:00:00Z"})
     assert backwards.status_code == 422 and backwards.json()["problems"][0]["location"] == "query.end"
     assert client.get("/api/attitudes/aem", params={"spacecraft": "SIM-TUBSAT", "start": "yesterday"}).status_code == 422
+
+
+def test_bulk_aem_warns_of_segments_of_one_spacecraft_that_overlap_in_time(tmp_path, sky, sample_dir):
+    """02 and 04 were simulated for one spacecraft over the same 36 seconds, pointing at two constellations:
+    confirmed both, their AEM says that one of them cannot be this spacecraft's at those times."""
+    ctx = AppContext(storage=Storage.open(tmp_path / "overlap.sqlite3"), sky=sky)
+    client = TestClient(create_app(ctx))
+    try:
+        attitudes = {}
+        for name in ("02-ghosts-hot-pixels.json", "04-big-dipper.json"):
+            sid = client.post("/api/sequences", content=(sample_dir / name).read_bytes()).json()["id"]
+            assert client.post(f"/api/sequences/{sid}/search", json={}).json()["status"] == "identified"
+            r = client.post(f"/api/sequences/{sid}/confirm", json={"rank": 1, "operator": "ann"})
+            assert r.status_code in (200, 201), r.text
+            attitudes[name.removesuffix(".json")] = r.json()["id"]
+        text = client.get("/api/attitudes/aem", params={"spacecraft": "SIM-TUBSAT"}).text
+        spans = [(seg["metadata"]["START_TIME"], seg["metadata"]["STOP_TIME"]) for seg in parse_kvn(text)["segments"]]
+        assert spans[0] == spans[1]  # the same seconds
+        warning = " ".join(line.removeprefix("COMMENT ") for line in text.split("META_START")[0].splitlines()
+                           if line.startswith("COMMENT "))
+        pair = [f"{name} (attitude {attitude})" for name, attitude in attitudes.items()]
+        assert any(f"WARNING: the segments of sequences {a} and {b} overlap in time, from {spans[0][0]} to "
+                   f"{spans[0][1]}: a spacecraft has one attitude at a time" in warning
+                   for a, b in (pair, pair[::-1])), warning
+    finally:
+        ctx.close()
 
 
 def test_each_console_session_keeps_its_own_view(env):

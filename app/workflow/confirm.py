@@ -353,6 +353,32 @@ def _time_range_comment(start: datetime | None, end: datetime | None) -> str:
     return f"Time range: reference epochs from {utc_text(start)} to before {utc_text(end)}"
 
 
+_SEGMENT_TIME = re.compile(r"^(START_TIME|STOP_TIME) = (\S+)$", re.MULTILINE)
+
+
+def _overlap_comments(rows: list[ConfirmationRow], segments: list[str], names: dict[int, str]) -> list[str]:
+    """A warning for each pair of segments whose times overlap: one spacecraft has one attitude at a time,
+    so two confirmed sequences over the same seconds mean one is another spacecraft's, or mis-timed."""
+    spans = []
+    for c, segment in zip(rows, segments):
+        times = dict(_SEGMENT_TIME.findall(segment))
+        start, stop = (datetime.fromisoformat(times[k]).replace(tzinfo=timezone.utc)  # TIME_SYSTEM = UTC
+                       for k in ("START_TIME", "STOP_TIME"))
+        spans.append((start, stop, c))
+    spans.sort(key=lambda span: (span[0], span[1]))
+    warnings = []
+    for k, (start, stop, c) in enumerate(spans):
+        for other_start, other_stop, other in spans[k + 1:]:
+            if other_start > stop:
+                break
+            warnings.append(
+                f"WARNING: the segments of sequences {names[c.seq_id]} (attitude {c.id}) and "
+                f"{names[other.seq_id]} (attitude {other.id}) overlap in time, from {format_epoch(other_start)} to "
+                f"{format_epoch(min(stop, other_stop))}: a spacecraft has one attitude at a time, so one of them "
+                "is another spacecraft's or has wrong times")
+    return warnings
+
+
 def bulk_aem(ctx: AppContext, spacecraft: str, start: datetime | None, end: datetime | None) -> tuple[str, str]:
     """One AEM holding the attitudes of every confirmed sequence of ``spacecraft`` whose reference epoch
     lies in [start, end), oldest first, and its download name.
@@ -374,11 +400,13 @@ def bulk_aem(ctx: AppContext, spacecraft: str, start: datetime | None, end: date
         segments.append(text[at + 1:].rstrip("\n"))
     version_line = rows[0].aem_text.split("\n", 1)[0]  # "CCSDS_AEM_VERS = 2.0", as the stored messages say
     created = datetime.now(timezone.utc)
+    names = {c.seq_id: ctx.storage.get_sequence(c.seq_id).sequence_id for c in rows}
     header = [version_line,
               *comment_lines([f"Confirmed attitudes of spacecraft {spacecraft}: {len(rows)} "
                               f"sequence{'s' * (len(rows) != 1)}, one segment each, as rendered at their "
                               "confirmation",
-                              _time_range_comment(start, end)]),
+                              _time_range_comment(start, end),
+                              *_overlap_comments(rows, segments, names)]),
               f"CREATION_DATE = {format_epoch(created)}", f"ORIGINATOR = {ORIGINATOR}"]
     text = "\n".join(header) + "\n\n" + "\n\n".join(segments) + "\n"
     stamp = "" if start is None else "-" + start.strftime("%Y%m%dT%H%M%S")
