@@ -45,7 +45,9 @@ export function renderCandidates() {
   const rows = candidates.map((c) => {
     const v = verdictOf(c.rank);
     const credible = v?.credible;
-    const gapTitle = v ? `deviation ${v.deviation_gap_arcsec >= 0 ? "+" : ""}${fmt(v.deviation_gap_arcsec, 0)}″ vs rank 1; ` +
+    // Signed: a rank below 1 may match fewer points with a smaller deviation.
+    const gap = v ? `${v.deviation_gap_arcsec >= 0 ? "+" : ""}${fmt(v.deviation_gap_arcsec, 0)}″` : "-";
+    const gapTitle = v ? `deviation ${gap} vs rank 1; ` +
       `${v.odds_vs_best === null ? "" : `10^${fmt(v.odds_vs_best, 1)} times likelier to be chance; `}` +
       `attitude ${fmt(v.separation_from_best_deg, 2)}° away` : "";
     return el("tr", {
@@ -59,7 +61,7 @@ export function renderCandidates() {
     el("td", {}, fmt(c.deviation_arcsec, 0)), el("td", {}, fmt(c.deviation_px_per_point, 2)),
     el("td", {}, `${c.n_matched}/${d.search.pattern.length}`), el("td", {}, fmtProbability(c.false_match_probability)),
     el("td", {}, fmt(c.ra_deg, 2)), el("td", {}, fmt(c.dec_deg, 2)), el("td", {}, fmt(c.roll_deg, 1)),
-    el("td", { title: gapTitle }, c.rank === 1 ? "-" : `+${fmt(v?.deviation_gap_arcsec, 0)}″`));
+    el("td", { title: gapTitle }, c.rank === 1 ? "-" : gap));
   });
   $("candidate-rows").replaceChildren(...rows);
   // Keep the selected row in view by scrolling the table only: the page must not move.

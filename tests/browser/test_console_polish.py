@@ -177,3 +177,22 @@ def test_the_search_summary_reads_as_sentences(server, api, new_page, tmp_path):
     shot = watched.screenshot("polish-04-search-summary")
     page.locator("#search-summary").screenshot(path=str(shot))
     assert watched.errors == []
+
+
+def test_the_gap_to_rank_1_is_signed(server, api, new_page, tmp_path):
+    """Ranks follow the matches first, so a rank below 1 can have a smaller deviation: 06-sparse with a point
+    picked by hand at (700, 40) gives ranks whose gap to rank 1 is negative, which the table showed as
+    "+-272″"."""
+    seq_id = api("/api/sequences", "POST", raw=fresh_copy("06-sparse.json", "gap", tmp_path).read_bytes())["id"]
+    ref = api(f"/api/sequences/{seq_id}")["extraction"]["reference_snapshot"]
+    api(f"/api/sequences/{seq_id}/pattern", "PUT", body={"manual_points": [{"snapshot": ref, "x": 700.0, "y": 40.0}]})
+    api(f"/api/sequences/{seq_id}/search", "POST", body={})
+    gaps = {v["rank"]: v["deviation_gap_arcsec"] for v in api(f"/api/sequences/{seq_id}/review")["candidates"]}
+    assert min(gaps.values()) < 0 < max(gaps.values())
+    watched, _ = console(new_page, server)
+    page = watched.page
+    open_sequence(page, seq_id, "06-sparse-gap")
+    for rank, gap in gaps.items():
+        shown = "-" if rank == 1 else f"{'+' if gap >= 0 else '-'}{abs(gap):.0f}″"
+        expect_text(page.locator(f"#candidate-rows tr[data-rank='{rank}'] td").last, f"^{re.escape(shown)}$")
+    watched.screenshot("polish-05-signed-gap")
