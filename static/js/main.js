@@ -262,6 +262,7 @@ async function editPattern(change, what) {
     });
     await loadDetail(d.id);
     renderCandidates();
+    drawCandidate();   // the candidates are stale now: their matches are drawn as doubtful
     toast(`Pattern version ${state.detail.pattern.version}: ${what} changed, ${state.detail.pattern.points.length} points. ` +
       "Press Search to identify it.");
   });
@@ -370,6 +371,7 @@ function drawCandidate() {
     names: $("show-names").checked, constellations: $("show-constellations").checked, edge: $("show-edge").checked,
     credible: !!verdict?.credible, highlight: player.highlight ?? undefined,
   });
+  $("sky-canvas").dataset.credible = String(!!verdict?.credible);
   $("residual-factor").textContent = `×${state.drawn.factor}`;
   // What was drawn where, for whoever inspects the page (the browser tests check labels never overlap).
   $("sky-canvas").dataset.labels = JSON.stringify(state.drawn.labels.map(({ x, y, w, h, text, kind }) => ({ x, y, w, h, text, kind })));

@@ -48,6 +48,7 @@ def test_snapshots_are_named_by_their_index_in_the_file(server, api, new_page, t
     page = watched.page
     expect_text(page.locator("#snapshot-label"), r"^snapshot 2 \(3 of 16, reference\)$")
     assert page.locator("#snapshot-slider").get_attribute("aria-valuetext") == "snapshot 2 (3 of 16, reference)"
+    expect(page.locator("#sky-canvas")).to_have_attribute("data-credible", "true")   # rank 1, identified
     expect_text(page.locator("#pattern-caption"), r"points, reference snapshot 2$")
     # Tracks carried into the reference snapshot beyond the sensor's edge say so (the camera's bounds:
     # pixel centres 0 .. width-1, so edges at -0.5 and width-0.5).
@@ -66,6 +67,8 @@ def test_snapshots_are_named_by_their_index_in_the_file(server, api, new_page, t
     box = page.locator("#player-canvas").bounding_box()
     page.mouse.click(box["x"] + 6, box["y"] + box["height"] - 6)   # a corner: no source to snap to
     expect_text(page.locator("#toast"), r"of snapshot 3 changed")
+    # The candidates are stale now: the sky chart draws rank 1's matches as doubtful, as its verdict says.
+    expect(page.locator("#sky-canvas")).to_have_attribute("data-credible", "false")
     row = page.locator("#pattern-rows tr.manual")
     expect_text(row, r"snap\. 3")
     expect_text(row, r"◆ hand 0")   # manual_points[0], as the pattern's errors name it
