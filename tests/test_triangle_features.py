@@ -277,6 +277,14 @@ def test_solve_cli_methods(sample_dir, capsys):
     assert solve.run(args) == 0
     tf_doc = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert tf_doc["tf_candidates"] is None and tf_doc["methods_agree"] is None
+    # The Earth: neither method finds a match, so they agree (the bright-pair method keeps a few chance fits
+    # for the operator to see, which once read as a disagreement).
+    args = argparse.Namespace(files=[str(sample_dir / "05-earth.json")], json=True, candidates=None, method="both",
+                              prior=None, fov_deg=None)
+    assert solve.run(args) == 0
+    earth = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert (earth["status"], earth["tf_status"], earth["methods_agree"]) == ("no_match", "no_match", True)
+    assert earth["candidates"]
     # Both answers are the simulated truth (the sample's reference snapshot).
     truth = json.loads((sample_dir / "01-clean.truth.json").read_text())
     ra, dec, _ = truth["radec_roll_deg"][doc["reference_snapshot"]]

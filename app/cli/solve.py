@@ -9,8 +9,8 @@ status 0 when every file was valid, 2 otherwise.
 ``tf`` (Liebe's triangle features) or ``both``: then the bright-pair answer
 fills the usual keys, the TF candidates come under ``tf_candidates`` and
 ``methods_agree`` says whether the two first candidates are the same
-attitude (within :data:`app.workflow.files.AGREE_DEG`; also true when neither
-finds any).
+attitude (within :data:`app.workflow.files.AGREE_DEG`; also true when both
+find no match).
 
 ``--prior RA,DEC,ROLL[,SIGMA_DEG]`` switches to tracking mode (Liebe's
 predictional estimate): the pattern is matched near that attitude (degrees;

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from app.attitude import rotation_angle_between
 from app.extraction import extract
-from app.identification import Prior, SearchOptions, Sky, solve_sequence, source_stars
+from app.identification import NO_MATCH, Prior, SearchOptions, Sky, solve_sequence, source_stars
 from app.telemetry import Sequence
 from app.telemetry.errors import TelemetryError
 from app.telemetry.formats import load_telemetry_file
@@ -178,8 +178,12 @@ def solve_document(path: str, sequence: Sequence, sky: Sky, *, options: SearchOp
 
 
 def methods_agree(a, b, tolerance_deg: float = AGREE_DEG) -> bool:
-    """True when both solutions' first candidates are one attitude, or neither has a candidate."""
-    if not a.candidates or not b.candidates:
-        return not a.candidates and not b.candidates
+    """True when both solutions find no match, or both find one and their first candidates are one attitude.
+
+    Two answers of "no match" agree whatever chance fits either kept as
+    candidates (the bright-pair method keeps its best few for the operator).
+    """
+    if NO_MATCH in (a.status, b.status):
+        return a.status == b.status
     angle = rotation_angle_between(a.candidates[0].rotation_matrix, b.candidates[0].rotation_matrix)
     return math.degrees(angle) <= tolerance_deg
