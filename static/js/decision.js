@@ -30,8 +30,7 @@ function shownIsConfirmed() {
 // another operator's, landed between this console's look and its click.
 const confirmedBy = (c) => `by ${c.operator} at ${fmtTime(c.confirmed_at)}`;
 
-function describeCurrent() {
-  const r = state.review;
+function describeCurrent(r = state.review) {
   if (r.confirmation) return `attitude #${r.confirmation.id} (rank ${r.confirmation.rank}) confirmed by ${r.confirmation.operator}`;
   if (r.rejection) return `"no valid attitude" recorded by ${r.rejection.operator}: ${r.rejection.reason}`;
   return "";
@@ -223,11 +222,24 @@ async function sendConfirmation(secondStep) {
       : `Rank ${c.rank} was confirmed already ${confirmedBy(c)} (attitude #${c.id}); nothing new stored`,
     stored ? "ok" : "warn");
   } catch (err) {
-    toast(`The confirmation failed: ${errorText(err)}`, "error");
-    if (err.status === 409) {   // someone else's verdict or search: the step asked about what was; show what is
-      cancelSteps();
-      await hooks.afterVerdict();
+    if (err.status !== 409) {
+      toast(`The confirmation failed: ${errorText(err)}`, "error");
+      return;
     }
+    // Someone else's verdict or search: the step asked about what was; show what is.  Another console's
+    // verdict on these candidates is said in this console's words (the server's name the API's supersede
+    // field), before the reload, which brings a change notice into view below the status line as it then is.
+    const key = (v) => v && `${v.confirmed_at ? "attitude" : "rejection"} ${v.id}`;
+    const before = currentVerdict();
+    const review = await api.get(`/api/sequences/${d.id}/review`).catch(() => null);
+    const now = review && (review.confirmation || review.rejection);
+    toast(now && key(now) !== key(before) && review.search_id === body.search_id
+      ? `Not confirmed: another console gave the verdict first: ${describeCurrent(review)} at ` +
+        `${fmtTime(now.confirmed_at || now.rejected_at)}. To replace it, confirm again (the replaced verdict stays ` +
+        "in the audit trail)"
+      : `The confirmation failed: ${errorText(err)}`, "error");
+    cancelSteps();
+    await hooks.afterVerdict();
   } finally {
     state.busy--;
   }

@@ -77,6 +77,11 @@ def fresh_copy(sample: str, tag: str, directory: Path) -> Path:
     return path
 
 
+def utc_text(api_time: str) -> str:
+    """An API time as the console prints it (static/js/dom.js fmtTime): ``2026-11-23 18:57:41Z``."""
+    return re.sub(r"\.\d+Z$", "Z", api_time.replace("T", " "))
+
+
 def upload_and_search(api, path: Path, body: dict | None = None) -> tuple[int, dict]:
     seq_id = api("/api/sequences", "POST", raw=path.read_bytes())["id"]
     return seq_id, api(f"/api/sequences/{seq_id}/search", "POST", body=body or {})
@@ -722,4 +727,30 @@ def test_a_focal_length_the_stars_contradict_is_named_above_the_verdict(server, 
     open_sequence(page, clean_id, "01-clean-focal")
     expect_text(page.locator("#seq-meta"), r"· 16 snapshots from ")
     expect_visible(warning, False)
+    assert unexpected_errors(watched) == []
+
+
+def test_a_verdict_given_elsewhere_first_is_named_in_the_consoles_words(server, api, new_page, tmp_path):
+    """This console has the second step open for rank 2 when another one confirms rank 1 (this console's
+    reads of the view are held back: it has not noticed).  Its Confirm anyway is refused (409); the status
+    line then names the verdict that came first, who gave it and when, and how to replace it here, not the
+    API's "Send supersede: true"."""
+    seq_id, search = upload_and_search(api, fresh_copy("10-narrow-12deg-ghosts.json", "overtaken", tmp_path))
+    assert search["status"] == "identified" and len(search["candidates"]) >= 2
+    watched = operator_on(new_page, server, "Second Op", seq_id, "10-narrow-12deg-ghosts-overtaken")
+    page = watched.page
+    page.locator("#candidate-rows tr[data-rank='2']").click()
+    page.click("#confirm")
+    expect_visible(page.locator("#override-step"))
+    page.fill("#override-reason", "rank 1 is a ghost pattern")
+    hold_back_polling(page)
+    first = api(f"/api/sequences/{seq_id}/confirm", "POST", body={"rank": 1, "operator": "First Op"})
+    page.click("#confirm-override")
+    said = (f"Not confirmed: another console gave the verdict first: attitude #{first['id']} (rank 1) confirmed by "
+            f"First Op at {utc_text(first['confirmed_at'])}. To replace it, confirm again (the replaced verdict "
+            "stays in the audit trail)")
+    expect_text(page.locator("#toast"), f"^{re.escape(said)}$")
+    expect_visible(page.locator("#override-step"), False)
+    review = api(f"/api/sequences/{seq_id}/review")
+    assert review["confirmation"]["id"] == first["id"] and len(review["audit"]) == 1
     assert unexpected_errors(watched) == []

@@ -17,15 +17,10 @@ from playwright.sync_api import expect
 
 from test_console_sessions import (SAMPLES, expect_in_viewport, expect_text, expect_value, expect_visible, fresh_copy,
                                    hold_back_polling, open_sequence, operator_on, supersede_rank_2_with_rank_1,
-                                   unexpected_errors, upload_and_search)
+                                   unexpected_errors, upload_and_search, utc_text)
 
 VIEWER_TIMEOUT_MS = 40_000
 SCREENSHOTS = Path(__file__).resolve().parents[2] / "test-artifacts" / "screenshots"
-
-
-def utc_text(api_time: str) -> str:
-    """An API time as the console prints it (static/js/dom.js fmtTime): ``2026-11-23 18:57:41Z``."""
-    return re.sub(r"\.\d+Z$", "Z", api_time.replace("T", " "))
 
 
 def open_viewer(new_page, api, session: str):
