@@ -21,6 +21,7 @@ from app.api import create_app
 from app.attitude import angle_between, rotation_from_radec_roll
 from app.storage import Storage
 from app.workflow import AppContext
+from app.workflow.documents import SearchResult
 from kvn_reader import parse_kvn
 
 
@@ -222,6 +223,25 @@ def test_the_queue_puts_what_needs_an_operator_first(env):
     bad = client.get("/api/sequences", params={"order": "random"})
     assert bad.status_code == 422 and bad.json()["problems"][0]["location"] == "query.order"
     assert client.get("/api/spacecraft").json() == [{"name": "SIM-TUBSAT", "sequences": 4}]
+
+
+def test_a_best_candidate_chance_explains_is_never_credible_whatever_the_status(env):
+    """The review does not take a search's status on trust: a best candidate matching 2 of 10 points with a
+    false-match probability of 1 (what tracking once called identified) needs the second step and a reason;
+    one that explains every point of its pattern (tracking's two-point patterns) does not."""
+    from app.workflow.review import candidate_verdicts
+
+    client, _, ids = env
+    search = SearchResult.model_validate(client.get(f"/api/sequences/{ids['02-ghosts-hot-pixels.json']}").json()["search"])
+    assert search.status == "identified" and candidate_verdicts(search, search.pattern_version)[0].credible
+    best = search.candidates[0]
+    chance = search.model_copy(update={"candidates": [best.model_copy(update={
+        "false_match_probability": 1.0, "n_matched": 2, "matches": best.matches[:2]})]})
+    verdict = candidate_verdicts(chance, search.pattern_version)[0]
+    assert not verdict.credible
+    assert any("above the 'identified' threshold" in r for r in verdict.reasons)
+    two_points = chance.model_copy(update={"pattern": chance.pattern[:2]})
+    assert candidate_verdicts(two_points, search.pattern_version)[0].credible
 
 
 def test_bulk_aem_holds_one_segment_per_confirmed_sequence_in_the_range(env):

@@ -102,3 +102,23 @@ def test_tracking_refuses_a_prior_far_from_the_truth(sky):
     prior = rotation_from_radec_roll(200.0, -40.0, 0.0)
     solution = track(pattern, camera, T, sky, prior, prior_sigma_deg=0.5)
     assert solution.status != IDENTIFIED
+
+
+def test_two_matches_among_ten_points_near_a_wide_prior_are_not_identified(sky, sample_dir):
+    """A hostile-input trial: 04-big-dipper's first snapshot (10 points) tracked from a prior 10 deg wide
+    and 90 deg off in roll found an attitude 9 deg from the truth matching 2 of the 10 points, false-match
+    probability 1, and called it identified (two matches sufficed whatever the pattern's size).  Two matches
+    suffice for a pattern of two points only; here chance explains them."""
+    from dataclasses import replace as replaced
+
+    from app.identification import Prior, solve_sequence
+    from app.telemetry import load_telemetry_file
+
+    sequence = load_telemetry_file(sample_dir / "04-big-dipper.json")
+    sequence = sequence if hasattr(sequence, "snapshots") else sequence[0]
+    one = replaced(sequence, snapshots=sequence.snapshots[:1])
+    solved = solve_sequence(one, sky, prior=Prior(rotation_from_radec_roll(165.0, 56.0, 0.0), sigma_deg=10.0),
+                            method="tracking")
+    best = solved.solution.candidates[0]
+    assert (best.n_matched, len(solved.pattern.vectors)) == (2, 10) and best.false_match_probability == 1.0
+    assert solved.solution.status != IDENTIFIED

@@ -11,7 +11,8 @@ estimate, PE; FUSE's "known tracking").
    with a tolerance shrinking to the points' noise (the same routine as
    lost-in-space identification, :func:`app.identification.verify.refine`).
 
-Two matched stars fix an attitude, so tracking works with as few as two.
+Two matched stars fix an attitude, so tracking works with a pattern of as few as two points; a
+larger pattern must pass the false-match test as lost-in-space answers do.
 """
 
 from __future__ import annotations
@@ -80,14 +81,15 @@ def identify_near_prior(pattern, camera: Camera, t: datetime, sky: Sky, prior_ro
     # Each voted pairing was a hypothesis: they all enter the false-match probability.
     candidate = replace(build_candidate(r, p, sky, tol=agree, n_hypotheses=len(cand), options=options), rank=1)
     fmp = candidate.false_match_probability
-    # With a prior the question is only "which nearby star", so two matches
-    # that agree with the prior suffice; a third must pass the usual test.
+    # With a prior the question is only "which nearby star", so a pattern of two points that both match
+    # in agreement with the prior is identified; any other must pass the usual test (two matches among
+    # ten points are what a wide prior finds by chance: false-match probability 1).
     moved = float(angle_between(r.rotation[2], prior[2]))
     # FUSE's roll check: the roll about the boresight must agree with the prior's.
     turn = r.rotation @ prior.T
     roll_change = abs(float(np.degrees(np.arctan2(turn[0, 1] - turn[1, 0], turn[0, 0] + turn[1, 1]))))
     consistent = moved <= search and roll_change <= max(options.max_roll_change_deg, 3 * prior_sigma_deg)
-    if consistent and (len(matched) == 2 or fmp <= options.identified_probability):
+    if consistent and (len(matched) == p.m == 2 or fmp <= options.identified_probability):
         status = IDENTIFIED
     else:
         status = AMBIGUOUS

@@ -63,7 +63,11 @@ def candidate_verdicts(result: SearchResult, current_version: int | None,
     stale = result.pattern_version != current_version
     verdicts = []
     for c in candidates:
-        credible = c.rank == best.rank and result.status == "identified" and not stale
+        # Chance must not explain it, or it must explain every point (tracking's two-point patterns): a
+        # search's status alone is not trusted with what an operator confirms in one click.
+        beyond_chance = (c.false_match_probability <= options.identified_probability
+                         or c.n_matched == n_points)
+        credible = c.rank == best.rank and result.status == "identified" and not stale and beyond_chance
         reasons: list[str] = []
         if not credible:
             if stale:
