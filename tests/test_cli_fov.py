@@ -18,8 +18,6 @@ import pytest
 from app.attitude import angle_between
 from app.camera import CAMERAS
 from app.cli import main as cli_main
-from app.cli import upload as upload_cli
-from app.frames.images import ALL_SUFFIXES
 from app.simulate import frames_fits_bytes, simulate_frames
 
 CAMERA = CAMERAS["tubsat-752x582-20deg"]
@@ -99,10 +97,6 @@ def test_a_bad_fov_deg_is_refused_at_the_option(command, value, bare_pass, capsy
     err = capsys.readouterr().err
     assert f"argument --fov-deg: must be a number from 0.1 to 120 degrees, got '{value}'" in err
     assert "Traceback" not in err
-
-
-def test_the_upload_command_knows_the_image_suffixes_of_the_reader():
-    assert set(upload_cli.IMAGE_SUFFIXES) == set(ALL_SUFFIXES)
 
 
 # ---------------------------------------------------------------------------

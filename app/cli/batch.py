@@ -18,7 +18,8 @@ from the same content, ``input_sha256``; sequences whose latest search would
 be reused) and solves again a file changed since its line, replacing it;
 ``--redo`` starts the JSON-lines output afresh.  By default a
 local cluster of ``--workers`` processes (one per core) runs the work;
-``--scheduler tcp://host:8786`` uses an existing Dask cluster, whose workers need this
+``--scheduler tcp://host:8786`` uses an existing Dask cluster (one whose scheduler does not answer within
+20 s, :data:`app.workflow.batch.SCHEDULER_CONNECT_TIMEOUT_S`, is reported), whose workers need this
 package installed, the files at the same paths (shared storage) and, to
 store results, a ``postgresql://`` archive they can reach.  A progress bar goes to stderr, then the figures: how
 many were done and skipped, and sequences per second (start-up excluded).
@@ -36,6 +37,7 @@ import sys
 from pathlib import Path
 
 from app.cli.upload import BAR_WIDTH, inputs, progress_bar, truth_note
+from app.filenames import special_file
 
 METHODS = ("bright_pair", "tf")
 
@@ -83,6 +85,10 @@ def run(args: argparse.Namespace) -> int:
     if missing:  # before a cluster starts for nothing (the workers read the paths the driver sees)
         print(f"batch: no such file or directory: {', '.join(missing[:5])}{' ...' if len(missing) > 5 else ''}",
               file=sys.stderr)
+        return 2
+    special = [f"{p}: not a regular file ({kind})" for p in args.paths if (kind := special_file(p))]
+    if special:  # a device or FIFO: reading it never ends (a folder's files are regular ones)
+        print(f"batch: {'; '.join(special[:5])}{' ...' if len(special) > 5 else ''}", file=sys.stderr)
         return 2
     paths = None
     if args.paths:

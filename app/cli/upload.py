@@ -19,7 +19,9 @@ and sequence id (the same pass sent before in other bytes, e.g. CRLF line
 endings or a byte-order mark: uploads are told apart by their exact
 bytes).  The server is asked for its health first, which checks the URL
 (``--server`` is the server's base URL, without ``/api``) and gives the size limit, so that files above it are
-reported without being sent.  One file's failure never stops the folder;
+reported without being sent (and none is read past it).  A device, FIFO or socket named as a file
+(``/dev/zero``, a pipe) is refused unsent, before the server is asked anything: it has no size to
+check, and reading it never ends or waits for a writer.  One file's failure never stops the folder;
 only a server that cannot be reached at all does.  Exit status 0 when every
 file was accepted, 2 when some were refused, 1 when the server could not
 be reached (or is not a starid server).
@@ -43,15 +45,10 @@ import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
-SUFFIXES = (".json", ".csv")
-#: Image files (app.frames.images.ALL_SUFFIXES; repeated so that this command needs only the standard library).
-IMAGE_SUFFIXES = (".fits", ".fit", ".fts", ".fits.gz", ".fit.gz", ".png", ".jpg", ".jpeg", ".tif", ".tiff")
-#: A folder's sidecar, and a single image's (``<stem>.frames.json``).
-FOLDER_SIDECAR = "frames.json"
-SIDECAR_SUFFIX = ".frames.json"
-#: The simulator's answers beside its telemetry, left out (app.workflow.files.TRUTH_SUFFIX, repeated for the
-#: same reason).
-TRUTH_SUFFIX = ".truth.json"
+# What files are, by name and kind: the rule every interface follows (a standard-library module).
+from app.filenames import (FOLDER_SIDECAR, IMAGE_SUFFIXES, SPOT_LIST_SUFFIXES, TRUTH_SUFFIX, image_sidecar,
+                           special_file)
+
 #: --fov-deg's bounds (the API's fov_deg field).
 FOV_MIN_DEG, FOV_MAX_DEG = 0.1, 120.0
 #: A file answered 503 (the server was busy past its time-out; nothing was stored) is sent again this
@@ -65,7 +62,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("paths", nargs="+", metavar="DIR_OR_FILE", help="telemetry files or directories of them")
     p.add_argument("--server", required=True, metavar="URL", help="server base URL, e.g. http://127.0.0.1:8000")
     p.add_argument("--token", default=None, help="bearer token (needed when the server is not on loopback)")
-    p.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for each upload (default 60)")
+    p.add_argument("--timeout", type=timeout_s, default=60.0, metavar="SECONDS",
+                   help="seconds to wait for each upload, a positive number (default 60)")
     p.add_argument("--fov-deg", type=fov_deg, default=None, metavar="DEG",
                    help="horizontal field of view of the image passes, degrees (0.1 to 120, known to +-5 %%; "
                         "wins over a sidecar's camera and the FITS header's optics); a spot-list file given "
@@ -84,18 +82,33 @@ def fov_deg(text: str) -> float:
     return value
 
 
+def timeout_s(text: str) -> float:
+    """``--timeout``: a positive, finite number of seconds.  The socket module refuses a negative, NaN or
+    infinite time-out with a traceback, and takes 0 as "never wait", which fails every connection."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text!r}")
+    return value
+
+
+def special_inputs(files: list[Path | FramePass]) -> tuple[list[Path | FramePass], list[str]]:
+    """``(the inputs to send, a line per input refused unsent)``: a file named on the command line that is
+    a device, FIFO or socket (see :func:`special_file`; a folder's files are regular already)."""
+    kept, refused = [], []
+    for item in files:
+        kinds = [(path, special_file(path)) for path in (item.images if isinstance(item, FramePass) else (item,))]
+        problems = [f"{path}: invalid (not sent): not a regular file ({kind})" for path, kind in kinds if kind]
+        refused += problems
+        if not problems:
+            kept.append(item)
+    return kept, refused
+
+
 def is_image(path: Path) -> bool:
     return path.name.lower().endswith(IMAGE_SUFFIXES)
-
-
-def _image_sidecar(image: Path) -> Path | None:
-    """``<stem>.frames.json`` beside a single image, if it exists."""
-    name = image.name
-    for suffix in sorted(IMAGE_SUFFIXES, key=len, reverse=True):
-        if name.lower().endswith(suffix):
-            sidecar = image.with_name(name[: -len(suffix)] + SIDECAR_SUFFIX)
-            return sidecar if sidecar.is_file() else None
-    return None
 
 
 @dataclass(frozen=True)
@@ -126,11 +139,11 @@ def inputs(paths: list[str]) -> tuple[list[Path | FramePass], list[Path]]:
             if images:
                 files.append(FramePass(path, images, sidecar if sidecar.is_file() else None))
             spot_lists = [p for p in entries
-                          if p.suffix.lower() in SUFFIXES and not (images and p.name == FOLDER_SIDECAR)]
+                          if p.suffix.lower() in SPOT_LIST_SUFFIXES and not (images and p.name == FOLDER_SIDECAR)]
             truth += [p for p in spot_lists if p.name.lower().endswith(TRUTH_SUFFIX)]
             files += [p for p in spot_lists if not p.name.lower().endswith(TRUTH_SUFFIX)]
         elif is_image(path):
-            files.append(FramePass(path, (path,), _image_sidecar(path)))
+            files.append(FramePass(path, (path,), sidecar if (sidecar := image_sidecar(path)).is_file() else None))
         elif path.name.lower().endswith(TRUTH_SUFFIX):
             truth.append(path)
         else:
@@ -211,7 +224,8 @@ def upload_one(server: str, path: Path, token: str | None, timeout: float,
     """POST the file as a raw body; (HTTP status, JSON answer, error text).
 
     A file above ``max_bytes`` (the server's limit) is not sent: it is
-    answered here as the server would, 413.  Raises
+    answered here as the server would, 413; no more than one byte past
+    the limit is read, whatever ``stat`` said.  Raises
     :class:`ServerUnreachable` only when no server answers at all; trouble
     with this one request (a reset, a time-out) is this file's error.
     """
@@ -219,7 +233,10 @@ def upload_one(server: str, path: Path, token: str | None, timeout: float,
         size = path.stat().st_size
         if max_bytes is not None and size > max_bytes:
             return 413, {"detail": f"the file is {size} bytes; the server accepts at most {max_bytes}"}, None
-        data = path.read_bytes()
+        with path.open("rb") as stream:  # one byte past the limit at most: the file may have grown since stat
+            data = stream.read() if max_bytes is None else stream.read(max_bytes + 1)
+        if max_bytes is not None and len(data) > max_bytes:
+            return 413, {"detail": f"the file is over {max_bytes} bytes; the server accepts at most {max_bytes}"}, None
     except OSError as exc:
         return None, None, f"cannot read the file: {exc.strerror or exc}"
     media = "text/csv" if path.suffix.lower() == ".csv" else "application/json"
@@ -293,8 +310,12 @@ def run(args: argparse.Namespace) -> int:
     files, truth = inputs(args.paths)
     if truth:
         print(truth_note(len(truth)), file=sys.stderr)
+    files, special = special_inputs(files)  # before the server is asked anything: reading them never ends
+    for line in special:
+        print(line, flush=True)
     if not files:
-        print("upload: no .json, .csv or image files found", file=sys.stderr)
+        if not special:
+            print("upload: no .json, .csv or image files found", file=sys.stderr)
         return 2
     fov = getattr(args, "fov_deg", None)
     interactive = sys.stderr.isatty()
@@ -304,7 +325,7 @@ def run(args: argparse.Namespace) -> int:
     except ServerUnreachable as exc:
         print(f"upload: {exc}", file=sys.stderr)
         return 1
-    counts = {"created": 0, "duplicate": 0, "refused": 0}
+    counts = {"created": 0, "duplicate": 0, "refused": len(special)}
     for k, item in enumerate(files):
         path = item.label if isinstance(item, FramePass) else item
         sys.stderr.write(progress_bar(k, len(files), path.name) + end)
@@ -336,6 +357,7 @@ def run(args: argparse.Namespace) -> int:
         print(line, flush=True)
         counts["created" if status == 201 else "duplicate" if status == 200 else "refused"] += 1
     sys.stderr.write(progress_bar(len(files), len(files), "done") + "\n")
-    print(f"{len(files)} file{'s' * (len(files) != 1)}: {counts['created']} created, {counts['duplicate']} duplicate, "
+    total = len(files) + len(special)
+    print(f"{total} file{'s' * (total != 1)}: {counts['created']} created, {counts['duplicate']} duplicate, "
           f"{counts['refused']} refused", file=sys.stderr)
     return 0 if counts["refused"] == 0 else 2

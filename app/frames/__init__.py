@@ -13,9 +13,9 @@ from app.frames.assemble import (FramePass, FramesTimeout, Sidecar, camera_for_f
                                  frames_to_sequence, parse_sidecar)
 from app.frames.detect import DetectionError, DetectionOptions, Detections, detect
 from app.frames.hotpixels import HotPixelMap, drop_hot_pixel_sources, near_hot_pixel
-from app.frames.images import ALL_SUFFIXES, Frame, FrameLimits, looks_like_image, peek_frame, read_frames
+from app.frames.images import Frame, FrameLimits, looks_like_image, peek_frame, read_frames
 
-__all__ = ["ALL_SUFFIXES", "DetectionError", "DetectionOptions", "Detections", "Frame", "FrameLimits", "FramePass",
+__all__ = ["DetectionError", "DetectionOptions", "Detections", "Frame", "FrameLimits", "FramePass",
            "FramesTimeout", "HotPixelMap", "Sidecar", "camera_for_fov", "detect", "drop_hot_pixel_sources",
            "frames_content_sha256", "frames_to_sequence", "looks_like_image", "near_hot_pixel", "parse_sidecar", "peek_frame",
            "read_frames"]

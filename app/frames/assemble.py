@@ -28,6 +28,7 @@ from datetime import datetime, timezone
 
 import numpy as np
 
+from app.camera import CAMERAS
 from app.frames.detect import DetectionError, DetectionOptions, Detections, detect
 from app.frames.hotpixels import HotPixelMap, near_hot_pixel, stationary_candidates
 from app.frames.images import Frame, FrameLimits, file_sha256, read_frames
@@ -359,13 +360,10 @@ def _camera_block(sidecar: Sidecar, fov_deg: float | None, meta: dict, width: in
             raise TelemetryError.at("fov_deg", f"must be a number from 0.1 to 120 degrees, got {fov_deg!r}")
         return camera_for_fov(width, height, float(fov_deg)), f"fov_deg {float(fov_deg):g}"
     if isinstance(sidecar.camera, dict):
-        problems = ProblemCollector()
-        for key, size in (("width", width), ("height", height)):
-            if key in sidecar.camera and sidecar.camera[key] != size:
-                problems.add(f"sidecar.camera.{key}", f"{sidecar.camera[key]!r}, but the frames are {width} x {height}")
-        problems.raise_if_any()
+        _check_camera_object(sidecar.camera, width, height)
         return {"width": width, "height": height, **sidecar.camera}, "sidecar camera"
     if isinstance(sidecar.camera, str):
+        _check_named_camera(sidecar.camera, width, height)
         return sidecar.camera, f"camera {sidecar.camera}"
     if sidecar.fov_deg is not None:
         return camera_for_fov(width, height, sidecar.fov_deg), f"sidecar fov_deg {sidecar.fov_deg:g}"
@@ -376,6 +374,27 @@ def _camera_block(sidecar: Sidecar, fov_deg: float | None, meta: dict, width: in
     raise TelemetryError.at("camera", "the optics are unknown: give a camera block or fov_deg in the sidecar "
                                       "(or the fov_deg field / --fov-deg), or FOCALLEN and XPIXSZ or a WCS "
                                       "scale in the FITS header")
+
+
+def _check_camera_object(camera: dict, width: int, height: int) -> None:
+    """A sidecar camera block's width and height, when given, must be the frames': its focal length and
+    principal point are in its pixels, so on frames of another size every position would be wrong."""
+    problems = ProblemCollector()
+    for key, size in (("width", width), ("height", height)):
+        if key in camera and camera[key] != size:
+            problems.add(f"sidecar.camera.{key}", f"{camera[key]!r}, but the frames are {width} x {height}")
+    problems.raise_if_any()
+
+
+def _check_named_camera(name: str, width: int, height: int) -> None:
+    """A built-in camera named by the sidecar must have the frames' size, for the same reason as a camera
+    block: otherwise a larger camera is stored with the wrong geometry, and a smaller one is refused at
+    detected blobs "outside the sensor", which the user never wrote.  An unknown name is left to the
+    document's validation, which lists the known cameras (located at ``sidecar.camera`` too)."""
+    camera = CAMERAS.get(name)
+    if camera is not None and (camera.width, camera.height) != (width, height):
+        raise TelemetryError.at("sidecar.camera", f"{name} is {camera.width} x {camera.height}, "
+                                                  f"but the frames are {width} x {height}")
 
 
 def _relocated(exc: TelemetryError, camera_from_sidecar: bool) -> TelemetryError:

@@ -149,7 +149,9 @@ def detect(pixels: np.ndarray, options: DetectionOptions = DetectionOptions(), *
     """Find, classify and centroid the blobs of one frame (see the module's steps)."""
     import sep
 
-    raw = np.ascontiguousarray(pixels, dtype=np.float32)
+    # Writable: sep takes the frame as a writable buffer, and a caller's read-only array (a view of a
+    # decoded image's buffer) is copied rather than refused with sep's "buffer source array is read-only".
+    raw = np.require(pixels, dtype=np.float32, requirements=["C_CONTIGUOUS", "WRITEABLE"])
     data = replace_pixels(raw, hot_pixels or [])
     box = int(max(8, min(options.background_box_px, min(data.shape) // 2)))
     try:

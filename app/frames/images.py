@@ -1,4 +1,4 @@
-"""Reading star-camera frames: FITS (astropy) and PNG/JPEG/TIFF, 8 and 16 bit (Pillow).
+"""Reading star-camera frames: FITS (astropy) and PNG/JPEG/TIFF, 8 and 16 bit, TIFF also 32-bit float (Pillow).
 
 :func:`read_frames` turns one file's bytes into :class:`Frame` objects, one per
 image: a FITS file gives one frame per image HDU (a multi-extension FITS is a
@@ -43,12 +43,9 @@ from datetime import datetime, timedelta, timezone
 import numpy as np
 
 from app.config import MAX_SNAPSHOTS
+from app.filenames import FITS_SUFFIXES, IMAGE_SUFFIXES
 from app.telemetry.errors import TelemetryError
 
-#: File name endings read as images (lower case).
-FITS_SUFFIXES = (".fits", ".fit", ".fts", ".fits.gz", ".fit.gz")
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
-ALL_SUFFIXES = FITS_SUFFIXES + IMAGE_SUFFIXES
 _FITS_MAGIC = b"SIMPLE  ="
 _GZIP_MAGIC = b"\x1f\x8b"
 
@@ -116,7 +113,7 @@ class Frame:
 def looks_like_image(name: str, head: bytes = b"") -> bool:
     """True for a file name ending like an image, or bytes starting like FITS, PNG, JPEG or TIFF."""
     lower = name.lower()
-    if lower.endswith(ALL_SUFFIXES):
+    if lower.endswith(IMAGE_SUFFIXES):
         return True
     return head.startswith((_FITS_MAGIC, b"\x89PNG", b"\xff\xd8\xff", b"II*\x00", b"MM\x00*"))
 
@@ -338,14 +335,26 @@ def _pillow_pixels(image, location: str) -> tuple[np.ndarray, int, float | None]
                 array = np.asarray(image, dtype=np.float64)
                 top = float(array.max()) if array.size else 0.0
                 return array.astype(np.float32), 32, 65535.0 if 0 <= top <= 65535 else None
-            if mode == "F":
-                return np.asarray(image, dtype=np.float32), -32, None
+            if mode == "F":  # 32-bit float (TIFF SampleFormat 3): copied, see _float_pixels
+                return _float_pixels(image), -32, None
             if mode in ("L", "1", "P", "LA", "PA", "RGB", "RGBA", "RGBX", "CMYK", "YCbCr", "LAB", "HSV"):
                 grey = image if mode == "L" else image.convert("L")  # luminance (ITU-R 601)
                 return np.asarray(grey, dtype=np.float32), 8, 255.0
     except Exception as exc:  # noqa: BLE001 - truncated files, broken compression
         raise TelemetryError.at(location, f"the image data cannot be decoded ({_reason(exc)})") from None
-    raise TelemetryError.at(location, f"pixel mode {mode!r} is not supported: greyscale or RGB, 8 or 16 bit")
+    raise TelemetryError.at(location, f"pixel mode {mode!r} is not supported: greyscale or RGB, 8 or 16 bit, "
+                                      "or greyscale 32-bit integer or float")
+
+
+def _float_pixels(image) -> np.ndarray:
+    """A float image's pixels as an array of their own.
+
+    ``np.asarray`` of a Pillow image already in float32 is a read-only view of
+    Pillow's buffer (no conversion, so no copy), and the detector (sep) takes
+    the frame as a writable buffer: it failed with "buffer source array is
+    read-only".
+    """
+    return np.array(image, dtype=np.float32, copy=True)
 
 
 # ---------------------------------------------------------------------------

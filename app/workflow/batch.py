@@ -80,6 +80,10 @@ MAX_CHUNK = 16
 TASKS_PER_THREAD = 3
 #: Seconds to wait for a cluster's workers (an existing cluster) and for their start-up.
 CLUSTER_TIMEOUT_S = 300.0
+#: Seconds to wait for the scheduler of an existing cluster to answer (Dask retries a refused connection until
+#: then): a running scheduler answers within a second, even across a slow network, so 20 s leaves room for
+#: one that is just starting while a wrong address or a stopped scheduler is told within the time a user waits.
+SCHEDULER_CONNECT_TIMEOUT_S = 20.0
 #: Dask settings of a local cluster: its workers' statistical profiler (which samples every thread's stack
 #: every 10 ms for a dashboard this cluster does not serve), and its monitors' ticks, cost a few percent of
 #: every core and the scheduler's share of the driver's core: measured on 2 cores, the driver's process
@@ -271,6 +275,19 @@ class Cluster:
             self.local.close()
 
 
+def connect(scheduler: str) -> Client:
+    """A client of the scheduler at ``scheduler``; OSError naming it when it does not answer within
+    :data:`SCHEDULER_CONNECT_TIMEOUT_S`, ValueError when it is no scheduler address."""
+    try:
+        return Client(scheduler, timeout=SCHEDULER_CONNECT_TIMEOUT_S)
+    except ValueError as exc:  # e.g. "unknown address scheme 'http'"
+        raise ValueError(f"the scheduler address {scheduler!r} is not a Dask one: {exc}; "
+                         "give e.g. tcp://host:8786") from None
+    except OSError:  # TimeoutError too: refused, unknown host or no answer, retried until the time-out
+        raise OSError(f"no Dask scheduler answered at {scheduler} within {SCHEDULER_CONNECT_TIMEOUT_S:g} s: "
+                      "is it running, and is the address right (e.g. tcp://host:8786)?") from None
+
+
 def start_cluster(scheduler: str | None = None, workers: int = 1) -> Cluster:
     """A local cluster of ``workers`` single-threaded processes, or the cluster at ``scheduler``
     (``tcp://host:8786``); returns once every worker has loaded the catalogue."""
@@ -280,7 +297,7 @@ def start_cluster(scheduler: str | None = None, workers: int = 1) -> Cluster:
         logging.getLogger(name).setLevel(logging.WARNING)
     local = None
     if scheduler:
-        client = Client(scheduler, timeout=CLUSTER_TIMEOUT_S)
+        client = connect(scheduler)
         client.wait_for_workers(1, timeout=CLUSTER_TIMEOUT_S)
     else:
         with dask.config.set(LOCAL_CLUSTER_CONFIG):  # the workers take the configuration when they start

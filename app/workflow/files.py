@@ -15,6 +15,7 @@ from pathlib import Path
 
 from app.attitude import rotation_angle_between
 from app.extraction import extract
+from app.filenames import FOLDER_SIDECAR, SPOT_LIST_SUFFIXES, TRUTH_SUFFIX, image_sidecar, special_file
 from app.identification import NO_MATCH, Prior, SearchOptions, Sky, solve_sequence, source_stars
 from app.telemetry import Sequence
 from app.telemetry.errors import TelemetryError
@@ -25,11 +26,6 @@ from app.workflow.documents import (CandidateDocument, ExtractDocument, Extracti
 #: Two first candidates closer than this (rotation angle) are the same attitude.
 AGREE_DEG = 0.1
 
-
-#: The simulator's truth files (``<id>.truth.json`` beside each sequence): never telemetry.
-TRUTH_SUFFIX = ".truth.json"
-#: Spot-list files a folder is read for.
-SPOT_LIST_SUFFIXES = (".json", ".csv")
 #: A folder with nothing to read.
 EMPTY_FOLDER = "the folder holds no telemetry (.json, .csv) and no frames (FITS, PNG, JPEG, TIFF)"
 
@@ -42,7 +38,7 @@ def input_files(paths: list[str]) -> tuple[list[str], list[str]]:
     (a shell glob such as ``sample_telemetry/*.json`` takes them in).  A folder with nothing to
     read stays an input, so that it is reported (:data:`EMPTY_FOLDER`).
     """
-    from app.workflow.frames import FOLDER_SIDECAR, is_frames_path
+    from app.workflow.frames import is_frames_path
 
     inputs, truth = [], []
     for raw in paths:
@@ -93,6 +89,9 @@ def _load(path: str, fov_deg: float | None) -> Sequence:
     """Spot-list telemetry, or (an image file, a folder of images) the pass of frames it holds."""
     from app.workflow.frames import frames_sequence_from_path, is_frames_path
 
+    kind = special_file(path)
+    if kind is not None:  # before anything opens it (is_frames_path reads its first bytes)
+        raise TelemetryError.at("file", f"not a regular file ({kind})", filename=path)
     if not is_frames_path(path):
         if Path(path).is_dir():
             raise TelemetryError.at("folder", EMPTY_FOLDER, filename=path)
@@ -111,10 +110,13 @@ def input_sha256(path: str) -> str | None:
     """SHA-256 of everything an input may be read from, to tell a changed input from one answered before:
     a file's bytes (an image's with the sidecars it may take, ``<stem>.frames.json`` and its folder's
     ``frames.json``); a folder's files, each by name and bytes, in name order.  Taking in a file the input
-    may not need only makes a re-run redo it; None when it cannot be read (it is reported when processed).
+    may not need only makes a re-run redo it; None when it cannot be read, or is a device, FIFO or socket
+    (:func:`special_file`: hashing it would never end); it is reported when processed.
     """
-    from app.workflow.frames import FOLDER_SIDECAR, image_sidecar, is_frames_path
+    from app.workflow.frames import is_frames_path
 
+    if special_file(path) is not None:
+        return None
     source = Path(path)
     try:
         if source.is_dir():

@@ -38,7 +38,8 @@ from app.frames import (Detections, FrameLimits, FramePass, FramesTimeout, HotPi
                         drop_hot_pixel_sources, frames_content_sha256, frames_to_sequence, looks_like_image,
                         near_hot_pixel, parse_sidecar, peek_frame, read_frames)
 from app.frames.detect import REJECTING_FLAGS, DetectionOptions
-from app.frames.images import ALL_SUFFIXES, file_sha256
+from app.filenames import FOLDER_SIDECAR, IMAGE_SUFFIXES, SIDECAR_SUFFIX, image_sidecar
+from app.frames.images import file_sha256
 from app.storage import MAX_PREVIEW_PNG_BYTES, StaleHotPixelMap
 from app.telemetry import Sequence
 from app.telemetry.errors import Problem, TelemetryError
@@ -49,8 +50,6 @@ from app.workflow.errors import Busy, NotFound
 
 log = logging.getLogger(__name__)
 
-#: The sidecar's name inside a folder of frames; beside a single file it is ``<stem>.frames.json``.
-FOLDER_SIDECAR = "frames.json"
 SIDECAR_SUFFIX = ".frames.json"
 #: Tries at storing a hot-pixel map when other uploads of the same camera store theirs at once.
 MAP_STORE_TRIES = 5
@@ -467,27 +466,16 @@ def is_frames_path(path: str) -> bool:
     """True for an image file, or a folder holding image files (what ``extract``/``solve`` read as frames)."""
     if os.path.isdir(path):
         try:
-            return any(name.lower().endswith(ALL_SUFFIXES) for name in os.listdir(path))
+            return any(name.lower().endswith(IMAGE_SUFFIXES) for name in os.listdir(path))
         except OSError:
             return False
-    if path.lower().endswith(ALL_SUFFIXES):
+    if path.lower().endswith(IMAGE_SUFFIXES):
         return True
     try:
         with open(path, "rb") as stream:
             return looks_like_image(path, stream.read(16))
     except OSError:
         return False
-
-
-def image_sidecar(image: Path) -> Path:
-    """A single image's own sidecar, ``<stem>.frames.json`` beside it (the stem: the name less its image
-    suffix, ``.fits.gz`` whole)."""
-    base = image.name
-    for suffix in sorted(ALL_SUFFIXES, key=len, reverse=True):
-        if base.lower().endswith(suffix):
-            base = base[: -len(suffix)]
-            break
-    return image.with_name(base + SIDECAR_SUFFIX)
 
 
 def frames_sequence_from_path(path: str, *, fov_deg: float | None = None) -> Sequence:
@@ -501,7 +489,7 @@ def frames_sequence_from_path(path: str, *, fov_deg: float | None = None) -> Seq
     folder = Path(path)
     try:
         if folder.is_dir():
-            images = sorted(p for p in folder.iterdir() if p.is_file() and p.name.lower().endswith(ALL_SUFFIXES))
+            images = sorted(p for p in folder.iterdir() if p.is_file() and p.name.lower().endswith(IMAGE_SUFFIXES))
             if not images:
                 raise TelemetryError.at("file", "the folder holds no FITS, PNG, JPEG or TIFF file")
             sidecar_path = folder / FOLDER_SIDECAR

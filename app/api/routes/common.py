@@ -21,7 +21,8 @@ from app.workflow.documents import UploadDocument
 #: An oversized body is read and thrown away up to this many bytes, so that a client that sends its
 #: whole body before reading the answer (Python's urllib, our `upload` command) reads the 413
 #: instead of "connection reset by peer"; beyond it the connection is closed (the client may then
-#: see the reset, but nobody makes the server read gigabytes).
+#: see the reset, but nobody makes the server read gigabytes).  It bounds the draining of a refused
+#: body only: an endpoint whose own limit is larger (frames, 128 MiB) reads bodies up to that limit.
 DRAIN_LIMIT_BYTES = 64 * 1024 * 1024
 #: How long a body may take to arrive, and how long an oversized one is drained, seconds.
 BODY_READ_TIMEOUT_S = 60.0
@@ -94,31 +95,44 @@ def attachment(text: str, filename: str) -> PlainTextResponse:
                              headers={"Content-Disposition": f'attachment; filename="{filename}"'})
 
 
-def too_large(limit: int, close: bool = False) -> ApiError:
-    return ApiError(413, f"the upload is larger than the limit of {limit} bytes",
+def too_large(limit: int, close: bool = False, setting: str | None = None) -> ApiError:
+    """The 413, stating the limit the body exceeded (and the setting that sets it, when there is one)."""
+    where = f" ({setting})" if setting else ""
+    return ApiError(413, f"the upload is larger than the limit of {limit} bytes{where}",
                     headers={"Connection": "close"} if close else None)
 
 
-async def read_body_limited(request: Request, limit: int, reported_limit: int | None = None) -> bytes:
+def _declared_length(request: Request) -> int | None:
+    """The body size the client declared (Content-Length), None when it declared none."""
+    declared = request.headers.get("content-length", "")
+    return int(declared) if declared.isdigit() else None
+
+
+async def read_body_limited(request: Request, limit: int, reported_limit: int | None = None,
+                            setting: str | None = None) -> bytes:
     """The request body, refusing (413) once it exceeds ``limit`` bytes, keeping at most ``limit`` in memory.
 
-    The rest of an oversized body is read and discarded (up to
-    :data:`DRAIN_LIMIT_BYTES` and :data:`DRAIN_TIMEOUT_S`) before the 413 is
-    sent: many clients write the whole body before they read anything, and
-    a server that answers and closes early makes them fail with "connection
-    reset by peer" instead of showing the 413.  A body declared larger than
-    the drain limit is refused at once.  A body that takes longer than
-    :data:`BODY_READ_TIMEOUT_S` to arrive is refused with 408.
+    ``limit`` is the endpoint's own and the only size that decides: a body
+    within it is read whatever its size.  The rest of an oversized body is
+    read and discarded (until :data:`DRAIN_LIMIT_BYTES` have been read, for at
+    most :data:`DRAIN_TIMEOUT_S`) before the 413 is sent: many clients write
+    the whole body before they read anything, and a server that answers and
+    closes early makes them fail with "connection reset by peer" instead of
+    showing the 413.  A body declared larger than both ``limit`` and the
+    drain limit is refused at once (draining it would mean reading it).  The
+    413 states ``reported_limit`` (the limit the user sets, without room
+    for multipart framing) and ``setting``, its name.  A body that takes
+    longer than :data:`BODY_READ_TIMEOUT_S` to arrive is refused with 408.
     """
     reported = reported_limit or limit
-    declared = request.headers.get("content-length", "")
-    if declared.isdigit() and int(declared) > DRAIN_LIMIT_BYTES:
-        raise too_large(reported, close=True)
+    declared = _declared_length(request)
+    if declared is not None and declared > max(limit, DRAIN_LIMIT_BYTES):
+        raise too_large(reported, close=True, setting=setting)
     chunks, size = [], 0
     stream = request.stream()
     try:
         async with asyncio.timeout(BODY_READ_TIMEOUT_S):
-            if not (declared.isdigit() and int(declared) > limit):
+            if not (declared is not None and declared > limit):
                 async for chunk in stream:
                     size += len(chunk)
                     if size > limit:
@@ -132,9 +146,10 @@ async def read_body_limited(request: Request, limit: int, reported_limit: int | 
     except ClientDisconnect:
         raise ApiError(400, "the client disconnected before the request body was complete",
                        headers={"Connection": "close"}) from None
-    await _drain(stream, DRAIN_LIMIT_BYTES - size)
+    if size < DRAIN_LIMIT_BYTES:
+        await _drain(stream, DRAIN_LIMIT_BYTES - size)
     # Closed after the answer: an oversized body may not have been read to its end.
-    raise too_large(reported, close=True)
+    raise too_large(reported, close=True, setting=setting)
 
 
 async def _drain(stream, budget: int) -> None:

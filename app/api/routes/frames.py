@@ -37,10 +37,11 @@ MAX_SIDECAR_BYTES = 1024 * 1024
 _UPLOAD_BODY = {
     "requestBody": {
         "required": True,
-        "description": "The frames of one pass as `files` fields (FITS, PNG, JPEG or TIFF, 8 or 16 bit; a "
-                       "multi-extension FITS holds a whole pass), an optional `sidecar` (tubsat-frames/1 JSON: "
-                       "per-file times and the camera, docs/formats.md) and optional text fields `sequence_id`, "
-                       "`spacecraft`, `fov_deg` (horizontal field of view, degrees, known to +-5 %).",
+        "description": "The frames of one pass as `files` fields (FITS, PNG, JPEG or TIFF, 8 or 16 bit, TIFF "
+                       "also 32-bit float; a multi-extension FITS holds a whole pass), an optional `sidecar` "
+                       "(tubsat-frames/1 JSON: per-file times and the camera, docs/formats.md) and optional "
+                       "text fields `sequence_id`, `spacecraft`, `fov_deg` (horizontal field of view, degrees, "
+                       "known to +-5 %).",
         "content": {"multipart/form-data": {"schema": {
             "type": "object", "required": ["files"],
             "properties": {"files": {"type": "array", "items": {"type": "string", "format": "binary"}},
@@ -50,7 +51,8 @@ _UPLOAD_BODY = {
     },
     "responses": {"200": {"description": "The same frames (and sidecar and fields) were uploaded before: the "
                                          "stored sequence"},
-                  "413": {"description": "Larger than the frames' size limit"},
+                  "413": {"description": "Larger than the frames' size limit (STARID_FRAMES_MAX_BYTES, "
+                                         "128 MiB by default)"},
                   "415": {"description": "Not multipart/form-data"},
                   "422": {"description": "Invalid images or sidecar, with located problems"},
                   "503": {"description": "Reading and detecting the frames did not finish within the time-out"}},
@@ -101,7 +103,8 @@ async def upload_frames(request: Request, background: BackgroundTasks,
     if media_type != "multipart/form-data":
         raise ApiError(415, f"unsupported media type {media_type or 'none'!r}: send multipart/form-data with "
                             "the frames as 'files' fields")
-    body = await read_body_limited(request, limits.max_bytes + MULTIPART_OVERHEAD, reported_limit=limits.max_bytes)
+    body = await read_body_limited(request, limits.max_bytes + MULTIPART_OVERHEAD, reported_limit=limits.max_bytes,
+                                   setting="STARID_FRAMES_MAX_BYTES")
     form = await replay_request(request, body).form(max_files=limits.max_frames + 1, max_fields=10)
     try:
         uploads = form.getlist("files")
