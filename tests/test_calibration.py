@@ -113,7 +113,8 @@ def test_calibration_through_the_api_is_stored_versioned_and_given_to_later_uplo
 def test_an_archive_calibration_leaves_out_rejected_sequences_and_counts_a_resent_sequence_once(tmp_path, sky,
                                                                                                wrong_optics_files):
     """An operator's "no valid attitude" stands over the search that identified the sequence; the same
-    telemetry uploaded again with a byte-order mark (another upload of the same stars) counts once, and
+    telemetry uploaded again with a byte-order mark, or under another sequence id (another upload of the same
+    stars), counts once, and
     the confirmed upload of the two is the one used."""
     paths, _ = wrong_optics_files
     ctx = AppContext(storage=Storage.open(tmp_path / "once.sqlite3"), sky=sky)
@@ -130,12 +131,21 @@ def test_an_archive_calibration_leaves_out_rejected_sequences_and_counts_a_resen
     resent = api.post("/api/sequences", files={"file": ("resent.json", b"\xef\xbb\xbf" + paths[0].read_bytes())}).json()
     assert resent["created"] and resent["same_sequence_id_as"] == [ids[0]]
     assert api.post(f"/api/sequences/{resent['id']}/search").json()["status"] == "identified"
+    # ... and the same telemetry renamed (a hostile-input trial sent one sequence 50 times under 50 ids,
+    # and the calibration's uncertainties shrank as if they were 50 passes).
+    renamed = json.loads(paths[1].read_text())
+    renamed["sequence_id"] = "renamed-copy"
+    copy = api.post("/api/sequences", files={"file": ("renamed.json", json.dumps(renamed).encode())}).json()
+    assert copy["created"] and not copy["same_sequence_id_as"]
+    assert api.post(f"/api/sequences/{copy['id']}/search").json()["status"] == "identified"
 
     r = api.post("/api/spacecraft/OPTICS-SAT/calibrate", json={"operator": "cal"})
     assert r.status_code == 201, r.text
-    assert r.json()["sequences"] == ids[:4]  # not the rejected one, and the confirmed upload of the resent one
-    assert r.json()["notes"] == ["1 upload of a sequence id already used left out (the same telemetry sent again "
-                                 "counts once: the confirmed upload, else the newest)"]
+    # Not the rejected one; the confirmed upload of the resent one; the newest of the renamed pair.
+    assert sorted(r.json()["sequences"]) == sorted([ids[0], copy["id"], ids[2], ids[3]])
+    assert r.json()["notes"] == ["2 uploads of a sequence already used left out (the same telemetry sent again, "
+                                 "under its sequence id or another, counts once: the confirmed upload, else the "
+                                 "newest)"]
     ctx.close()
 
 

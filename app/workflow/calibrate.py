@@ -40,6 +40,7 @@ focal length, and fitting it quadruples k1's uncertainty
 
 from __future__ import annotations
 
+import hashlib
 from collections import Counter
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -258,7 +259,18 @@ class ArchiveSelection:
     sequences: list[IdentifiedSequence]  # usable, of the chosen sensor, newest first
     camera: Camera | None  # the chosen sensor's newest declared camera (None: nothing usable at all)
     other_sensors: dict[str, int]  # "WxH" -> usable sequences of that sensor size, left out
-    repeated: int  # uploads left out as another upload of a sequence id already taken
+    repeated: int  # uploads left out as another upload of a sequence taken already (its id or its snapshots)
+
+
+def snapshots_digest(sequence: Sequence) -> str:
+    """What makes two uploads the same telemetry whatever their bytes and names: every snapshot's time and
+    its sources' positions and brightnesses, in order (SHA-256 of their exact values)."""
+    h = hashlib.sha256()
+    for snapshot in sequence.snapshots:
+        h.update(snapshot.time.isoformat().encode())
+        h.update(np.ascontiguousarray(snapshot.xy, dtype=float).tobytes())
+        h.update(np.ascontiguousarray(snapshot.brightness, dtype=float).tobytes())
+    return h.hexdigest()
 
 
 def archive_sequences(ctx: AppContext, spacecraft: str) -> ArchiveSelection:
@@ -266,10 +278,12 @@ def archive_sequences(ctx: AppContext, spacecraft: str) -> ArchiveSelection:
 
     Usable: confirmed (the confirmed candidate) or identified (the first
     candidate) and not given "no valid attitude" by an operator, with 3 or
-    more identified stars in some snapshot.  One upload per sequence id: the
+    more identified stars in some snapshot.  One upload per sequence: the
     same telemetry sent again in other bytes (CRLF line endings, a byte-order
-    mark) is a second upload of the same stars, and counting it twice would
-    make the calibration's uncertainties too small; the confirmed upload is
+    mark) or under another sequence id is a second upload of the same stars,
+    and counting it twice would make the calibration's uncertainties too
+    small.  Uploads are the same sequence when they share their sequence id
+    or their snapshots (:func:`snapshots_digest`); the confirmed upload is
     taken, else the newest.  A spacecraft name may cover several sensors (a
     second camera, a renamed test article); a calibration is of one, the
     sensor with the most usable sequences (on a tie, the newest sequence's),
@@ -279,7 +293,8 @@ def archive_sequences(ctx: AppContext, spacecraft: str) -> ArchiveSelection:
 
     by_sensor: dict[tuple[int, int], list[IdentifiedSequence]] = {}
     cameras: dict[tuple[int, int], Camera] = {}  # each sensor's newest declared camera, newest sensor first
-    taken: dict[tuple[tuple[int, int], str | None], tuple[int, bool]] = {}  # (sensor, sequence id) -> (position, confirmed)
+    # (sensor, "id", sequence id) and (sensor, "snapshots", their digest) -> (position, confirmed)
+    taken: dict[tuple, tuple[int, bool]] = {}
     repeated = 0
     offset = 0
     while all(len(found) < MAX_SEQUENCES for found in by_sensor.values()):
@@ -301,10 +316,13 @@ def archive_sequences(ctx: AppContext, spacecraft: str) -> ArchiveSelection:
             sensor = (item.sequence.camera.width, item.sequence.camera.height)
             cameras.setdefault(sensor, item.sequence.camera)
             found = by_sensor.setdefault(sensor, [])
-            key, confirmed = (sensor, light.sequence_id), confirmation is not None
-            earlier = taken.get(key) if light.sequence_id is not None else None
+            keys = [(sensor, "snapshots", snapshots_digest(item.sequence))]
+            if light.sequence_id is not None:
+                keys.append((sensor, "id", light.sequence_id))
+            confirmed = confirmation is not None
+            earlier = next((taken[key] for key in keys if key in taken), None)
             if earlier is not None and (earlier[1] or not confirmed):
-                repeated += 1  # a newer (or as well confirmed) upload of this sequence id is taken already
+                repeated += 1  # a newer (or as well confirmed) upload of this sequence is taken already
                 continue
             if earlier is None and len(found) >= MAX_SEQUENCES:
                 continue
@@ -318,7 +336,7 @@ def archive_sequences(ctx: AppContext, spacecraft: str) -> ArchiveSelection:
                 position = earlier[0]
                 found[position] = usable
                 repeated += 1
-            if light.sequence_id is not None:
+            for key in keys:
                 taken[key] = (position, confirmed)
         offset += len(rows)
         if not rows or offset >= total:
@@ -345,9 +363,9 @@ def calibrate_spacecraft(ctx: AppContext, spacecraft: str, operator: str | None 
            + ("as many usable sequences as any and the newest" if tie else "the most usable sequences"))
     notes = [f"{entry} {why}" for entry in left_out]
     if selection.repeated:
-        notes.append(f"{selection.repeated} upload{'s' * (selection.repeated != 1)} of a sequence id already "
-                     "used left out (the same telemetry sent again counts once: the confirmed upload, else the "
-                     "newest)")
+        notes.append(f"{selection.repeated} upload{'s' * (selection.repeated != 1)} of a sequence already "
+                     "used left out (the same telemetry sent again, under its sequence id or another, counts once: "
+                     "the confirmed upload, else the newest)")
     try:
         fitted = fit(identified, camera, ctx.sky, parameters)
     except Invalid as exc:
