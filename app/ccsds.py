@@ -172,14 +172,21 @@ def format_quaternion_component(v: float) -> str:
     return s
 
 
-def _ascii_text(text: str) -> str:
-    """Printable ASCII only (6.6.3): accents dropped, other characters become '?'."""
-    decomposed = unicodedata.normalize("NFKD", str(text))
+def _ascii_text(text: str, escape: bool = False) -> str:
+    """Printable ASCII only (6.6.3): accents dropped; other characters become '?', or with ``escape`` (for
+    comments) their Python escape (``\\u5f20``), so that an operator named in Chinese or Cyrillic stays
+    that operator in the message (two names of '??' would be one), readable back with ``unicode_escape``."""
     out = []
-    for ch in decomposed:
-        if unicodedata.combining(ch):
-            continue
-        out.append(ch if 32 <= ord(ch) < 127 else ("?" if not ch.isspace() else " "))
+    for ch in str(text):
+        plain = "".join(c for c in unicodedata.normalize("NFKD", ch) if not unicodedata.combining(c))
+        if plain and all(32 <= ord(c) < 127 for c in plain):  # ASCII, or a Latin letter with its accents
+            out.append(plain)
+        elif ch.isspace():
+            out.append(" ")
+        elif escape and unicodedata.category(ch)[0] in "LNPS":  # letters, digits, punctuation, symbols
+            out.append(ch.encode("unicode_escape").decode("ascii"))
+        else:  # control, format (bidirectional overrides) and unassigned characters say nothing
+            out.append("?")
     return "".join(out)
 
 
@@ -194,12 +201,12 @@ def text_value(text: str, keyword: str) -> str:
 
 
 def comment_lines(comments: Iterable[str]) -> list[str]:
-    """COMMENT lines (6.10.1): ASCII, one per input line, long ones wrapped between words at 254 characters
-    (a word longer than a line is cut)."""
+    """COMMENT lines (6.10.1): ASCII (other characters escaped, see :func:`_ascii_text`), one per input line,
+    long ones wrapped between words at 254 characters (a word longer than a line is cut)."""
     width = MAX_LINE_LENGTH - len("COMMENT ")
     lines: list[str] = []
     for comment in comments:
-        for part in _ascii_text(str(comment).replace("\r", "\n")).split("\n"):
+        for part in _ascii_text(str(comment).replace("\r", "\n"), escape=True).split("\n"):
             part = part.rstrip()
             chunks = textwrap.wrap(part, width, break_on_hyphens=False) if len(part) > width else [part]
             lines.extend(f"COMMENT {chunk}".rstrip() for chunk in chunks)

@@ -163,9 +163,22 @@ def test_lines_are_printable_ascii_within_254_characters():
     lines = text.splitlines()
     assert all(len(line) <= 254 and all(32 <= ord(c) < 127 for c in line) for line in lines)
     doc = parse_kvn(text)
-    assert doc["data"]["COMMENT"][0] == "Operator Jurgen Muller: ok ?"
+    assert doc["data"]["COMMENT"][0] == "Operator Jurgen Muller: ok \\u2713"
     assert "".join(doc["data"]["COMMENT"][1:]) == "x" * 600
     assert doc["metadata"]["OBJECT_NAME"] == "TUBSAT N"  # 6.8.6: all upper case
+
+
+def test_names_and_comments_in_any_script_keep_who_and_what_in_ascii():
+    """Two operators named in Chinese both read "Confirmed by ??" and a Russian comment was all question marks:
+    a comment's non-Latin characters are escaped as Python does (readable back with unicode_escape), accents
+    dropped as before, and control or bidirectional characters still say nothing ('?')."""
+    import codecs
+
+    said = ["Confirmed by 张伟", "Confirmed by 李娜", "Комментарий: звезда не та 😀", "Jürgen \u202e"]
+    lines = comment_lines(said)
+    assert lines[0] != lines[1] and all(line.isascii() for line in lines)
+    back = [codecs.decode(line.removeprefix("COMMENT "), "unicode_escape") for line in lines]
+    assert back == said[:3] + ["Jurgen ?"]
 
 
 def test_a_long_comment_is_wrapped_between_words():

@@ -4,7 +4,7 @@ Operator names, comments and reasons end up in audit records, JSON
 documents, CCSDS messages and consoles.  A terminal escape sequence (ESC)
 in a name recolours or clears the terminal that prints it, and a
 bidirectional override (U+202E) makes a name read as another one; the
-CCSDS export replaces such characters with '?', every other reader gets
+CCSDS export replaces such characters with '?' (and escapes other scripts), every other reader gets
 them raw.  So they are refused where the text comes in (the API's request
 bodies, the server's token list), with the character named as U+XXXX
 (:mod:`app.text` holds the rule, which telemetry names follow too):
