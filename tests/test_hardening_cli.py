@@ -167,6 +167,18 @@ def test_the_table_names_an_invalid_file_once(command, tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["error"].startswith(f"{bad}: invalid telemetry: ")
 
 
+def test_the_table_says_how_many_stars_it_leaves_unnamed(sample_dir, capsys):
+    """The table names six stars a candidate: it said nothing of the rest (09-wide-30deg's Markab, named by
+    the samples' README, was silently missing); --json has them all."""
+    path = str(sample_dir / "03-jupiter.json")
+    assert cli_main(["solve", "--json", path]) == 0
+    best = json.loads(capsys.readouterr().out)["candidates"][0]
+    assert len(best["matches"]) > 6 and best["planets"]
+    assert cli_main(["solve", path]) == 0
+    row = capsys.readouterr().out.splitlines()[2]
+    assert row.endswith(f", +{len(best['matches']) - 6} more, jupiter (planet)"), row
+
+
 def test_batch_names_an_invalid_file_once(tmp_path):
     from app.workflow.batch import BatchReport, Outcome
 

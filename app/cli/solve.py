@@ -99,6 +99,10 @@ def run(args: argparse.Namespace) -> int:
                          fov_deg=args.fov_deg)
 
 
+#: Stars named per candidate in the table (``--json`` has them all).
+SHOWN_STARS = 6
+
+
 def print_summary(doc) -> None:
     """A table of candidates per file (an :class:`app.workflow.documents.SolveDocument`)."""
     at = "" if doc.reference_snapshot is None else f"  (attitudes at snapshot {doc.reference_snapshot}, the reference)"
@@ -121,7 +125,8 @@ def print_summary(doc) -> None:
 
 def _print_candidates(candidates) -> None:
     for c in candidates:
-        names = ", ".join(m.name or f"HIP {m.hip}" for m in c.matches[:6])
+        more = len(c.matches) - SHOWN_STARS
+        names = ", ".join(m.name or f"HIP {m.hip}" for m in c.matches[:SHOWN_STARS]) + (f", +{more} more" if more > 0 else "")
         planets = "".join(f", {p.name} (planet)" for p in c.planets)
         rms = float("nan") if c.rms_arcsec is None else c.rms_arcsec
         print(f"  {c.rank:>4} {c.ra_deg:>10.4f} {c.dec_deg:>9.4f} {c.roll_deg:>9.3f} "

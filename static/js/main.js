@@ -385,7 +385,10 @@ function drawCandidate() {
       "sum over the pattern points of the angle to the nearest catalogue star under this attitude; per point in pixels"],
     ["false match", fmtProbability(c.false_match_probability),
       "probability that a chance alignment of catalogue stars fits as well; 'identified' needs at most 1e-6"],
-    ["matched", `${c.n_matched} of ${view.sky.pattern_points.length} points`, "pattern points with a catalogue star"],
+    ["matched", `${c.n_matched} of ${view.sky.pattern_points.length} points` +
+      (c.planets.length ? `, and ${c.planets.length} to ${c.planets.map((p) => p.name).join(", ")} (a planet: no catalogue star, ` +
+        "so the deviation counts its point as unmatched)" : ""),
+      "pattern points with a catalogue star (a planet explains a point without one)"],
     ["RA, Dec", `${c.ra_deg.toFixed(4)}°, ${c.dec_deg.toFixed(4)}°`, "boresight"],
     ["roll", `${c.roll_deg.toFixed(4)}°`, "position angle of the image's up direction, from north through east"],
     ["field", `${view.sky.center.constellation}, ${view.reference_time}`, "constellation at the centre, reference time"],

@@ -393,6 +393,8 @@ def test_a_comment_stays_with_its_sequence(server, api, new_page, tmp_path):
     page.fill("#comment", "about the first sequence")
     open_sequence(page, second, "03-jupiter-comment-b")
     assert page.locator("#comment").input_value() == ""
+    # Jupiter explains the point no star does, and the candidate's facts say so (not only "12 of 13").
+    expect_text(page.locator("#cand-facts"), r"12 of 13 points, and 1 to jupiter \(a planet: no catalogue star")
     assert unexpected_errors(watched) == []
 
 
