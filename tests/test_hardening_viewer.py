@@ -128,7 +128,7 @@ def test_the_3d_view_confirms_the_credible_best_and_sends_any_other_rank_to_the_
         at = stored.confirmed_at.astimezone(timezone.utc).strftime("%Y-%m-%d %H:%M:%S")
         said = confirm_from_3d(ctx, doc.id, 1, "Walt", None, console)
         text, tags = rendered_text(said)
-        assert text == f"Rank 1 was confirmed already by Vera at {at}Z (attitude {stored.id}); nothing new stored."
+        assert text == f"Rank 1 was confirmed already by Vera at {at}Z (attitude #{stored.id}); nothing new stored."
         assert tags == ["p"] and ctx.storage.current_verdict(doc.id).id == stored.id
 
         # The workflow's other audit records refuse them too, whichever interface calls it.

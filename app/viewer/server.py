@@ -71,10 +71,29 @@ def _time_text(text: str | None) -> str:
 def _verdict_text(confirmed, rejected) -> str:
     """The sequence's current verdict in the console's words (static/js/decision.js describeCurrent), as Markdown."""
     if confirmed is not None:
-        return (f"attitude {confirmed.id} (rank {confirmed.rank}) confirmed by {markdown_text(confirmed.operator)} "
+        return (f"attitude #{confirmed.id} (rank {confirmed.rank}) confirmed by {markdown_text(confirmed.operator)} "
                 f"at {markdown_text(_time_text(confirmed.confirmed_at))}")
     return (f"\"no valid attitude\" recorded by {markdown_text(rejected.operator)} at "
             f"{markdown_text(_time_text(rejected.rejected_at))}: {markdown_text(rejected.reason)}")
+
+
+def _comment_taken(before, after) -> bool:
+    """Whether a Confirm between these two view states stored the comment typed (a new confirmation) or sent
+    it to the console (a new confirmation request)."""
+    def number(doc):
+        return None if doc.confirm_request is None else doc.confirm_request.number
+    return after.confirmation_id != before.confirmation_id or number(after) != number(before)
+
+
+def _credibility_text(verdict) -> str:
+    """Whether the rank shown is the credible best, as the console's verdict line says it (Markdown): the
+    panel's Confirm takes only that one in one click."""
+    if verdict is None:
+        return ""
+    if verdict.credible:
+        return "**Credible**: Confirm takes it."
+    return (f"**Not credible** ({markdown_text('; '.join(verdict.reasons))}): Confirm sends it to the console's "
+            "second step.")
 
 
 def confirm_from_3d(ctx: AppContext, sequence: int | None, rank: int | None, operator: str,
@@ -116,8 +135,8 @@ def confirm_from_3d(ctx: AppContext, sequence: int | None, rank: int | None, ope
     result, stored = confirming.record_confirmation(ctx, sequence, rank, operator, comment)
     if not stored:  # this very candidate was the verdict already: maybe another operator's, just before
         return (f"Rank {result.rank} was confirmed already by {markdown_text(result.operator)} at "
-                f"{markdown_text(_time_text(result.confirmed_at))} (attitude {result.id}); nothing new stored.")
-    return f"Confirmed rank {result.rank} as attitude {result.id} by {markdown_text(operator)}."
+                f"{markdown_text(_time_text(result.confirmed_at))} (attitude #{result.id}); nothing new stored.")
+    return f"Confirmed rank {result.rank} as attitude #{result.id} by {markdown_text(operator)}."
 
 
 def markdown_text(value) -> str:
@@ -299,8 +318,11 @@ class Viewer:
     def _confirm_shown(self) -> None:
         def action() -> str:
             doc = view.view_document(self._ctx)
-            return confirm_from_3d(self._ctx, doc.sequence, doc.rank, self._operator.value.strip(),
+            said = confirm_from_3d(self._ctx, doc.sequence, doc.rank, self._operator.value.strip(),
                                    self._comment.value.strip() or None, doc.session)
+            if _comment_taken(doc, view.view_document(self._ctx, doc.session)):
+                self._comment.value = ""  # as the console's: never carried into the next confirmation
+            return said
         self._act(action)
 
     def _toggle(self, definition_change) -> None:
@@ -409,14 +431,16 @@ class Viewer:
                     anchor="bottom-left", font_screen_scale=0.9))
         boresight = rotation[2]
         self._candidate_nodes.append(scene.add_label(
-            "/candidate/rank", f"candidate {doc.rank} of {doc.n_candidates}",
+            "/candidate/rank", f"rank {doc.rank} of {doc.n_candidates}",
             position=tuple(geo.SPHERE_RADIUS * 0.7 * boresight), anchor="top-center"))
+        verdict = next((v for v in review(self._ctx, row.id).candidates if v.rank == doc.rank), None)
         self._info.content = (
-            f"{title}\n\nCandidate **{doc.rank} of {doc.n_candidates}**: RA {candidate.ra_deg:.3f}°, "
+            f"{title}\n\nRank **{doc.rank} of {doc.n_candidates}**: RA {candidate.ra_deg:.3f}°, "
             f"Dec {candidate.dec_deg:.3f}°, roll {candidate.roll_deg:.3f}°  \n"
             f"deviation {candidate.deviation_arcsec}″, false-match probability "
-            f"{candidate.false_match_probability:.3g}, {len(hips)} of {len(points)} points matched"
-            + ("" if doc.confirmation_id is None else f"  \nconfirmed as attitude {doc.confirmation_id}"))
+            f"{candidate.false_match_probability:.3g}, {len(hips)} of {len(points)} points matched  \n"
+            + _credibility_text(verdict)
+            + ("" if doc.confirmation_id is None else f"  \nconfirmed as attitude #{doc.confirmation_id}"))
         camera_key = (doc.sequence, doc.search_id, doc.rank)
         if camera_key != self._camera_key:
             self._point_cameras(boresight)

@@ -326,19 +326,19 @@ def test_3d_view_follows_the_console_that_opened_it(server, api, new_page):
     expect_text(console.page.locator("#viewer-note"), re.escape(info["url"]))
     assert api("/api/view")["session"] == session  # requests without a session mean the 3D view's
     frame = console.page.frame_locator("#viewer-frame")
-    expect_text(frame.locator("body"), r"Candidate 1 of", timeout=40_000)
+    expect_text(frame.locator("body"), r"Rank 1 of", timeout=40_000)
     console.screenshot("06-console-3d-tab")
 
     viewer = new_page()
     viewer.page.goto(f"{info['url']}?session={session}")
-    expect_text(viewer.page.locator("body"), rf"Candidate 1 of {n}", timeout=40_000)
+    expect_text(viewer.page.locator("body"), rf"Rank 1 of {n}", timeout=40_000)
     # Its Operator field took the console's name (viser's text fields have no label element to find them by).
     viewer.page.wait_for_function("() => [...document.querySelectorAll('input, textarea')]"
                                   ".some((i) => i.value === 'Console Operator')", timeout=10_000)
     viewer.page.wait_for_timeout(1500)  # let the software renderer draw the sphere before the screenshot
     viewer.screenshot("07-viewer-rank1")
     viewer.page.get_by_role("button", name="Next").click()
-    expect_text(viewer.page.locator("body"), rf"Candidate 2 of {n}")
+    expect_text(viewer.page.locator("body"), rf"Rank 2 of {n}")
     assert wait_for_state(lambda: api(view)["rank"], 2) == 2
 
     # The console follows its own session: back on its sequence tab it shows rank 2.

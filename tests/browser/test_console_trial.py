@@ -136,16 +136,20 @@ def test_the_3d_views_confirm_of_another_rank_opens_the_consoles_second_step(ser
     expect_text(page.locator("#viewer-note"), "Draws this console's selection")
     viewer = open_viewer(new_page, api, session)
     panel = viewer.page.locator("body")
-    expect_text(panel, rf"Candidate 1 of {n}", timeout=VIEWER_TIMEOUT_MS)
+    expect_text(panel, rf"Rank 1 of {n}", timeout=VIEWER_TIMEOUT_MS)
+    expect_text(panel, "Credible: Confirm takes it.")   # said before any click, as the console's verdict line
     viewer.page.get_by_role("button", name="Next").click()
-    expect_text(panel, rf"Candidate 2 of {n}")
+    expect_text(panel, rf"Rank 2 of {n}")
+    expect_text(panel, re.escape("Not credible (not the best candidate: rank 1 matches "))
     typed = "seen from the 3D view: both heads"
     # viser's labels name no input (their "for" is another id): the text box after the label.
-    viewer.page.locator("xpath=//label[normalize-space()='Comment']/following::input[1]").fill(typed)
+    comment_box = viewer.page.locator("xpath=//label[normalize-space()='Comment']/following::input[1]")
+    comment_box.fill(typed)
     viewer.page.get_by_role("button", name="Confirm").click()
     expect_text(panel, re.escape("Rank 2 is not the credible best candidate (not the best candidate: rank 1 matches "))
     expect_text(panel, "Sent to the console: its second step asks for the reason, which the audit record keeps. "
                        "The comment typed here goes with it, into the console's comment box.")
+    expect_value(comment_box, "")   # sent: not carried into the next confirmation, as the console's
     viewer.screenshot("trial-03-viewer-sent-rank-2")
 
     # The console opens its second step for rank 2, on its Sequence tab, and stores nothing yet.
@@ -172,11 +176,11 @@ def test_the_3d_views_confirm_of_another_rank_opens_the_consoles_second_step(ser
 
     # Rank 1 now would replace that verdict: the 3D view sends it to the console's second step too.
     page.click("#tab-3d")
-    expect_text(panel, rf"Candidate 2 of {n}")
+    expect_text(panel, rf"Rank 2 of {n}")
     viewer.page.get_by_role("button", name="Prev").click()
-    expect_text(panel, rf"Candidate 1 of {n}")
+    expect_text(panel, rf"Rank 1 of {n}")
     viewer.page.get_by_role("button", name="Confirm").click()
-    expect_text(panel, re.escape(f"Rank 1 would replace the sequence's verdict: attitude {c['id']} (rank 2) "
+    expect_text(panel, re.escape(f"Rank 1 would replace the sequence's verdict: attitude #{c['id']} (rank 2) "
                                  "confirmed by Vera Viewer at "))
     expect_text(page.locator("#override-title"), r"^Replace the verdict with rank 1 \(sent from the 3D view\)\?$")
     supersede_rank_2_with_rank_1(page, api, seq_id, c["id"])
