@@ -122,3 +122,96 @@ def test_two_matches_among_ten_points_near_a_wide_prior_are_not_identified(sky, 
     best = solved.solution.candidates[0]
     assert (best.n_matched, len(solved.pattern.vectors)) == (2, 10) and best.false_match_probability == 1.0
     assert solved.solution.status != IDENTIFIED
+
+
+def _brute_force_votes(offsets, radius):
+    """The tracking vote as first written: the K x K x 2 array of all differences (gigabytes for K of thousands)."""
+    return (np.linalg.norm(offsets[:, None, :] - offsets[None, :, :], axis=2) <= radius).sum(axis=1)
+
+
+def test_count_agreeing_equals_the_brute_force_vote_including_ties_at_the_radius():
+    """The KD-tree count is the brute-force count exactly, also for offsets at (or an ulp from) the radius,
+    where the tree's squared distances and the norm's can round differently (offsets 0.6 r, 0.8 r apart
+    have a norm of exactly r and a squared distance just over r^2), and for duplicated offsets."""
+    from app.identification.near_prior import count_agreeing
+
+    rng = np.random.default_rng(12)
+    for radius in (0.039, 0.0045, np.radians(3.78)):
+        base = rng.uniform(-0.5, 0.5, (300, 2))
+        angle = rng.uniform(0, 2 * np.pi, 300)
+        offsets = np.vstack([
+            base,
+            base[:40],  # duplicates
+            base[:60] + [radius, 0.0], base[60:120] - [0.0, radius],  # exactly the radius apart, or an ulp off
+            base[120:180] + radius * np.array([0.6, 0.8]),
+            base[180:] + radius * np.column_stack([np.cos(angle[180:]), np.sin(angle[180:])]),
+            np.zeros((3, 2)), [[radius, 0.0], [0.6 * radius, 0.8 * radius], [0.0, -radius]],
+        ])
+        distances = np.linalg.norm(offsets[:, None, :] - offsets[None, :, :], axis=2)
+        assert np.count_nonzero(distances == radius) > 0  # ties at the radius are exercised
+        assert np.count_nonzero(np.abs(distances / radius - 1) < 1e-15) > np.count_nonzero(distances == radius)
+        assert np.array_equal(count_agreeing(offsets, radius), _brute_force_votes(offsets, radius))
+    # No offset, one offset, all the same.
+    assert count_agreeing(np.zeros((1, 2)), 0.01).tolist() == [1]
+    assert count_agreeing(np.ones((5, 2)), 0.01).tolist() == [5] * 5
+
+
+def test_tracking_votes_as_the_brute_force_vote_did(sky, monkeypatch):
+    """Tracking gives the very same solution (rotation to the bit, matches, status) as with the brute-force vote,
+    from priors of 1 to 10 deg on each camera (kept to priors whose all-pairs matrix stays small)."""
+    from app.identification import near_prior
+
+    def brute_force(offsets, radius):
+        sizes.append(len(offsets))
+        return _brute_force_votes(offsets, radius)
+
+    rng = np.random.default_rng(13)
+    sizes = []
+    for camera, sigma in ((CAMERAS["liebe-576x604-30deg"], 10.0), (CAMERAS["liebe-576x604-30deg"], 1.0),
+                          (CAMERAS["tubsat-752x582-20deg"], 5.0), (CAMERAS["tubsat-752x582-20deg"], 1.0),
+                          (CAMERAS["narrow-1024x1024-12deg"], 3.0)):
+        for n_stars in (3, 16):
+            R = rotation_from_radec_roll(rng.uniform(0, 360), rng.uniform(-60, 60), rng.uniform(0, 360))
+            pattern, hips = _pattern(camera, R, rng, n_stars)
+            axis = rng.normal(size=3)
+            prior = Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.radians(0.5 * sigma)).as_matrix() @ R
+            new = track(pattern, camera, T, sky, prior, prior_sigma_deg=sigma)
+            with monkeypatch.context() as patched:
+                patched.setattr(near_prior, "count_agreeing", brute_force)
+                old = track(pattern, camera, T, sky, prior, prior_sigma_deg=sigma)
+            assert (new.status, new.notes, len(new.candidates)) == (old.status, old.notes, len(old.candidates))
+            for a, b in zip(new.candidates, old.candidates):
+                assert np.array_equal(a.rotation_matrix, b.rotation_matrix)
+                assert a.matches == b.matches and a.false_match_probability == b.false_match_probability
+    assert max(sizes) > 500  # wide priors (hundreds of offsets) were among them
+
+
+def test_a_ten_degree_prior_votes_in_bounded_memory(sky, monkeypatch):
+    """A 10 deg prior (the widest the API takes) pairs each of 16 points with the stars within 30 deg of it:
+    thousands of offsets, whose all-pairs vote took gigabytes and seconds per call (a 2.1 GB tracemalloc
+    peak, 3 s, here).  The vote now counts in memory linear in them."""
+    import tracemalloc
+
+    from app.identification import near_prior
+
+    camera = CAMERAS["tubsat-752x582-20deg"]
+    R = rotation_from_radec_roll(100.0, 20.0, 30.0)
+    pattern, hips = _pattern(camera, R, np.random.default_rng(11), 16)
+    assert len(hips) == 16
+    prior = Rotation.from_rotvec([0.0, np.radians(5.0), 0.0]).as_matrix() @ R
+    sizes = []
+    counting = near_prior.count_agreeing
+
+    def counted(offsets, radius):
+        sizes.append(len(offsets))
+        return counting(offsets, radius)
+
+    monkeypatch.setattr(near_prior, "count_agreeing", counted)
+    tracemalloc.start()
+    try:
+        track(pattern, camera, T, sky, prior, prior_sigma_deg=10.0)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert sizes and sizes[0] > 4000  # the K x K x 2 float array alone would be over 256 MB
+    assert peak < 100e6, f"tracking from a 10 deg prior peaked at {peak / 1e6:.0f} MB"

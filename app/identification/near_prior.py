@@ -7,6 +7,10 @@ estimate, PE; FUSE's "known tracking").
    every pairing of a pattern point with a predicted star proposes the same
    image offset; the offset most pairings agree on wins (a vote, so a false
    star or a missing one changes nothing), and its pairings seed the fit.
+   Each offset's votes are the offsets within the agreement radius of it,
+   counted with a KD-tree (:func:`count_agreeing`): a wide prior (10 deg)
+   gives thousands of pairings, whose all-pairs distance matrix would take
+   gigabytes.
 3. Refine: Wahba over the matched pairs with outlier rejection, re-matching
    with a tolerance shrinking to the points' noise (the same routine as
    lost-in-space identification, :func:`app.identification.verify.refine`).
@@ -22,6 +26,7 @@ from dataclasses import replace
 from datetime import datetime
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from app.attitude import angle_between
 from app.camera import Camera
@@ -30,6 +35,24 @@ from app.identification.options import SearchOptions
 from app.identification.result import AMBIGUOUS, IDENTIFIED, NO_MATCH, Solution
 from app.identification.sky import Sky
 from app.identification.verify import chord, refine
+
+
+def count_agreeing(offsets: np.ndarray, radius: float) -> np.ndarray:
+    """For each of ``offsets`` (K, 2), how many of ``offsets`` (itself and duplicates included) lie within
+    ``radius`` (distance <= radius) of it.
+
+    Exactly ``(np.linalg.norm(offsets[:, None] - offsets[None], axis=2) <= radius).sum(axis=1)``, in memory
+    O(K) rather than the K x K x 2 array of that expression.  The KD-tree compares squared distances, which
+    may round otherwise than that norm within an ulp of ``radius``; so it counts just inside and just outside
+    ``radius``, and the offsets whose two counts differ are counted again with the norm.
+    """
+    offsets = np.asarray(offsets, dtype=float)
+    tree = cKDTree(offsets)
+    inside = np.asarray(tree.query_ball_point(offsets, radius * (1 - 1e-9), return_length=True), dtype=np.intp)
+    outside = np.asarray(tree.query_ball_point(offsets, radius * (1 + 1e-9), return_length=True), dtype=np.intp)
+    for i in np.flatnonzero(inside != outside):
+        inside[i] = np.count_nonzero(np.linalg.norm(offsets[i] - offsets, axis=1) <= radius)
+    return inside
 
 
 def identify_near_prior(pattern, camera: Camera, t: datetime, sky: Sky, prior_rotation: np.ndarray, *,
@@ -62,7 +85,7 @@ def identify_near_prior(pattern, camera: Camera, t: datetime, sky: Sky, prior_ro
     # Agreement radius: the points' noise plus what a roll error of the prior
     # does across the field.
     agree = float(np.max(p.match_tol)) + np.radians(prior_sigma_deg) * camera.diagonal_fov_rad / 2
-    votes = (np.linalg.norm(cand[:, None, :] - cand[None, :, :], axis=2) <= agree).sum(axis=1)
+    votes = count_agreeing(cand, agree)
     # Ties (common with two or three stars) go to the offset the prior finds likelier.
     score = votes - 0.5 * (np.linalg.norm(cand, axis=1) / search) ** 2
     best_offset = cand[np.argmax(score)]
