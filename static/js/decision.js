@@ -212,6 +212,7 @@ async function sendConfirmation(secondStep) {
   try {
     const { status, body: c } = await api.requestWithStatus("POST", `/api/sequences/${d.id}/confirm`, body);
     $("comment").value = "";   // stored with this confirmation; not to be carried into a later one
+    $("change-notice").hidden = true;   // what another console changed before is what this verdict was given on
     cancelSteps();
     await hooks.afterVerdict();
     $("confirmed").scrollIntoView({ block: "nearest" });
@@ -267,6 +268,7 @@ async function sendRejection() {
   state.busy++;
   try {
     const { status, body: r } = await api.requestWithStatus("POST", `/api/sequences/${d.id}/reject`, body);
+    $("change-notice").hidden = true;   // as after a confirmation
     cancelSteps();
     await hooks.afterVerdict();
     toast(status === 201 ? `Recorded: no valid attitude for ${d.sequence_id || `#${d.id}`} (${r.operator})`

@@ -358,6 +358,21 @@ def test_a_replacing_search_without_candidates_is_announced_in_words(server, api
     assert unexpected_errors(watched) == []
 
 
+def test_a_change_notice_goes_once_this_console_gives_its_verdict(server, api, new_page, tmp_path):
+    """Another console's new search is announced; this console then confirms the new rank 1: the notice was
+    about what the verdict was given on, and goes (it stayed, telling of a change already dealt with)."""
+    seq_id, _ = upload_and_search(api, fresh_copy("01-clean.json", "notice", tmp_path))
+    watched = operator_on(new_page, server, "Notice Reader", seq_id, "01-clean-notice")
+    page = watched.page
+    second = api(f"/api/sequences/{seq_id}/search", "POST", body={"method": "bright_pair", "max_candidates": 3})
+    expect_text(page.locator("#change-notice"), f"a new search \\(#{second['search_id']}\\) replaced the candidates")
+    page.click("#confirm")
+    expect_text(page.locator("#confirmed"), r"Confirmed: attitude #\d+")
+    expect_visible(page.locator("#change-notice"), False)
+    assert api(f"/api/sequences/{seq_id}/review")["confirmation"]["search_id"] == second["search_id"]
+    assert unexpected_errors(watched) == []
+
+
 def test_the_pattern_table_shows_a_whole_pattern(server, api, new_page, tmp_path):
     """A pattern of a dozen points is listed whole: the table does not hide its last rows in a box that
     scrolls without showing a scrollbar (headless and overlay scrollbars show none)."""
