@@ -231,7 +231,21 @@ function methodName(method) {
   return option ? option.textContent.replace(/\s*\(.*\)$/, "").toLowerCase() : method.replace("_", " ");
 }
 
+// A search replaces the sequence's candidates and its status: said before an identified search is replaced by
+// one of another method (the method menu keeps its choice from sequence to sequence, and another method is
+// no second opinion here: its answer becomes the sequence's).
+function renderSearchReplaces() {
+  const s = state.detail?.search, method = $("search-method").value;
+  const box = $("search-replaces");
+  box.hidden = !(s && s.status === "identified" && s.method !== method);
+  if (!box.hidden) {
+    box.textContent = `Searching by ${methodName(method)} replaces the identified candidates of search #${s.search_id} ` +
+      `(${methodName(s.method)}): the sequence's status becomes what it finds.`;
+  }
+}
+
 function renderSearchSummary() {
+  renderSearchReplaces();
   const s = state.detail.search;
   const stale = s && s.pattern_version !== state.detail.pattern.version;
   const box = $("search-summary");
@@ -325,7 +339,11 @@ function setupSearch() {
   const method = $("search-method");
   method.value = stored(localStorage, "starid-method", "bright_pair");
   const showPrior = () => { $("prior-box").hidden = method.value !== "tracking"; };
-  method.addEventListener("change", () => { store(localStorage, "starid-method", method.value); showPrior(); });
+  method.addEventListener("change", () => {
+    store(localStorage, "starid-method", method.value);
+    showPrior();
+    if (state.detail) renderSearchReplaces();
+  });
   showPrior();
   for (const id of ["prior-ra", "prior-dec", "prior-roll", "prior-sigma"]) {
     $(id).addEventListener("input", () => { $("prior-given").checked = true; });

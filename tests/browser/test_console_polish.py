@@ -15,7 +15,8 @@ import re
 import httpx
 import numpy as np
 
-from test_console_sessions import TIMEOUT_MS, console, expect_text, fresh_copy, open_sequence
+from test_console_sessions import (TIMEOUT_MS, console, expect_text, expect_visible, fresh_copy, open_sequence,
+                                   upload_and_search)
 
 STATUS_TEXT = {"no_match": "no match", "rejected": "no valid attitude"}  # as the console's statusText says
 
@@ -196,3 +197,23 @@ def test_the_gap_to_rank_1_is_signed(server, api, new_page, tmp_path):
         shown = "-" if rank == 1 else f"{'+' if gap >= 0 else '-'}{abs(gap):.0f}″"
         expect_text(page.locator(f"#candidate-rows tr[data-rank='{rank}'] td").last, f"^{re.escape(shown)}$")
     watched.screenshot("polish-05-signed-gap")
+
+
+def test_a_search_by_another_method_says_it_replaces_the_identified_candidates(server, api, new_page, tmp_path):
+    """An operator trial searched an identified sequence by triangle features "for a second opinion": its
+    answer (no match) replaced the bright-pair candidates and the status in every console.  Before the
+    click, the console now says that it will."""
+    seq_id, search = upload_and_search(api, fresh_copy("02-ghosts-hot-pixels.json", "replaces", tmp_path))
+    assert search["status"] == "identified" and search["method"] == "bright_pair"
+    watched, _ = console(new_page, server)
+    page = watched.page
+    open_sequence(page, seq_id, "02-ghosts-hot-pixels-replaces")
+    page.select_option("#search-method", "bright_pair")
+    expect_visible(page.locator("#search-replaces"), False)
+    page.select_option("#search-method", "tf")
+    expect_text(page.locator("#search-replaces"),
+                rf"^Searching by triangle features replaces the identified candidates of search #{search['search_id']} "
+                r"\(bright pairs\): the sequence's status becomes what it finds\.$")
+    watched.screenshot("polish-06-search-replaces")
+    page.select_option("#search-method", "bright_pair")
+    expect_visible(page.locator("#search-replaces"), False)
