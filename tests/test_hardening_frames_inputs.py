@@ -192,3 +192,28 @@ def test_the_frames_of_a_spot_list_are_an_empty_list_and_its_images_404(api, sam
     assert image.status_code == 404 and "spot list" in image.json()["detail"]
     summary = api.get("/openapi.json").json()["paths"]["/api/sequences/{seq_id}/frames"]["get"]["summary"]
     assert "an empty list for spot lists" in summary
+
+
+# ---------------------------------------------------------------------------
+# 5. A sidecar's time says why it is none, as the telemetry's does (app.timefmt)
+# ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("time, said", [
+    ("2016-12-31T23:59:60Z", "2016-12-31T23:59:60 is a leap second, which is not supported"),
+    ("2020-02-30T00:00:00Z", "the date 2020-02-30 does not exist (February 2020 has 29 days)"),
+    ("yesterday", "not an ISO 8601 time such as 1994-03-12T21:04:10.000Z: 'yesterday'")])
+def test_a_sidecar_time_that_is_none_says_why(api, time, said):
+    sidecar = {"format": "tubsat-frames/1", "camera": "tubsat-752x582-20deg",
+               "frames": [{"file": "a.png", "time": time}]}
+    r = api.post("/api/frames", files=[("files", ("a.png", _png(_sky(752, 582)), "image/png")),
+                                       ("sidecar", ("frames.json", json.dumps(sidecar), "application/json"))])
+    assert r.status_code == 422, r.text
+    [problem] = r.json()["problems"]
+    assert problem["location"] == "sidecar.frames[0].time" and problem["message"].startswith(said), problem
+
+
+def test_a_sensor_size_is_written_in_ascii_digits(api):
+    """The hot-pixel map's ``sensor`` (``752x582``): its pattern's ``\\d`` took the digits of any script."""
+    r = api.get("/api/frames/hot-pixels", params={"spacecraft": "SAT", "sensor": "٧٥٢x٥٨٢"})
+    assert r.status_code == 422 and r.json()["problems"][0]["location"] == "query.sensor", r.text
+    assert api.get("/api/frames/hot-pixels", params={"spacecraft": "SAT", "sensor": "752x582"}).status_code != 422

@@ -7,11 +7,15 @@ Responses are the documents of :mod:`app.workflow.documents`.
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+import math
+import re
+from datetime import datetime
+from typing import Annotated, Any, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StringConstraints
+from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, StringConstraints, WrapValidator
 
 from app.identification import METHODS
+from app.timefmt import ISO_EXAMPLE, parse_iso_time
 from app.workflow.documents import ManualPointDefinition, PatternDefinition
 from app.workflow.search import PriorRequest
 from app.workflow.text import MAX_COMMENT, MAX_OPERATOR, NUL_MESSAGE, comment_problem, operator_name_problem
@@ -69,8 +73,82 @@ ShortText = Annotated[str, StringConstraints(max_length=MAX_NAME), AfterValidato
 #: A spacecraft's name as its telemetry files give it: 1 to MAX_NAME characters, any but U+0000.
 SpacecraftName = Annotated[str, StringConstraints(min_length=1, max_length=MAX_NAME), AfterValidator(_without_nul)]
 
+# Numbers and flags of a body must be JSON's own.  pydantic's lax mode takes "yes", "on", "t" and "1" as
+# true, true and " 1 " as the integer 1, and "1.5" as a number: a guard rail (supersede, the rank confirmed,
+# the search looked at) must not be crossed by a string or a boolean.  ``Strict()`` would do as much in
+# pydantic's words ("Input should be a valid boolean"); these validators say what came instead, in the
+# telemetry format's words ("must be an integer, got 1.0"), and keep the field's type and limits for the
+# OpenAPI description.  A float with an integral value (1.0) is refused as an id or rank, as in the
+# telemetry format: no client that counts writes 1.0, and a float id is a sign of arithmetic gone wrong
+# (2**53 + 1 as a float is another id).
+
+def _shown(value: Any) -> str:
+    """A JSON value as a client would call it, for "got ..." messages."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return f"a string ({value if len(value) <= 40 else value[:37] + '...'!r})"
+    if isinstance(value, (dict, list)):
+        return "an object" if isinstance(value, dict) else "an array"
+    return repr(value)
+
+
+def _json_boolean(value: Any, handler):
+    if not isinstance(value, bool):
+        raise ValueError(f"must be true or false, got {_shown(value)}")
+    return handler(value)
+
+
+def _json_integer(value: Any, handler):
+    if isinstance(value, float) and math.isfinite(value) and abs(value) > MAX_ID:
+        # 1e20 is a float, but what is wrong first is its size: the API's words for it (app.api.errors).
+        raise ValueError("the number is too large for an integer")
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ValueError(f"must be an integer, got {_shown(value)}")
+    return handler(value)
+
+
+def _json_number(value: Any, handler):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"must be a number, got {_shown(value)}")
+    return handler(value)
+
+
+#: A flag (JSON true or false only).
+Flag = Annotated[bool, WrapValidator(_json_boolean)]
+#: An archive id or a rank: a JSON integer from 1 that fits a 64-bit database integer.
+DbId = Annotated[int, Field(ge=1, le=MAX_ID), WrapValidator(_json_integer)]
 #: A track id as the extraction numbers them (0..tracks-1; bounded so nothing overflows).
-TrackId = Annotated[int, Field(ge=0, le=1_000_000)]
+TrackId = Annotated[int, Field(ge=0, le=1_000_000), WrapValidator(_json_integer)]
+#: A snapshot's 0-based position in the file.
+SnapshotPosition = Annotated[int, Field(ge=0, le=10_000), WrapValidator(_json_integer)]
+#: How many candidates a search returns.
+CandidateCount = Annotated[int, Field(ge=1, le=50), WrapValidator(_json_integer)]
+#: A JSON number (an integer is one; a string or a boolean is not).  Its limits go in ``Field(...)`` as the
+#: default, which pydantic applies inside the validator, so that OpenAPI shows them as minimum and maximum.
+Number = Annotated[float, WrapValidator(_json_number)]
+
+#: Text of a plain number: a Unix time or a date without separators, never read as a time here.
+_NUMBER_TEXT = re.compile(r"[+-]?[0-9]+(?:\.[0-9]*)?")
+
+
+def _iso_8601_time(value: Any) -> Any:
+    """ISO 8601 text only: pydantic reads ``1582788491`` (and the text of it) as a Unix time, which a time
+    range of an export must not silently become.  A datetime passes (a default or a Python caller)."""
+    if isinstance(value, datetime):
+        return value
+    if not isinstance(value, str):
+        raise ValueError(f"must be an ISO 8601 time such as {ISO_EXAMPLE}, got {_shown(value)}")
+    if _NUMBER_TEXT.fullmatch(value.strip()):
+        raise ValueError(f"{value.strip()!r} is a number, not a time: give an ISO 8601 time such as {ISO_EXAMPLE} "
+                         "(Unix times are not read)")
+    return parse_iso_time(value.strip())
+
+
+#: A time of a query parameter: ISO 8601 (naive or with a zone, as written), never a number.
+IsoTime = Annotated[datetime, BeforeValidator(_iso_8601_time)]
 
 
 class _Strict(BaseModel):
@@ -80,9 +158,9 @@ class _Strict(BaseModel):
 class ManualPoint(_Strict):
     """A point picked by hand in snapshot ``snapshot`` (0-based position in the file)."""
 
-    snapshot: int = Field(ge=0, le=10_000)
-    x: float = Field(allow_inf_nan=False)
-    y: float = Field(allow_inf_nan=False)
+    snapshot: SnapshotPosition
+    x: Number = Field(allow_inf_nan=False)
+    y: Number = Field(allow_inf_nan=False)
 
 
 class PatternEdit(_Strict):
@@ -117,10 +195,10 @@ class PatternReset(_Strict):
 class PriorAttitude(_Strict):
     """A prior attitude for tracking: boresight RA/Dec, roll (README conventions) and its 1-sigma, degrees."""
 
-    ra_deg: float = Field(ge=0.0, lt=360.0, allow_inf_nan=False)
-    dec_deg: float = Field(ge=-90.0, le=90.0, allow_inf_nan=False)
-    roll_deg: float = Field(ge=-360.0, le=360.0, allow_inf_nan=False)
-    sigma_deg: float = Field(default=1.0, gt=0.0, le=10.0, allow_inf_nan=False)
+    ra_deg: Number = Field(ge=0.0, lt=360.0, allow_inf_nan=False)
+    dec_deg: Number = Field(ge=-90.0, le=90.0, allow_inf_nan=False)
+    roll_deg: Number = Field(ge=-360.0, le=360.0, allow_inf_nan=False)
+    sigma_deg: Number = Field(default=1.0, gt=0.0, le=10.0, allow_inf_nan=False)
 
     def request(self) -> PriorRequest:
         return PriorRequest(**self.model_dump())
@@ -131,7 +209,7 @@ class SearchRequest(_Strict):
     near the newest confirmed attitude of the same spacecraft propagated with its rate."""
 
     method: Literal[tuple(METHODS)] = "bright_pair"  # type: ignore[valid-type]
-    max_candidates: int | None = Field(default=None, ge=1, le=50)
+    max_candidates: CandidateCount | None = None
     prior: PriorAttitude | None = None
 
 
@@ -140,12 +218,12 @@ class ConfirmRequest(_Strict):
     for a candidate that is not the credible best; ``supersede``: replace the sequence's current verdict;
     ``search_id``: the search the operator looked at (refused if a newer one replaced it)."""
 
-    rank: int = Field(ge=1, le=MAX_ID)
+    rank: DbId
     operator: OperatorName | None = None
     comment: Comment | None = None
     override_reason: Comment | None = None
-    supersede: bool = False
-    search_id: int | None = Field(default=None, ge=1, le=MAX_ID)
+    supersede: Flag = False
+    search_id: DbId | None = None
 
 
 class RejectRequest(_Strict):
@@ -153,7 +231,7 @@ class RejectRequest(_Strict):
 
     reason: Reason
     operator: OperatorName | None = None
-    supersede: bool = False
+    supersede: Flag = False
 
 
 class ViewerFollow(_Strict):
@@ -165,9 +243,9 @@ class ViewerFollow(_Strict):
 class ViewEdit(_Strict):
     """A write to the shared view state (issue 5): only the fields sent change; null clears one."""
 
-    sequence: int | None = Field(default=None, ge=1, le=MAX_ID)
-    rank: int | None = Field(default=None, ge=1, le=MAX_ID)
-    mag: float = Field(default=6.0, ge=-2.0, le=7.0, allow_inf_nan=False)
+    sequence: DbId | None = None
+    rank: DbId | None = None
+    mag: Number = Field(default=6.0, ge=-2.0, le=7.0, allow_inf_nan=False)
     #: The name typed in this console (null or blank: none): the 3D view's Confirm, drawing this session,
     #: confirms under it.
     operator: OperatorName | None = None

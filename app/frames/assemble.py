@@ -35,7 +35,7 @@ from app.frames.images import Frame, FrameLimits, file_sha256, read_frames
 from app.telemetry.errors import Problem, ProblemCollector, TelemetryError
 from app.telemetry.formats import dump_json, parse_telemetry
 from app.telemetry.model import FORMAT_NAME, Sequence
-from app.timefmt import utc_text
+from app.timefmt import NOT_ISO_8601, parse_iso_time, utc_text
 
 SIDECAR_FORMAT = "tubsat-frames/1"
 #: Focal length tolerance declared for optics given only as a field of view or a header focal length.
@@ -85,9 +85,9 @@ def _sidecar_time(value, loc: str, problems: ProblemCollector) -> datetime | Non
         problems.add(loc, "must be an ISO 8601 time string such as 2024-03-12T21:04:10.000Z")
         return None
     try:
-        t = datetime.fromisoformat(value.strip().removesuffix("Z").removesuffix("z"))
-    except ValueError:
-        problems.add(loc, f"not an ISO 8601 time: {value[:40]!r}")
+        t = parse_iso_time(value.strip().removesuffix("Z").removesuffix("z"))
+    except ValueError as exc:  # a leap second or a date that does not exist is said as such
+        problems.add(loc, f"{exc}: {value[:40]!r}" if str(exc) == NOT_ISO_8601 else str(exc))
         return None
     t = t.replace(tzinfo=timezone.utc) if t.tzinfo is None else t.astimezone(timezone.utc)
     if not 1900 <= t.year <= 2099:

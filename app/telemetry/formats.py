@@ -45,7 +45,7 @@ from app.config import MAX_SNAPSHOTS, MAX_SOURCES_PER_SNAPSHOT, settings
 from app.telemetry.errors import Problem, ProblemCollector, TelemetryError
 from app.telemetry.model import FORMAT_NAME, Sequence, Snapshot
 from app.text import described, refused_character
-from app.timefmt import utc_text
+from app.timefmt import NOT_ISO_8601, foreign_digit, parse_iso_time, utc_text
 
 # --- limits ------------------------------------------------------------------
 #: Required CSV columns, in the order :func:`dump_csv` writes them.
@@ -90,8 +90,10 @@ _SOURCE_KEYS = ("x", "y", "brightness")
 _CSV_META_KEYS = ("format", "sequence_id", "spacecraft", "camera", "velocity_km_s")
 
 _CAMERA_NAME_RE = re.compile(r"[A-Za-z0-9._+-]{1,64}")
-_INT_RE = re.compile(r"[+-]?\d{1,30}")
-_NUMBER_RE = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?")
+# ASCII digits only: Python's \d, int() and float() also take other scripts' digits ('٨٩', '１２'), which
+# the format's plain decimals are not (and the JSON form never accepts).
+_INT_RE = re.compile(r"[+-]?[0-9]{1,30}")
+_NUMBER_RE = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 _NON_FINITE_WORDS = {"nan", "inf", "infinity"}
 _META_RE = re.compile(r"#\s*([A-Za-z_][A-Za-z0-9_-]*)\s*:(.*)")
 _MISSING = object()
@@ -249,6 +251,8 @@ def _describe(value: Any) -> str:
         return "true" if value else "false"
     if isinstance(value, _NonFinite):
         return value.token
+    if isinstance(value, _ForeignDigits):
+        return repr(value.text)
     if isinstance(value, str):
         shown = value if len(value) <= 40 else value[:37] + "..."
         return f"a string ({shown!r})"
@@ -263,6 +267,9 @@ def _as_number(value: Any, loc: str, problems: ProblemCollector) -> float | None
     """A finite float from a JSON number (never a boolean), else a problem."""
     if isinstance(value, _NonFinite):
         problems.add(loc, f"{value.token} is not allowed: numbers must be finite")
+        return None
+    if isinstance(value, _ForeignDigits):
+        problems.add(loc, value.message)
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         problems.add(loc, f"must be a number, got {_describe(value)}")
@@ -279,6 +286,9 @@ def _as_number(value: Any, loc: str, problems: ProblemCollector) -> float | None
 
 def _as_int(value: Any, loc: str, problems: ProblemCollector, low: int, high: int) -> int | None:
     """An int in [low, high] from a JSON integer (not a float, not a boolean)."""
+    if isinstance(value, _ForeignDigits):
+        problems.add(loc, value.message)
+        return None
     if isinstance(value, bool) or not isinstance(value, int):
         problems.add(loc, f"must be an integer, got {_describe(value)}")
         return None
@@ -320,12 +330,18 @@ def _as_time(value: Any, loc: str, problems: ProblemCollector) -> datetime | Non
         problems.add(loc, f"must be an ISO 8601 time string, got {_describe(value)}")
         return None
     try:
-        parsed = datetime.fromisoformat(value.strip())
+        parsed = parse_iso_time(value.strip())
+    except ValueError as err:
+        # A leap second or a date that does not exist is said as such; other text is shown after the reason.
+        reason = str(err)
+        problems.add(loc, f"{reason}: {_describe(value)}" if reason == NOT_ISO_8601 else reason)
+        return None
+    try:
         if parsed.tzinfo is None:
             parsed = parsed.replace(tzinfo=timezone.utc)
         parsed = parsed.astimezone(timezone.utc)
     except (ValueError, OverflowError):
-        problems.add(loc, f"not an ISO 8601 time such as 1994-03-12T21:04:10.000Z: {_describe(value)}")
+        problems.add(loc, f"{NOT_ISO_8601}: {_describe(value)}")
         return None
     if not EARLIEST_TIME <= parsed < LATEST_TIME:
         problems.add(loc, f"time {utc_text(parsed)} is outside the supported years 1900 to 2099")
@@ -785,11 +801,26 @@ def _csv_value(value: Any) -> str:
     return repr(float(value)) if isinstance(value, float) else str(value)
 
 
+class _ForeignDigits:
+    """Stands in for CSV text with digits of another script ('٨٩', '１２'): int() and float() would read it as
+    a number, but the format's numbers are plain ASCII decimals, so it is refused with that reason."""
+
+    __slots__ = ("text",)
+
+    def __init__(self, text: str):
+        self.text = text
+
+    @property
+    def message(self) -> str:
+        return f"{self.text!r} is not a plain decimal number (ASCII digits)"
+
+
 def _csv_scalar(text: str) -> Any:
-    """Text from a CSV camera comment -> int, float or (non-numeric) str.
+    """Text from a CSV cell or header comment -> int, float or (non-numeric) str.
 
     The result goes through the same checks as JSON values, so "752.0" for a
-    width is reported as "must be an integer", as in JSON.
+    width is reported as "must be an integer", as in JSON.  Only ASCII digits
+    make a number; text with other digits becomes a :class:`_ForeignDigits`.
     """
     if _INT_RE.fullmatch(text):
         return int(text)
@@ -797,6 +828,8 @@ def _csv_scalar(text: str) -> Any:
         return float(text)
     if text.lower().lstrip("+-") in _NON_FINITE_WORDS:
         return _NonFinite(text)
+    if foreign_digit(text) is not None:
+        return _ForeignDigits(text)
     return text
 
 

@@ -189,6 +189,28 @@ def latest_search(ctx: AppContext, seq_id: int, missing: type[NotFound] | type[C
     return search, SearchResult.model_validate(search.result)
 
 
+def require_search_of(ctx: AppContext, seq_id: int, search_id: int) -> SearchRow:
+    """Search ``search_id`` when it is one of sequence ``seq_id``'s searches; :class:`Invalid` (at
+    ``body.search_id``) when it is another sequence's or does not exist.
+
+    A confirmation names the search its operator looked at, and the guard
+    rail refuses one that a newer search of the sequence replaced.  An id
+    that was never a search of this sequence is another case: nothing
+    replaced it, so saying so would send the operator looking for new
+    candidates that do not exist.  It is a wrong value in the request (422,
+    located, like an unknown track of a pattern edit), not a change of the
+    archive's state (409): no reload makes it right.
+    """
+    require_sequence(ctx, seq_id)  # 404 for an unknown sequence, as before
+    search = ctx.storage.get_search(search_id)
+    if search is not None and search.seq_id == seq_id:
+        return search
+    latest = ctx.storage.latest_search(seq_id)
+    known = f"its latest is {latest.id}" if latest is not None else "it has not been searched yet"
+    message = f"search {search_id} is not a search of sequence {seq_id} ({known})"
+    raise Invalid(message, location="body.search_id", message=message)
+
+
 def candidate_of(search: SearchRow, result: SearchResult, rank: int,
                  missing: type[NotFound] | type[Conflict] = NotFound) -> CandidateDocument:
     candidate = result.candidate(rank)

@@ -10,7 +10,7 @@ from fastapi.responses import PlainTextResponse
 
 from app.api.errors import ApiError
 from app.api.routes.common import ID_LIMITS, attachment, get_context
-from app.api.schemas import SpacecraftName
+from app.api.schemas import IsoTime, SpacecraftName
 from app.workflow import AppContext, confirm as confirming
 from app.workflow.documents import AttitudeDocument, AttitudePage
 
@@ -45,8 +45,8 @@ def list_attitudes(offset: int = Query(0, ge=0, le=2**62), limit: int = Query(50
             summary="CCSDS AEM 2.0 (KVN) of a spacecraft's confirmed attitudes in a time range, one segment per "
                     "sequence as rendered at its confirmation")
 def bulk_aem(spacecraft: Annotated[SpacecraftName, Query(description="the spacecraft name")],
-             start: datetime | None = Query(None, description="first reference epoch included (UTC, ISO 8601)"),
-             end: datetime | None = Query(None, description="reference epochs before this one (UTC, ISO 8601)"),
+             start: Annotated[IsoTime | None, Query(description="first reference epoch included (UTC, ISO 8601)")] = None,
+             end: Annotated[IsoTime | None, Query(description="reference epochs before this one (UTC, ISO 8601)")] = None,
              ctx: AppContext = Depends(get_context)):
     return attachment(*confirming.bulk_aem(ctx, spacecraft, _utc(start, "start"), _utc(end, "end")))
 

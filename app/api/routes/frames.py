@@ -148,7 +148,7 @@ async def upload_frames(request: Request, background: BackgroundTasks,
 @router.get("/api/frames/hot-pixels", response_model=framing.HotPixelMapDocument,
             summary="A spacecraft camera's hot-pixel map (current hot pixels and every version)")
 def hot_pixels(spacecraft: Annotated[SpacecraftName, Query(description="the spacecraft name of its frames")],
-               sensor: str = Query(..., pattern=r"^\d{1,6}x\d{1,6}$", description="WIDTHxHEIGHT, e.g. 752x582"),
+               sensor: str = Query(..., pattern=r"^[0-9]{1,6}x[0-9]{1,6}$", description="WIDTHxHEIGHT, e.g. 752x582"),
                ctx: AppContext = Depends(get_context)):
     return framing.hot_pixel_map_document(ctx, spacecraft, sensor)
 

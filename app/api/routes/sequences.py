@@ -173,6 +173,10 @@ def confirm(body: ConfirmRequest, seq_id: int = SeqId, token_operator: str | Non
     if operator is None:
         raise ApiError(422, "a confirmation needs the operator's name",
                        problems=[{"location": "body.operator", "message": "missing operator"}])
+    if body.search_id is not None:
+        # An id that is no search of this sequence is a wrong value (422 at body.search_id); the guard rail
+        # behind (409) refuses a search of this sequence that a newer one replaced.
+        searching.require_search_of(ctx, seq_id, body.search_id)
     comment = (body.comment or "").strip() or None
     doc, created = confirming.record_confirmation(ctx, seq_id, body.rank, operator, comment,
                                                   override_reason=body.override_reason, supersede=body.supersede,
