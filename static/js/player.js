@@ -167,13 +167,20 @@ export class SnapshotPlayer {
     }
   }
 
-  // A source's name beside it, moved inside the canvas for a source at the sensor's edge (placeLabel);
-  // the baseline 9 px below the box's top leaves the descenders their 2 px.
+  // A source's name beside it, moved inside the canvas for a source at the sensor's edge (placeLabel), and
+  // to another corner of the source when a label drawn already is there (a double star's two names were
+  // drawn over each other); the baseline 9 px below the box's top leaves the descenders their 2 px.
   drawLabel(text, cx, cy, r) {
     const { ctx } = this;
     ctx.font = `${LABEL_FONT_PX}px system-ui, sans-serif`;
-    const box = placeLabel({ cx, cy, r, w: ctx.measureText(text).width, h: LABEL_FONT_PX, width: this.canvas.width,
-      gap: 3, above: 1 });
+    const w = ctx.measureText(text).width, h = LABEL_FONT_PX, gap = 3;
+    const first = placeLabel({ cx, cy, r, w, h, width: this.canvas.width, gap, above: 1 });
+    const corners = [first, { x: first.x, y: cy + r + gap }, { x: cx - r - gap - w, y: first.y },
+      { x: cx - r - gap - w, y: cy + r + gap }, { x: cx + r + gap, y: cy - 2 * h - gap }, { x: cx + r + gap, y: cy + h + gap + r }]
+      .map((b) => ({ x: b.x, y: b.y, w, h }))
+      .filter((b) => b.x >= 0 && b.y >= 0 && b.x + w <= this.canvas.width && b.y + h <= this.canvas.height);
+    const overlaps = (a, b) => a.x < b.x + b.w && b.x < a.x + a.w && a.y < b.y + b.h && b.y < a.y + a.h;
+    const box = corners.find((b) => !this.labels.some((l) => overlaps(l, b))) ?? first;
     ctx.fillText(text, box.x, box.y + LABEL_FONT_PX - 2);
     this.labels.push({ text, ...box });
   }

@@ -217,3 +217,26 @@ def test_a_search_by_another_method_says_it_replaces_the_identified_candidates(s
     watched.screenshot("polish-06-search-replaces")
     page.select_option("#search-method", "bright_pair")
     expect_visible(page.locator("#search-replaces"), False)
+
+
+def test_the_snapshot_players_names_never_overlap(server, api, new_page, tmp_path):
+    """03-jupiter has a double star (T3 and T8, 2.5 px apart) whose two names the player drew over each other:
+    in every snapshot each name has a place of its own, on the canvas."""
+    seq_id, _ = upload_and_search(api, fresh_copy("03-jupiter.json", "labels", tmp_path))
+    n = len(api(f"/api/sequences/{seq_id}")["telemetry"]["snapshots"])
+    watched, _ = console(new_page, server)
+    page = watched.page
+    open_sequence(page, seq_id, "03-jupiter-labels")
+    canvas = page.locator("#player-canvas")
+    width, height = (int(canvas.get_attribute(k)) for k in ("width", "height"))
+    page.locator("#snapshot-slider").fill("0")
+    for k in range(n):
+        expect_text(page.locator("#snapshot-label"), rf"^snapshot {k} ")
+        labels = json.loads(canvas.get_attribute("data-labels"))
+        assert labels and all(inside(lab, width, height) for lab in labels)
+        overlapping = [(a["text"], b["text"]) for i, a in enumerate(labels) for b in labels[i + 1:]
+                       if a["x"] < b["x"] + b["w"] and b["x"] < a["x"] + a["w"]
+                       and a["y"] < b["y"] + b["h"] and b["y"] < a["y"] + a["h"]]
+        assert not overlapping, (k, overlapping)
+        if k + 1 < n:
+            page.click("#step-fwd")

@@ -681,7 +681,7 @@ def test_every_screen_is_usable_and_nothing_is_cut_or_covered(server, api, new_p
     page.keyboard.press("Escape")
     page.click("#tab-3d")
     expect_text(page.locator("#viewer-note"), "this console's selection")
-    expect_text(page.frame_locator("#viewer-frame").locator("body"), r"Candidate \d+ of", timeout=40_000)
+    expect_text(page.frame_locator("#viewer-frame").locator("body"), r"Rank \d+ of", timeout=40_000)
     # Opened from deep in the sequence tab, the 3D view shows at the top, not scrolled out of view.
     assert page.locator("#viewer-frame").bounding_box()["y"] < 200
     page.wait_for_timeout(1500)  # let the software renderer draw the sphere before the screenshot
