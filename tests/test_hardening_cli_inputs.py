@@ -86,6 +86,22 @@ def test_batch_refuses_a_device_before_starting_a_cluster(special_files, tmp_pat
                                                f"{fifo}: not a regular file (a FIFO)")
 
 
+def test_batch_refuses_a_device_as_its_output_before_starting_a_cluster(special_files, sample_dir, capsys,
+                                                                      monkeypatch):
+    """``--out /dev/full`` was read back to resume (answered_files) for ever: 35 s of a growing process, then
+    the kernel killed it (exit 137)."""
+    from app.workflow import batch
+
+    def no_cluster(*args, **kwargs):
+        raise AssertionError("a cluster was started to write into a device")
+
+    monkeypatch.setattr(batch, "start_cluster", no_cluster)
+    zero, _ = special_files
+    assert cli_main(["batch", str(sample_dir / "01-clean.json"), "--out", zero]) == 2
+    assert capsys.readouterr().err.strip() == (f"batch: --out {zero}: not a regular file (a character device); the "
+                                               "output is read back to resume a batch, so it must be a file")
+
+
 @pytest.mark.parametrize("value", ["-1", "nan", "0", "inf", "soon"])
 def test_upload_refuses_a_timeout_that_is_not_a_positive_number(value, capsys):
     with pytest.raises(SystemExit) as stopped:

@@ -86,6 +86,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"batch: no such file or directory: {', '.join(missing[:5])}{' ...' if len(missing) > 5 else ''}",
               file=sys.stderr)
         return 2
+    if args.out is not None and (kind := special_file(args.out)):
+        # It is read back to resume (the lines done): a device answers forever (/dev/full, /dev/zero) or waits.
+        print(f"batch: --out {args.out}: not a regular file ({kind}); the output is read back to resume a batch, "
+              "so it must be a file", file=sys.stderr)
+        return 2
     special = [f"{p}: not a regular file ({kind})" for p in args.paths if (kind := special_file(p))]
     if special:  # a device or FIFO: reading it never ends (a folder's files are regular ones)
         print(f"batch: {'; '.join(special[:5])}{' ...' if len(special) > 5 else ''}", file=sys.stderr)
