@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import json
 from datetime import datetime, timezone
 from types import SimpleNamespace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from app.attitude import boresight_and_roll_error, rotation_from_radec_roll, solve_wahba, wahba_covariance
+from app.attitude import (angle_between, boresight_and_roll_error, rotation_from_radec_roll, solve_wahba,
+                          wahba_covariance)
 from app.attitude.sequence import fit_constant_rate, snapshot_attitude
 from app.camera import CAMERAS
 from app.catalogue import load_catalogue
@@ -104,24 +106,53 @@ def test_tracking_refuses_a_prior_far_from_the_truth(sky):
     assert solution.status != IDENTIFIED
 
 
-def test_two_matches_among_ten_points_near_a_wide_prior_are_not_identified(sky, sample_dir):
-    """A hostile-input trial: 04-big-dipper's first snapshot (10 points) tracked from a prior 10 deg wide
-    and 90 deg off in roll found an attitude 9 deg from the truth matching 2 of the 10 points, false-match
-    probability 1, and called it identified (two matches sufficed whatever the pattern's size).  Two matches
-    suffice for a pattern of two points only; here chance explains them."""
+def _first_big_dipper_snapshot(sample_dir):
     from dataclasses import replace as replaced
 
-    from app.identification import Prior, solve_sequence
     from app.telemetry import load_telemetry_file
 
     sequence = load_telemetry_file(sample_dir / "04-big-dipper.json")
     sequence = sequence if hasattr(sequence, "snapshots") else sequence[0]
-    one = replaced(sequence, snapshots=sequence.snapshots[:1])
-    solved = solve_sequence(one, sky, prior=Prior(rotation_from_radec_roll(165.0, 56.0, 0.0), sigma_deg=10.0),
-                            method="tracking")
+    return replaced(sequence, snapshots=sequence.snapshots[:1])
+
+
+def test_two_matches_among_ten_points_near_a_wide_prior_are_not_identified(sky, sample_dir, monkeypatch):
+    """A hostile-input trial: 04-big-dipper's first snapshot (10 points) tracked from a prior 10 deg wide
+    and 90 deg off in roll found, by the vote, an attitude 9 deg from the truth matching 2 of the 10 points,
+    false-match probability 1, and called it identified (two matches sufficed whatever the pattern's size).
+    Two matches suffice for a pattern of two points only; here chance explains them.  (Such a prior is now
+    searched lost in space: the vote is forced here.)"""
+    from app.identification import Prior, near_prior, solve_sequence
+
+    monkeypatch.setattr(near_prior, "VOTE_MAX_SIGMA_DEG", 10.0)
+    solved = solve_sequence(_first_big_dipper_snapshot(sample_dir), sky,
+                            prior=Prior(rotation_from_radec_roll(165.0, 56.0, 0.0), sigma_deg=10.0), method="tracking")
     best = solved.solution.candidates[0]
     assert (best.n_matched, len(solved.pattern.vectors)) == (2, 10) and best.false_match_probability == 1.0
     assert solved.solution.status != IDENTIFIED
+
+
+def test_a_wide_prior_keeps_the_lost_in_space_candidates_it_allows(sky, sample_dir):
+    """Beyond 2 deg the vote for one image offset fails (a roll error moves the field's edge by more than
+    the agreement radius): the pattern is identified lost in space and the prior keeps what it allows.  The
+    truth (``04-big-dipper.truth.json``) from a prior 5 deg off it, 10 deg wide, is identified; from a prior
+    whose roll is 90 deg off, nothing is kept."""
+    from app.identification import Prior, solve_sequence
+
+    truth = json.loads((sample_dir / "04-big-dipper.truth.json").read_text())
+    ra, dec, roll = truth["radec_roll_deg"][0]
+    one = _first_big_dipper_snapshot(sample_dir)
+    near = solve_sequence(one, sky, prior=Prior(rotation_from_radec_roll(ra + 5.0 / np.cos(np.radians(dec)), dec,
+                                                                         roll), sigma_deg=10.0), method="tracking")
+    assert near.solution.status == IDENTIFIED
+    error = np.degrees(angle_between(near.solution.candidates[0].rotation_matrix[2],
+                                     rotation_from_radec_roll(ra, dec, roll)[2]))
+    assert error < 0.1
+    assert "searched lost in space" in near.solution.notes[-1]
+    turned = solve_sequence(one, sky, prior=Prior(rotation_from_radec_roll(ra, dec, roll + 90.0), sigma_deg=10.0),
+                            method="tracking")
+    assert turned.solution.status == "no_match" and turned.solution.candidates == ()
+    assert ", 0 of " in turned.solution.notes[-1] and "candidates within 3 sigma of the prior kept" in turned.solution.notes[-1]
 
 
 def _brute_force_votes(offsets, radius):
@@ -167,6 +198,7 @@ def test_tracking_votes_as_the_brute_force_vote_did(sky, monkeypatch):
 
     rng = np.random.default_rng(13)
     sizes = []
+    monkeypatch.setattr(near_prior, "VOTE_MAX_SIGMA_DEG", 10.0)  # the vote, whatever the width
     for camera, sigma in ((CAMERAS["liebe-576x604-30deg"], 10.0), (CAMERAS["liebe-576x604-30deg"], 1.0),
                           (CAMERAS["tubsat-752x582-20deg"], 5.0), (CAMERAS["tubsat-752x582-20deg"], 1.0),
                           (CAMERAS["narrow-1024x1024-12deg"], 3.0)):
@@ -207,6 +239,7 @@ def test_a_ten_degree_prior_votes_in_bounded_memory(sky, monkeypatch):
         return counting(offsets, radius)
 
     monkeypatch.setattr(near_prior, "count_agreeing", counted)
+    monkeypatch.setattr(near_prior, "VOTE_MAX_SIGMA_DEG", 10.0)  # the vote (a two-point pattern takes it at any width)
     tracemalloc.start()
     try:
         track(pattern, camera, T, sky, prior, prior_sigma_deg=10.0)
