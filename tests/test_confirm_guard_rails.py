@@ -357,3 +357,44 @@ def test_an_upload_can_ask_to_be_searched_right_away(tmp_path, sky, sample_dir):
         assert client.get(f"/api/sequences/{plain.json()['id']}").json()["search"]["search_id"] == searched["search_id"]
     finally:
         ctx.close()
+
+
+def test_a_verdict_replaces_only_the_verdict_its_operator_saw(tmp_path, sky, sample_dir):
+    """An operator trial: Alice had the step open to replace Bob's confirmation with rank 2; Bob meanwhile
+    recorded "no valid attitude"; Alice's Supersede replaced Bob's rejection, which she never saw.  With
+    ``replaces`` naming the verdict seen, a verdict given in between is refused (409) and kept."""
+    ctx = AppContext(storage=Storage.open(tmp_path / "replaces.sqlite3"), sky=sky)
+    client = TestClient(create_app(ctx))
+    try:
+        sid = client.post("/api/sequences", content=(sample_dir / "02-ghosts-hot-pixels.json").read_bytes()).json()["id"]
+        search = client.post(f"/api/sequences/{sid}/search").json()
+        url = f"/api/sequences/{sid}"
+        nothing = client.post(f"{url}/confirm", json={"rank": 1, "operator": "bob", "supersede": True,
+                                                      "replaces": {"kind": "attitude", "id": 1}})
+        assert nothing.status_code == 422 and nothing.json()["problems"][0]["location"] == "body.replaces"
+        bob = client.post(f"{url}/confirm", json={"rank": 1, "operator": "bob"}).json()
+        seen = {"kind": "attitude", "id": bob["id"]}
+        rejected = client.post(f"{url}/reject", json={"reason": "a ghost pattern", "operator": "bob", "supersede": True,
+                                                      "replaces": seen})
+        assert rejected.status_code == 201, rejected.text
+        alice = client.post(f"{url}/confirm", json={"rank": 2, "operator": "alice", "supersede": True, "replaces": seen,
+                                                    "override_reason": "rank 1 is a ghost", "search_id": search["search_id"]})
+        assert alice.status_code == 409, alice.text
+        assert alice.json()["detail"].startswith(f"another verdict came first: sequence {sid}'s verdict is now "
+                                                 "'no valid attitude' recorded by bob at ")
+        assert f"not attitude #{bob['id']}, named to be replaced" in alice.json()["detail"]
+        again = client.post(f"{url}/reject", json={"reason": "clouds", "operator": "carl", "supersede": True,
+                                                   "replaces": seen})
+        assert again.status_code == 409
+        review = client.get(f"{url}/review").json()
+        assert review["rejection"]["id"] == rejected.json()["id"] and review["confirmation"] is None
+        # Naming the verdict now current replaces it; without ``replaces``, supersede replaces whatever is current.
+        now = {"kind": "rejection", "id": rejected.json()["id"]}
+        assert client.post(f"{url}/confirm", json={"rank": 1, "operator": "alice", "supersede": True,
+                                                   "replaces": now}).status_code == 201
+        assert client.post(f"{url}/reject", json={"reason": "clouds", "operator": "carl",
+                                                  "supersede": True}).status_code == 201
+        assert [e["kind"] for e in client.get(f"{url}/review").json()["audit"]] == \
+            ["confirmed", "rejected", "confirmed", "rejected"]
+    finally:
+        ctx.close()

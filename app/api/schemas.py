@@ -213,9 +213,20 @@ class SearchRequest(_Strict):
     prior: PriorAttitude | None = None
 
 
+class VerdictRef(_Strict):
+    """A verdict of a sequence: a confirmed attitude or a "no valid attitude" record, by its id."""
+
+    kind: Literal["attitude", "rejection"]
+    id: DbId
+
+    def key(self) -> tuple[str, int]:
+        return self.kind, self.id
+
+
 class ConfirmRequest(_Strict):
     """Confirm a candidate of the latest search.  ``override_reason``: needed (and kept in the audit record)
-    for a candidate that is not the credible best; ``supersede``: replace the sequence's current verdict;
+    for a candidate that is not the credible best; ``supersede``: replace the sequence's current verdict, and
+    with ``replaces`` (the verdict the operator saw) only that one (409 when another came in between);
     ``search_id``: the search the operator looked at (refused if a newer one replaced it)."""
 
     rank: DbId
@@ -223,15 +234,18 @@ class ConfirmRequest(_Strict):
     comment: Comment | None = None
     override_reason: Comment | None = None
     supersede: Flag = False
+    replaces: VerdictRef | None = None
     search_id: DbId | None = None
 
 
 class RejectRequest(_Strict):
-    """Record "no valid attitude" for a sequence, with the reason; ``supersede`` withdraws a confirmation."""
+    """Record "no valid attitude" for a sequence, with the reason; ``supersede`` withdraws a confirmation (with
+    ``replaces``, only the verdict named: see :class:`ConfirmRequest`)."""
 
     reason: Reason
     operator: OperatorName | None = None
     supersede: Flag = False
+    replaces: VerdictRef | None = None
 
 
 class ViewerFollow(_Strict):

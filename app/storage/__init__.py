@@ -84,6 +84,7 @@ from app.storage.records import (
     UnstorableValue,
     VerdictExists,
     content_sha256,
+    verdict_key,
     default_database_path,
 )
 from app.storage.sqlite import MIGRATIONS, SQLiteStorage
@@ -92,5 +93,5 @@ __all__ = [
     "DATABASE_URL_ENV", "MAX_PAGE", "MAX_PREVIEW_PNG_BYTES", "MIGRATIONS", "PATTERN_KINDS", "SEQUENCE_ORDERS",
     "STATUSES", "CalibrationRow", "ConfirmationRow", "FramePreviewRow", "HotPixelMapRow", "PatternVersion",
     "RejectionRow", "SQLiteStorage", "SearchRow", "SequenceRow", "StaleHotPixelMap", "Storage", "StorageError",
-    "UnknownSequence", "UnstorableValue", "VerdictExists", "backend_of", "content_sha256", "default_database_path",
+    "UnknownSequence", "UnstorableValue", "VerdictExists", "backend_of", "content_sha256", "default_database_path", "verdict_key",
 ]

@@ -54,6 +54,7 @@ from app.storage.records import (
     StaleHotPixelMap,
     UnknownSequence,
     VerdictExists,
+    verdict_key,
     _calibration_row,
     _check_frame_preview,
     _check_page,
@@ -73,6 +74,19 @@ from app.storage.records import (
 
 #: URL schemes of PostgreSQL (libpq accepts both).
 POSTGRES_SCHEMES = ("postgresql://", "postgres://")
+
+
+def _check_replaced(current: ConfirmationRow | RejectionRow | None, supersede: bool,
+                    replaces: tuple[str, int] | None) -> None:
+    """Raise :class:`VerdictExists` unless a new verdict may follow ``current`` (in the caller's transaction):
+    with no current verdict, or with ``supersede`` and, when ``replaces`` names the verdict the operator saw,
+    that one still current."""
+    if current is None:
+        if replaces is not None:
+            raise ValueError(f"{replaces[0]} {replaces[1]} is no verdict of this sequence")
+        return
+    if not supersede or (replaces is not None and verdict_key(current) != tuple(replaces)):
+        raise VerdictExists(current)
 
 
 def backend_of(target: str) -> str:
@@ -331,7 +345,8 @@ class Storage:
                          comment: str | None = None, confirmed_at: datetime | None = None,
                          epoch: datetime | None = None, rate_deg_s: list[float] | None = None,
                          override_reason: str | None = None, overridden: list[str] | None = None,
-                         supersede: bool = True, acm_text: str | None = None) -> ConfirmationRow:
+                         supersede: bool = True, acm_text: str | None = None,
+                         replaces: tuple[str, int] | None = None) -> ConfirmationRow:
         """Append a confirmation; in the same transaction make it the sequence's
         verdict (the earlier current confirmation is marked superseded by it, a
         current rejection is named as replaced) and set the status ``confirmed``.
@@ -339,7 +354,9 @@ class Storage:
         With ``supersede`` False, a sequence that already has a current verdict
         raises :class:`VerdictExists` (carrying it) and nothing is written: the
         check and the write are one transaction, so two operators confirming at
-        once cannot both succeed.
+        once cannot both succeed.  With ``replaces`` (:func:`verdict_key` of the
+        verdict the operator saw), it is replaced only if it is still the
+        current one: another operator's verdict in between raises too.
         """
         if not operator:
             raise ValueError("a confirmation needs an operator")
@@ -350,8 +367,7 @@ class Storage:
             # old" one step for every server sharing the archive.
             self._lock_sequence(conn, seq_id)
             current = self._current_verdict(conn, seq_id)
-            if current is not None and not supersede:
-                raise VerdictExists(current)
+            _check_replaced(current, supersede, replaces)
             replaced_rejection = current.id if isinstance(current, RejectionRow) else None
             new_id = self._insert(
                 conn, "INSERT INTO confirmations (seq_id, search_id, rank, operator, confirmed_at, comment, "
@@ -448,9 +464,11 @@ class Storage:
             return self._current_verdict(conn, seq_id)
 
     def add_rejection(self, seq_id: int, *, operator: str, reason: str, search_id: int | None = None,
-                      supersede: bool = False, rejected_at: datetime | None = None) -> RejectionRow:
+                      supersede: bool = False, rejected_at: datetime | None = None,
+                      replaces: tuple[str, int] | None = None) -> RejectionRow:
         """Append the verdict "no valid attitude" and set the status ``rejected``; the current verdict,
-        if any, is named as replaced (with ``supersede`` False it raises :class:`VerdictExists`)."""
+        if any, is named as replaced (with ``supersede`` False, or ``replaces`` naming another verdict, it
+        raises :class:`VerdictExists`: see :meth:`add_confirmation`)."""
         if not operator or not operator.strip():
             raise ValueError("a rejection needs an operator")
         if not reason or not reason.strip():
@@ -458,8 +476,7 @@ class Storage:
         with self._transaction() as conn:
             self._lock_sequence(conn, seq_id)
             current = self._current_verdict(conn, seq_id)
-            if current is not None and not supersede:
-                raise VerdictExists(current)
+            _check_replaced(current, supersede, replaces)
             new_id = self._insert(
                 conn,
                 "INSERT INTO rejections (seq_id, search_id, operator, rejected_at, reason, replaces_confirmation, "

@@ -171,8 +171,16 @@ class RejectionRow:
         return self.replaced_by_confirmation is None and self.replaced_by_rejection is None
 
 
+def verdict_key(verdict: "ConfirmationRow | RejectionRow | None") -> tuple[str, int] | None:
+    """``("attitude", id)`` or ``("rejection", id)``: which verdict a caller saw, to replace that one only."""
+    if verdict is None:
+        return None
+    return ("attitude" if isinstance(verdict, ConfirmationRow) else "rejection", verdict.id)
+
+
 class VerdictExists(ValueError):
-    """A confirmation or rejection without ``supersede`` on a sequence that already has a current verdict."""
+    """A confirmation or rejection without ``supersede`` on a sequence that already has a current verdict, or
+    with ``replaces`` naming another verdict than the current one (another operator's came in between)."""
 
     def __init__(self, current: "ConfirmationRow | RejectionRow") -> None:
         super().__init__(f"sequence {current.seq_id} already has a current verdict")

@@ -30,7 +30,7 @@ import numpy as np
 
 from app.attitude import propagate, quaternion_from_rotation
 from app.ccsds import CAMERA_FRAME, AcmDetermination, AcmSensor, acm_kvn, aem_kvn, apm_kvn, comment_lines, format_epoch
-from app.storage import ConfirmationRow, RejectionRow, SequenceRow, VerdictExists
+from app.storage import ConfirmationRow, RejectionRow, SequenceRow, VerdictExists, verdict_key
 from app.timefmt import utc_text
 from app.workflow.archive import current_pattern_version, definition_of, loaded, require_sequence
 from app.workflow.context import AppContext, LoadedSequence
@@ -180,14 +180,18 @@ def describe_verdict(verdict: ConfirmationRow | RejectionRow) -> str:
 
 def record_confirmation(ctx: AppContext, seq_id: int, rank: int, operator: str, comment: str | None, *,
                         override_reason: str | None = None, supersede: bool = False,
-                        search_id: int | None = None) -> tuple[AttitudeDocument, bool]:
+                        search_id: int | None = None,
+                        replaces: tuple[str, int] | None = None) -> tuple[AttitudeDocument, bool]:
     """Confirm ``rank`` of the latest search behind the guard rails (module docstring).
 
     Returns the attitude and whether it was stored now (False: the same
     candidate of the same search was the current verdict already).  Raises
     :class:`Conflict` for a rank not in the latest search, a replaced
     ``search_id``, a candidate that needs ``override_reason`` without one, or
-    a different current verdict without ``supersede``.
+    a different current verdict without ``supersede``, or with ``replaces``
+    (:func:`app.storage.verdict_key` of the verdict the operator saw) naming
+    another than the current one: a verdict given in between is never
+    replaced unseen.
     """
     require_audit_text(operator=operator, comment=comment, override_reason=override_reason)
     row = require_sequence(ctx, seq_id)
@@ -199,6 +203,7 @@ def record_confirmation(ctx: AppContext, seq_id: int, rank: int, operator: str, 
     current = ctx.storage.current_verdict(seq_id)
     if current is not None and not supersede:
         return _repeat_or_refuse(ctx, row, current, search.id, rank)
+    _check_replaces(seq_id, current, supersede, replaces)
     verdict = next(v for v in candidate_verdicts(result, current_pattern_version(ctx, seq_id)) if v.rank == rank)
     override_reason = (override_reason or "").strip() or None
     if not verdict.credible and override_reason is None:
@@ -228,10 +233,25 @@ def record_confirmation(ctx: AppContext, seq_id: int, rank: int, operator: str, 
             pattern=pattern_used.model_dump(mode="json"), candidate=candidate.model_dump(mode="json"),
             apm_text=apm, aem_text=aem, confirmed_at=confirmed_at, epoch=epoch,
             rate_deg_s=None if fit is None else fit.rate_deg_s, override_reason=override_reason,
-            overridden=overridden, supersede=supersede, acm_text=acm)
+            overridden=overridden, supersede=supersede, acm_text=acm, replaces=replaces)
     except VerdictExists as exc:  # another operator's verdict landed between our check and our write
+        _check_replaces(seq_id, exc.current, supersede, replaces)
         return _repeat_or_refuse(ctx, row, exc.current, search.id, rank)
     return AttitudeDocument.of(stored, ctx.storage.get_sequence(seq_id)), True
+
+
+def _check_replaces(seq_id: int, current: ConfirmationRow | RejectionRow | None, supersede: bool,
+                    replaces: tuple[str, int] | None) -> None:
+    """A new verdict replaces the one the operator saw (``replaces``), or none: Conflict when another
+    operator's verdict came in between, Invalid when the sequence has no verdict to replace."""
+    if not supersede or replaces is None:
+        return
+    if current is None:
+        raise Invalid(f"sequence {seq_id} has no verdict to replace ({replaces[0]} #{replaces[1]} was named)",
+                      location="body.replaces", message="the sequence has no verdict")
+    if verdict_key(current) != tuple(replaces):
+        raise Conflict(f"another verdict came first: sequence {seq_id}'s verdict is now {describe_verdict(current)}, "
+                       f"not {replaces[0]} #{replaces[1]}, named to be replaced; look at it before replacing it")
 
 
 def _repeat_or_refuse(ctx: AppContext, row: SequenceRow, current: ConfirmationRow | RejectionRow,
@@ -251,12 +271,14 @@ def confirm(ctx: AppContext, seq_id: int, rank: int, operator: str, comment: str
 
 
 def reject(ctx: AppContext, seq_id: int, operator: str, reason: str | None, *,
-           supersede: bool = False) -> tuple[RejectionDocument, bool]:
+           supersede: bool = False, replaces: tuple[str, int] | None = None) -> tuple[RejectionDocument, bool]:
     """Record "no valid attitude" for a sequence, with the operator's reason, as its verdict.
 
     Returns the rejection and whether it was stored now (False: the current
     verdict already is a rejection).  A current confirmation is withdrawn
-    only with ``supersede`` (Conflict otherwise); it stays in the audit trail.
+    only with ``supersede`` (Conflict otherwise), and with ``replaces`` only if
+    it is the one named (see :func:`record_confirmation`); it stays in the
+    audit trail.
     """
     require_audit_text(operator=operator, reason=reason)
     row = require_sequence(ctx, seq_id)
@@ -265,10 +287,13 @@ def reject(ctx: AppContext, seq_id: int, operator: str, reason: str | None, *,
         raise Invalid("'no valid attitude' needs the reason (what makes every candidate wrong)",
                       location="body.reason", message="missing reason")
     search = ctx.storage.latest_search(seq_id)
+    _check_replaces(seq_id, ctx.storage.current_verdict(seq_id), supersede, replaces)
     try:
         stored = ctx.storage.add_rejection(seq_id, operator=operator, reason=reason,
-                                           search_id=search.id if search else None, supersede=supersede)
+                                           search_id=search.id if search else None, supersede=supersede,
+                                           replaces=replaces)
     except VerdictExists as exc:
+        _check_replaces(seq_id, exc.current, supersede, replaces)
         if isinstance(exc.current, RejectionRow):
             return RejectionDocument.of(exc.current, row), False
         raise Conflict(f"sequence {seq_id} already has a verdict: {describe_verdict(exc.current)}. "

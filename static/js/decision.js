@@ -20,6 +20,8 @@ export function setupDecision(h) {
 
 const verdictOf = (rank) => state.review?.candidates.find((v) => v.rank === rank) || null;
 const currentVerdict = () => state.review?.confirmation || state.review?.rejection || null;
+// A verdict as the API names it, to replace that one only (`replaces`).
+const verdictRef = (v) => ({ kind: v.confirmed_at ? "attitude" : "rejection", id: v.id });
 // Whether the candidate shown is the sequence's confirmed attitude already.
 function shownIsConfirmed() {
   const c = state.review?.confirmation;
@@ -31,8 +33,10 @@ function shownIsConfirmed() {
 const confirmedBy = (c) => `by ${c.operator} at ${fmtTime(c.confirmed_at)}`;
 
 function describeCurrent(r = state.review) {
-  if (r.confirmation) return `attitude #${r.confirmation.id} (rank ${r.confirmation.rank}) confirmed by ${r.confirmation.operator}`;
-  if (r.rejection) return `"no valid attitude" recorded by ${r.rejection.operator}: ${r.rejection.reason}`;
+  // Who gave it and when (UTC), then what: the words every refusal and second step name a verdict in.
+  const c = r.confirmation, j = r.rejection;
+  if (c) return `attitude #${c.id} (rank ${c.rank}) confirmed by ${c.operator} at ${fmtTime(c.confirmed_at)}`;
+  if (j) return `"no valid attitude" recorded by ${j.operator} at ${fmtTime(j.rejected_at)} ("${j.reason}")`;
   return "";
 }
 
@@ -195,6 +199,20 @@ function operatorName() {
   return operator || "token";
 }
 
+// A verdict refused (409) because another console gave one first, said in this console's words (the server's
+// name the API's supersede field), before the reload, which brings a change notice into view below the status
+// line as it then is. Other refusals (a search replaced: `searchId` no longer the latest) keep the server's.
+async function sayRefused(err, d, done, again, failed, searchId = null) {
+  const key = (v) => v && `${v.confirmed_at ? "attitude" : "rejection"} ${v.id}`;
+  const seen = currentVerdict();
+  const review = await api.get(`/api/sequences/${d.id}/review`).catch(() => null);
+  const now = review && (review.confirmation || review.rejection);
+  toast(now && key(now) !== key(seen) && (searchId === null || review.search_id === searchId)
+    ? `Not ${done}: another console gave the verdict first: ${describeCurrent(review)}. To replace it, ${again} ` +
+      "(the replaced verdict stays in the audit trail)"
+    : `${failed}: ${errorText(err)}`, "error");
+}
+
 async function sendConfirmation(secondStep) {
   const d = state.detail, v = verdictOf(state.rank);
   if (!d || !v || !operatorName()) return;
@@ -206,7 +224,7 @@ async function sendConfirmation(secondStep) {
       if (!reason) { toast("Give the reason for confirming this candidate anyway", "error"); $("override-reason").focus(); return; }
       body.override_reason = reason;
     }
-    if (currentVerdict()) body.supersede = true;
+    if (currentVerdict()) Object.assign(body, { supersede: true, replaces: verdictRef(currentVerdict()) });
   }
   state.busy++;
   try {
@@ -227,18 +245,8 @@ async function sendConfirmation(secondStep) {
       toast(`The confirmation failed: ${errorText(err)}`, "error");
       return;
     }
-    // Someone else's verdict or search: the step asked about what was; show what is.  Another console's
-    // verdict on these candidates is said in this console's words (the server's name the API's supersede
-    // field), before the reload, which brings a change notice into view below the status line as it then is.
-    const key = (v) => v && `${v.confirmed_at ? "attitude" : "rejection"} ${v.id}`;
-    const before = currentVerdict();
-    const review = await api.get(`/api/sequences/${d.id}/review`).catch(() => null);
-    const now = review && (review.confirmation || review.rejection);
-    toast(now && key(now) !== key(before) && review.search_id === body.search_id
-      ? `Not confirmed: another console gave the verdict first: ${describeCurrent(review)} at ` +
-        `${fmtTime(now.confirmed_at || now.rejected_at)}. To replace it, confirm again (the replaced verdict stays ` +
-        "in the audit trail)"
-      : `The confirmation failed: ${errorText(err)}`, "error");
+    // Someone else's verdict or search: the step asked about what was; show what is.
+    await sayRefused(err, d, "confirmed", "confirm again", "The confirmation failed", body.search_id);
     cancelSteps();
     await hooks.afterVerdict();
   } finally {
@@ -264,7 +272,9 @@ async function sendRejection() {
   const d = state.detail;
   const reason = $("reject-reason").value.trim();
   if (!reason) { toast("Give the reason why there is no valid attitude", "error"); $("reject-reason").focus(); return; }
-  const body = { reason, operator: $("operator").value.trim() || null, supersede: !!currentVerdict() };
+  const seen = currentVerdict();   // replaced only if still the verdict: another operator's is never replaced unseen
+  const body = { reason, operator: $("operator").value.trim() || null, supersede: !!seen,
+    ...(seen ? { replaces: verdictRef(seen) } : {}) };
   state.busy++;
   try {
     const { status, body: r } = await api.requestWithStatus("POST", `/api/sequences/${d.id}/reject`, body);
@@ -274,11 +284,14 @@ async function sendRejection() {
     toast(status === 201 ? `Recorded: no valid attitude for ${d.sequence_id || `#${d.id}`} (${r.operator})`
       : `"No valid attitude" was recorded already by ${r.operator}`);
   } catch (err) {
-    toast(`Recording "no valid attitude" failed: ${errorText(err)}`, "error");
-    if (err.status === 409) {   // another console's verdict came first: show it, to decide again knowing it
-      cancelSteps();
-      await hooks.afterVerdict();
+    if (err.status !== 409) {
+      toast(`Recording "no valid attitude" failed: ${errorText(err)}`, "error");
+      return;
     }
+    // Another console's verdict came first: show it, to decide again knowing it.
+    await sayRefused(err, d, "recorded", "record it again", 'Recording "no valid attitude" failed');
+    cancelSteps();
+    await hooks.afterVerdict();
   } finally {
     state.busy--;
   }

@@ -771,3 +771,47 @@ def test_a_verdict_given_elsewhere_first_is_named_in_the_consoles_words(server, 
     review = api(f"/api/sequences/{seq_id}/review")
     assert review["confirmation"]["id"] == first["id"] and len(review["audit"]) == 1
     assert unexpected_errors(watched) == []
+
+
+def test_a_supersede_replaces_only_the_verdict_its_console_showed(server, api, new_page, tmp_path):
+    """Alice has the step open to replace Bob's confirmation with rank 2 when Bob records "no valid attitude"
+    (her reads of the view held back: she has not seen it).  Her Supersede is refused, Bob's verdict stays,
+    and she is told whose verdict came first, in the console's words; then the same for a rejection."""
+    seq_id, search = upload_and_search(api, fresh_copy("10-narrow-12deg-ghosts.json", "seen", tmp_path))
+    bob = api(f"/api/sequences/{seq_id}/confirm", "POST", body={"rank": 1, "operator": "Bob"})
+    watched = operator_on(new_page, server, "Alice", seq_id, "10-narrow-12deg-ghosts-seen")
+    page = watched.page
+    page.locator("#candidate-rows tr[data-rank='2']").click()
+    page.click("#confirm")
+    expect_text(page.locator("#override-reasons"), re.escape(f"replaces the current verdict: attitude #{bob['id']} "
+                                                             f"(rank 1) confirmed by Bob at {utc_text(bob['confirmed_at'])}"))
+    page.fill("#override-reason", "rank 1 is a ghost pattern")
+    hold_back_polling(page)
+    rejected = api(f"/api/sequences/{seq_id}/reject", "POST", body={
+        "reason": "every candidate is a ghost", "operator": "Bob", "supersede": True,
+        "replaces": {"kind": "attitude", "id": bob["id"]}})
+    page.click("#confirm-override")
+    said = (f'Not confirmed: another console gave the verdict first: "no valid attitude" recorded by Bob at '
+            f'{utc_text(rejected["rejected_at"])} ("every candidate is a ghost"). To replace it, confirm again '
+            "(the replaced verdict stays in the audit trail)")
+    expect_text(page.locator("#toast"), f"^{re.escape(said)}$")
+    review = api(f"/api/sequences/{seq_id}/review")
+    assert review["rejection"]["id"] == rejected["id"] and [e["kind"] for e in review["audit"]] == \
+        ["confirmed", "rejected"]
+
+    # A rejection that another console's confirmation overtakes says so in the same words.
+    page.reload()
+    page.wait_for_selector("body[data-ready='1']")
+    open_sequence(page, seq_id, "10-narrow-12deg-ghosts-seen")
+    page.click("#reject-open")
+    page.fill("#reject-reason", "clouds over the field")
+    hold_back_polling(page)
+    carl = api(f"/api/sequences/{seq_id}/confirm", "POST", body={
+        "rank": 1, "operator": "Carl", "supersede": True, "replaces": {"kind": "rejection", "id": rejected["id"]}})
+    page.click("#reject-confirm")
+    said = (f"Not recorded: another console gave the verdict first: attitude #{carl['id']} (rank 1) confirmed by Carl "
+            f"at {utc_text(carl['confirmed_at'])}. To replace it, record it again (the replaced verdict stays in "
+            "the audit trail)")
+    expect_text(page.locator("#toast"), f"^{re.escape(said)}$")
+    assert api(f"/api/sequences/{seq_id}/review")["confirmation"]["id"] == carl["id"]
+    assert unexpected_errors(watched) == []

@@ -34,7 +34,8 @@ def reject(body: RejectRequest, seq_id: int = SeqId, token_operator: str | None 
     if operator is None:
         raise ApiError(422, "'no valid attitude' needs the operator's name",
                        problems=[{"location": "body.operator", "message": "missing operator"}])
-    doc, created = confirming.reject(ctx, seq_id, operator, body.reason, supersede=body.supersede)
+    doc, created = confirming.reject(ctx, seq_id, operator, body.reason, supersede=body.supersede,
+                                     replaces=None if body.replaces is None else body.replaces.key())
     return JSONResponse(doc.model_dump(mode="json"), status_code=201 if created else 200)
 
 

@@ -180,7 +180,8 @@ def confirm(body: ConfirmRequest, seq_id: int = SeqId, token_operator: str | Non
     comment = (body.comment or "").strip() or None
     doc, created = confirming.record_confirmation(ctx, seq_id, body.rank, operator, comment,
                                                   override_reason=body.override_reason, supersede=body.supersede,
-                                                  search_id=body.search_id)
+                                                  search_id=body.search_id,
+                                                  replaces=None if body.replaces is None else body.replaces.key())
     return JSONResponse(doc.model_dump(mode="json"), status_code=201 if created else 200)
 
 
