@@ -284,6 +284,10 @@ def test_confirm_apm_aem_and_supersession(api, uploaded, sample_dir):
     listing = api.get("/api/attitudes").json()
     assert [a["id"] for a in listing["items"][:2]] == [second["id"], first["id"]]
     assert "confirmed by bob" in api.get(f"/api/sequences/{sid}/aem").text  # the current confirmation
+    # Each attitude's AEM is its own, superseded or not (its link once gave the sequence's current one).
+    assert first["aem_url"] == f"/api/attitudes/{first['id']}/aem"
+    assert api.get(first["aem_url"]).text == aem.text
+    assert "confirmed by bob" in api.get(second["aem_url"]).text and api.get(second["aem_url"]).text != aem.text
 
 
 def test_token_operator_wins_over_body_operator(tmp_path, sky, sample_dir):

@@ -354,6 +354,16 @@ def attitude_acm(ctx: AppContext, attitude_id: int) -> tuple[str, str]:
                       override_reason=c.override_reason, overridden=c.overridden), name
 
 
+def attitude_aem(ctx: AppContext, attitude_id: int) -> tuple[str, str]:
+    """The AEM text of a confirmed attitude, byte for byte as rendered at its confirmation (superseded or
+    not), and its download name."""
+    c = require_attitude(ctx, attitude_id)
+    if not c.aem_text:
+        raise NotFound(f"attitude {attitude_id} has no AEM: no snapshot's attitude was known when it was confirmed")
+    row = ctx.storage.get_sequence(c.seq_id)
+    return c.aem_text, download_name(f"{row.sequence_id}-attitude-{c.id}" if row else None, f"attitude-{c.id}", ".aem")
+
+
 def sequence_aem(ctx: AppContext, seq_id: int) -> tuple[str, str]:
     """The AEM text of the sequence's current confirmation and its download name."""
     row = require_sequence(ctx, seq_id)

@@ -517,7 +517,7 @@ class AttitudeDocument(Document):
                    deviation_arcsec=c.deviation_arcsec, false_match_probability=c.false_match_probability,
                    pattern=PatternUsed.model_validate(c.pattern), candidate=CandidateDocument.model_validate(c.candidate),
                    superseded_by=c.superseded_by, current=c.is_current, apm_url=f"/api/attitudes/{c.id}/apm",
-                   aem_url=f"/api/sequences/{c.seq_id}/aem" if c.aem_text else None,
+                   aem_url=f"/api/attitudes/{c.id}/aem" if c.aem_text else None,
                    acm_url=f"/api/attitudes/{c.id}/acm",
                    override_reason=getattr(c, "override_reason", None), overridden=getattr(c, "overridden", None) or [],
                    withdrawn_by=getattr(c, "withdrawn_by", None),

@@ -62,6 +62,13 @@ def get_apm(attitude_id: int = AttitudeId, ctx: AppContext = Depends(get_context
     return attachment(*confirming.attitude_apm(ctx, attitude_id))
 
 
+@router.get("/{attitude_id}/aem", response_class=PlainTextResponse,
+            summary="CCSDS AEM 2.0 (KVN) of a confirmed attitude: one quaternion per snapshot, byte for byte as "
+                    "rendered at its confirmation (superseded or not)")
+def get_aem(attitude_id: int = AttitudeId, ctx: AppContext = Depends(get_context)):
+    return attachment(*confirming.attitude_aem(ctx, attitude_id))
+
+
 @router.get("/{attitude_id}/acm", response_class=PlainTextResponse,
             summary="CCSDS ACM 2.0 (KVN) of a confirmed attitude: every snapshot's attitude with the body rate, the "
                     "covariance and the attitude determination (method, sensor), as rendered at confirmation")
