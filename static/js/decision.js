@@ -134,6 +134,10 @@ export function renderDecision() {
 export function cancelSteps() {
   $("override-step").hidden = true;
   $("reject-step").hidden = true;
+  // A comment the 3D view sent with its request was about that rank's confirmation: it goes with the step
+  // (unless the operator has made it theirs by editing it).
+  if (state.sentComment !== null && $("comment").value === state.sentComment) $("comment").value = "";
+  state.sentComment = null;
 }
 
 // The first step: confirm at once when the candidate is the credible best and nothing is to be
@@ -186,7 +190,7 @@ export function confirmSentFrom(sender) {
   }
   openOverrideStep(v, sender);
   const ask = v.credible ? "confirm replacing the verdict" : "give the reason to confirm it anyway";
-  toast(`${from} sent rank ${state.rank} here: ${ask}`);
+  toast(`${from} sent rank ${state.rank} here: ${ask}`, "warn");   // an instruction: read whole
 }
 
 function operatorName() {

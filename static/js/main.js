@@ -417,7 +417,7 @@ function drawCandidate() {
   $("cand-facts").replaceChildren(...facts.flatMap(([k, v, why]) => [el("dt", { title: why }, k), el("dd", { title: why }, v)]));
   const matches = view.sky.pattern_points.map((p) => {
     const target = p.name || (p.hip !== null ? `HIP ${p.hip}` : p.planet ? `planet ${p.planet}` : "unmatched");
-    return `${p.track !== null ? `T${p.track}` : "hand"} → ${target}${p.residual_arcsec !== null ? ` (${fmt(p.residual_arcsec, 1)}″)` : ""}`;
+    return `${p.track !== null ? `T${p.track}` : `hand ${p.hand}`} → ${target}${p.residual_arcsec !== null ? ` (${fmt(p.residual_arcsec, 1)}″)` : ""}`;
   });
   $("cand-matches").textContent = matches.join(" · ");
 }
@@ -660,7 +660,10 @@ async function takeRequest(doc) {
     confirmSentFrom("the 3D view");
     // The comment typed with it in the 3D view, unless this console's box holds one of its own already.
     const box = $("comment");
-    if (request.comment && !box.value.trim()) box.value = request.comment;
+    if (request.comment && !box.value.trim()) {
+      box.value = request.comment;
+      state.sentComment = request.comment;   // cleared with the step it came for (cancelSteps)
+    }
     else if (request.comment && box.value.trim() !== request.comment) {
       toast("The 3D view's comment was not put in the comment box, which holds yours: " + request.comment);
     }

@@ -32,5 +32,6 @@ export const state = {
   openedFrom: null,      // {id, ids}: the queue page as it was when sequence id was opened (j / k step through it)
   viewRevision: -1,      // newest revision of this session's view state applied or written
   busy: 0,               // actions in flight: the poll does not apply state meanwhile
+  sentComment: null,     // the comment the 3D view sent with its confirmation request, while in the comment box
   authRequired: false,
 };

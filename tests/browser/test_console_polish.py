@@ -196,6 +196,8 @@ def test_the_gap_to_rank_1_is_signed(server, api, new_page, tmp_path):
     for rank, gap in gaps.items():
         shown = "-" if rank == 1 else f"{'+' if gap >= 0 else '-'}{abs(gap):.0f}″"
         expect_text(page.locator(f"#candidate-rows tr[data-rank='{rank}'] td").last, f"^{re.escape(shown)}$")
+    # The point picked by hand is "hand 0" in the candidate's matches too, as in the table and the sky chart.
+    expect_text(page.locator("#cand-matches"), r"(^| · )hand 0 → ")
     watched.screenshot("polish-05-signed-gap")
 
 

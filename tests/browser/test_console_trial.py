@@ -179,11 +179,18 @@ def test_the_3d_views_confirm_of_another_rank_opens_the_consoles_second_step(ser
     expect_text(panel, rf"Rank 2 of {n}")
     viewer.page.get_by_role("button", name="Prev").click()
     expect_text(panel, rf"Rank 1 of {n}")
+    comment_box.fill("rank 1 after all (3D)")
     viewer.page.get_by_role("button", name="Confirm").click()
     expect_text(panel, re.escape(f"Rank 1 would replace the sequence's verdict: attitude #{c['id']} (rank 2) "
                                  "confirmed by Vera Viewer at "))
     expect_text(page.locator("#override-title"), r"^Replace the verdict with rank 1 \(sent from the 3D view\)\?$")
+    expect_value(page.locator("#comment"), "rank 1 after all (3D)")
+    # Cancelled, the step takes the comment sent for it along (it went with another rank's confirmation).
+    page.click("#override-cancel")
+    expect_value(page.locator("#comment"), "")
+    page.click("#confirm")
     supersede_rank_2_with_rank_1(page, api, seq_id, c["id"])
+    assert api(f"/api/sequences/{seq_id}/review")["confirmation"]["comment"] is None
     # The panel's message was about that sequence: it goes when the console opens another.
     expect_text(panel, "would replace the sequence's verdict")
     other_id, _ = upload_and_search(api, fresh_copy("01-clean.json", "after-3d", tmp_path))
