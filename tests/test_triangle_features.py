@@ -306,3 +306,21 @@ def test_the_disk_cache_keeps_a_bounded_number_of_databases(tmp_path):
     left = sorted(tmp_path.glob("triangle-features-*.npz"))
     assert oldest in left and len(left) == MAX_CACHED_DATABASES + 1
     assert set(paths[-MAX_CACHED_DATABASES:]) <= set(left)
+
+
+def test_a_pattern_too_sparse_for_triangle_features_says_so(sky, sample_dir):
+    """06-sparse: no point has both nearest neighbours nearer than the sensor's edge (Liebe's rim rule), so
+    the method has no feature at all; the search said only "0 tf hypotheses from 0 pattern features", which
+    reads as a sky that fits nothing.  Its notes now say why, and what needs no such neighbours."""
+    from app.identification import solve_sequence
+    from app.telemetry import load_telemetry_file
+
+    def notes(name):
+        solved = solve_sequence(load_telemetry_file(sample_dir / name), sky, method="tf")
+        return solved.solution.status, solved.solution.notes
+
+    status, sparse = notes("06-sparse.json")
+    assert status == "no_match"
+    assert any("too sparse for this method; bright pairs need no such neighbours" in n for n in sparse)
+    status, dense = notes("01-clean.json")
+    assert status == "identified" and not any("too sparse" in n for n in dense)

@@ -35,13 +35,19 @@ class Method:
     #: (:mod:`app.identification.focal_estimate`) is one of its own; another method stays an independent
     #: opinion and uses them only to choose the focal length searched first.
     bright_triangles: bool = False
+    #: Why a pattern can give this method no feature at all, said when it gives none (an operator who sees
+    #: "0 hypotheses from 0 pattern features" needs to know it is the method, not the sky).
+    no_feature: str = ""
 
 
 METHODS: dict[str, Method] = {m.name: m for m in (
     Method("bright_pair", "the seed's bright-pair index, edges looked up by length (lost in space; default)",
            hypotheses=bright_pair_batches, bright_triangles=True),
     Method("tf", "Liebe's triangle features: two angular distances and the spherical angle (lost in space)",
-           hypotheses=tf_batches),
+           hypotheses=tf_batches,
+           no_feature="no pattern point has its two nearest neighbours nearer than the sensor's edge (Liebe's rim "
+                      "rule for a triangle feature): the pattern is too sparse for this method; bright pairs need "
+                      "no such neighbours"),
     Method("tracking", "match near a prior attitude (Liebe's predictional estimate; FUSE's known tracking)",
            needs_prior=True),
 )}
