@@ -195,6 +195,20 @@ def test_latest_search_is_the_newest(store):
     assert store.get_search(first.id) == first and first.result == [{"rank": 1}]
 
 
+def test_a_search_and_the_status_it_gives_are_one_write(store):
+    """A console read a sequence between the search's write and the status's, saw "new" beside identified
+    candidates and, its polling seeing no newer search, never read it again.  The status now comes with the
+    search; a verdict an operator gave stands."""
+    row, _ = _upload(store, 1)
+    assert row.status == "new"
+    store.add_search(row.id, pattern_version=1, method="bright_pair", options={}, result=[], status="identified")
+    assert store.get_sequence(row.id).status == "identified"
+    store.set_status(row.id, "confirmed")
+    store.add_search(row.id, pattern_version=1, method="tf", options={}, result=[], status="no_match")
+    assert store.get_sequence(row.id).status == "confirmed"
+    assert store.set_search_status(row.id, "ambiguous").status == "confirmed"
+
+
 # -- confirmations: append-only audit trail ------------------------------------------------
 
 def test_a_newer_confirmation_supersedes_the_older_which_is_kept_unchanged(store):

@@ -76,6 +76,10 @@ from app.storage.records import (
 POSTGRES_SCHEMES = ("postgresql://", "postgres://")
 
 
+#: A search's status for its sequence; a verdict an operator gave stands until an operator supersedes it.
+_SEARCH_STATUS = "UPDATE sequences SET status = ? WHERE id = ? AND status NOT IN ('confirmed', 'rejected')"
+
+
 def _check_replaced(current: ConfirmationRow | RejectionRow | None, supersede: bool,
                     replaces: tuple[str, int] | None) -> None:
     """Raise :class:`VerdictExists` unless a new verdict may follow ``current`` (in the caller's transaction):
@@ -316,6 +320,10 @@ class Storage:
 
     def add_search(self, seq_id: int, *, pattern_version: int | None, method: str, options: dict,
                    result: Any, status: str, elapsed_s: float | None = None) -> SearchRow:
+        """Append a search and, in the same transaction, give the sequence its status (unless an operator's
+        verdict stands: :meth:`set_search_status`).  One write: a reader never sees the new search beside
+        the status of none (a console showed "new" beside identified candidates, and its polling, seeing no
+        new search, never read it again), and a confirmation landing in between is never overwritten."""
         with self._transaction() as conn:
             # Under the sequence's lock too, so that the newest search is also the last one committed.
             self._lock_sequence(conn, seq_id)
@@ -324,8 +332,19 @@ class Storage:
                 "status, created_at, elapsed_s) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                 (seq_id, pattern_version, method, _dumps(options), _dumps(result), status,
                  _time_text(_now()), elapsed_s))
+            if status in STATUSES:
+                conn.execute(_SEARCH_STATUS, (status, seq_id))
             row = conn.execute("SELECT * FROM searches WHERE id = ?", (new_id,)).fetchone()
         return _search_row(row)
+
+    def set_search_status(self, seq_id: int, status: str) -> SequenceRow:
+        """The status a search gives the sequence, unless an operator's verdict (confirmed, rejected) stands."""
+        if status not in STATUSES:
+            raise ValueError(f"status must be one of {STATUSES}")
+        with self._transaction() as conn:
+            self._lock_sequence(conn, seq_id)
+            conn.execute(_SEARCH_STATUS, (status, seq_id))
+            return self._read_sequence(conn, "id", seq_id)
 
     def get_search(self, search_id: int) -> SearchRow | None:
         with self._transaction(write=False) as conn:

@@ -140,15 +140,12 @@ def compute_search(job: SearchJob, *, sky) -> SearchResult:
 
 
 def store_search(ctx: AppContext, job: SearchJob, result: SearchResult) -> SearchDocument:
-    """Archive a computed search and set the sequence's status from it."""
+    """Archive a computed search and, in the same write, set the sequence's status from it (a confirmed or
+    rejected sequence keeps its verdict until an operator supersedes it)."""
     search = ctx.storage.add_search(job.seq_id, pattern_version=job.pattern_version, method=job.method,
                                     options=search_options_record(ctx, job.options, job.camera_calibration),
                                     result=result.model_dump(mode="json"), status=result.status,
                                     elapsed_s=result.elapsed_ms / 1000)
-    row = require_sequence(ctx, job.seq_id)
-    # A confirmed (or rejected) sequence keeps its verdict until an operator supersedes it.
-    if row.status not in ("confirmed", "rejected"):
-        ctx.storage.set_status(job.seq_id, result.status)
     return SearchDocument.of(search)
 
 
@@ -176,7 +173,7 @@ def reusable_search(ctx: AppContext, seq_id: int, method: str, max_candidates: i
             or search.options != search_options_record(ctx, options, row.camera_calibration)):
         return None
     if row.status not in ("confirmed", "rejected") and row.status != search.status:
-        ctx.storage.set_status(seq_id, search.status)
+        ctx.storage.set_search_status(seq_id, search.status)
     return SearchDocument.of(search, reused=True)
 
 
