@@ -165,7 +165,6 @@ def test_json_booleans_and_integers_still_work(env):
     ("start=yesterday", "query.start", "not an ISO 8601 time such as"),
 ])
 def test_the_aem_time_range_is_iso_8601_never_a_number(env, query, location, words):
-    # Needs app/api/routes/attitudes.py to read start and end as IsoTime (the patch in the report).
     client, _ = env
     r = client.get(f"/api/attitudes/aem?spacecraft=SIM-TUBSAT&{query}")
     problem = _problem(r)

@@ -15,6 +15,7 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, StringConstraints, WrapValidator
 
 from app.identification import METHODS
+from app.telemetry.formats import describe_value
 from app.timefmt import ISO_EXAMPLE, parse_iso_time
 from app.workflow.documents import ManualPointDefinition, PatternDefinition
 from app.workflow.search import PriorRequest
@@ -77,27 +78,14 @@ SpacecraftName = Annotated[str, StringConstraints(min_length=1, max_length=MAX_N
 # true, true and " 1 " as the integer 1, and "1.5" as a number: a guard rail (supersede, the rank confirmed,
 # the search looked at) must not be crossed by a string or a boolean.  ``Strict()`` would do as much in
 # pydantic's words ("Input should be a valid boolean"); these validators say what came instead, in the
-# telemetry format's words ("must be an integer, got 1.0"), and keep the field's type and limits for the
-# OpenAPI description.  A float with an integral value (1.0) is refused as an id or rank, as in the
-# telemetry format: no client that counts writes 1.0, and a float id is a sign of arithmetic gone wrong
-# (2**53 + 1 as a float is another id).
-
-def _shown(value: Any) -> str:
-    """A JSON value as a client would call it, for "got ..." messages."""
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str):
-        return f"a string ({value if len(value) <= 40 else value[:37] + '...'!r})"
-    if isinstance(value, (dict, list)):
-        return "an object" if isinstance(value, dict) else "an array"
-    return repr(value)
-
+# telemetry format's words ("must be an integer, got 1.0": app.telemetry.formats.describe_value), and keep
+# the field's type and limits for the OpenAPI description.  A float with an integral value (1.0) is refused
+# as an id or rank, as in the telemetry format: no client that counts writes 1.0, and a float id is a sign
+# of arithmetic gone wrong (2**53 + 1 as a float is another id).
 
 def _json_boolean(value: Any, handler):
     if not isinstance(value, bool):
-        raise ValueError(f"must be true or false, got {_shown(value)}")
+        raise ValueError(f"must be true or false, got {describe_value(value)}")
     return handler(value)
 
 
@@ -106,13 +94,13 @@ def _json_integer(value: Any, handler):
         # 1e20 is a float, but what is wrong first is its size: the API's words for it (app.api.errors).
         raise ValueError("the number is too large for an integer")
     if isinstance(value, bool) or not isinstance(value, int):
-        raise ValueError(f"must be an integer, got {_shown(value)}")
+        raise ValueError(f"must be an integer, got {describe_value(value)}")
     return handler(value)
 
 
 def _json_number(value: Any, handler):
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"must be a number, got {_shown(value)}")
+        raise ValueError(f"must be a number, got {describe_value(value)}")
     return handler(value)
 
 
@@ -140,7 +128,7 @@ def _iso_8601_time(value: Any) -> Any:
     if isinstance(value, datetime):
         return value
     if not isinstance(value, str):
-        raise ValueError(f"must be an ISO 8601 time such as {ISO_EXAMPLE}, got {_shown(value)}")
+        raise ValueError(f"must be an ISO 8601 time such as {ISO_EXAMPLE}, got {describe_value(value)}")
     if _NUMBER_TEXT.fullmatch(value.strip()):
         raise ValueError(f"{value.strip()!r} is a number, not a time: give an ISO 8601 time such as {ISO_EXAMPLE} "
                          "(Unix times are not read)")

@@ -159,11 +159,11 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
             break
         if search.timed_out():
             break
+    # Why a method can have no feature at all, when it had none (the sky is not to blame then).
+    no_feature = METHODS[method].no_feature if search.used == 0 else ""
     if not search.parts:
-        why = METHODS[method].no_feature if search.used == 0 and METHODS[method].no_feature else \
-            "no catalogue feature fits the pattern"
         return Solution(status=NO_MATCH, candidates=(), elapsed_s=_time.perf_counter() - started,
-                        notes=(f"no {method} hypothesis: {why}",))
+                        notes=(f"no {method} hypothesis: {no_feature or 'no catalogue feature fits the pattern'}",))
     search.alternatives(settled_at or declared)
 
     n_scales = search.n_scales
@@ -179,8 +179,8 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
         # triangles fit one, so that an operator can correct the declaration (or calibrate) and search again.
         contradiction = wide_contradiction()
     features = f"{search.used} pattern feature{'s' * (search.used != 1)}"
-    if search.used == 0 and METHODS[method].no_feature:
-        notes.append(METHODS[method].no_feature)
+    if no_feature:
+        notes.append(no_feature)
     notes.insert(0, f"{search.n_tried} {method} hypotheses from {features}"
                  + (f" at {n_scales} focal lengths within {camera.focal_tolerance:.1%} of the declared one"
                     if n_scales > 1 else ""))

@@ -38,6 +38,7 @@ from scipy.spatial import cKDTree
 from app.attitude import angle_between
 from app.camera import Camera
 from app.identification.candidates import build_candidate, prepare_pattern
+from app.identification.engine import classify, identify
 from app.identification.options import SearchOptions
 from app.identification.result import AMBIGUOUS, IDENTIFIED, NO_MATCH, Solution
 from app.identification.sky import Sky
@@ -148,8 +149,6 @@ def _lost_in_space_near(pattern, camera: Camera, t: datetime, sky: Sky, prior: n
                         velocity_km_s, options: SearchOptions, started: float) -> Solution:
     """A wide prior: the lost-in-space candidates within 3 sigma of it, ranked and classified among
     themselves (the search's hypotheses, over the whole sky, stay in their false-match probabilities)."""
-    from app.identification.engine import classify, identify  # the engine imports nothing of tracking
-
     found = identify(pattern, camera, t, sky, velocity_km_s=velocity_km_s, options=options)
     kept = [replace(c, rank=k + 1) for k, c in enumerate(
         c for c in found.candidates if _agrees_with_prior(c.rotation_matrix, prior, prior_sigma_deg, options))]

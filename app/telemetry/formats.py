@@ -243,8 +243,8 @@ def _looks_like_json(text: str, filename: str | None) -> bool:
 # =============================================================================
 # value checks shared by both forms
 # =============================================================================
-def _describe(value: Any) -> str:
-    """A JSON value as a user would call it, for "got ..." messages."""
+def describe_value(value: Any) -> str:
+    """A JSON value as a user would call it, for "got ..." messages (the API's request bodies say it so too)."""
     if value is None:
         return "null"
     if isinstance(value, bool):
@@ -272,14 +272,14 @@ def _as_number(value: Any, loc: str, problems: ProblemCollector) -> float | None
         problems.add(loc, value.message)
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        problems.add(loc, f"must be a number, got {_describe(value)}")
+        problems.add(loc, f"must be a number, got {describe_value(value)}")
         return None
     try:
         number = float(value)
     except OverflowError:
         number = math.inf
     if not math.isfinite(number):
-        problems.add(loc, f"must be a finite number, got {_describe(value)[:40]} (out of range)")
+        problems.add(loc, f"must be a finite number, got {describe_value(value)[:40]} (out of range)")
         return None
     return number
 
@@ -290,7 +290,7 @@ def _as_int(value: Any, loc: str, problems: ProblemCollector, low: int, high: in
         problems.add(loc, value.message)
         return None
     if isinstance(value, bool) or not isinstance(value, int):
-        problems.add(loc, f"must be an integer, got {_describe(value)}")
+        problems.add(loc, f"must be an integer, got {describe_value(value)}")
         return None
     if not low <= value <= high:
         shown = value if abs(value) < 10**20 else "a huge number"
@@ -302,7 +302,7 @@ def _as_int(value: Any, loc: str, problems: ProblemCollector, low: int, high: in
 def _as_text(value: Any, loc: str, problems: ProblemCollector) -> str | None:
     """A non-blank string of printable characters, stripped of outer spaces."""
     if not isinstance(value, str):
-        problems.add(loc, f"must be a string, got {_describe(value)}")
+        problems.add(loc, f"must be a string, got {describe_value(value)}")
         return None
     text = value.strip()
     if not text:
@@ -327,21 +327,21 @@ def _as_text(value: Any, loc: str, problems: ProblemCollector) -> str | None:
 def _as_time(value: Any, loc: str, problems: ProblemCollector) -> datetime | None:
     """ISO 8601 text -> aware UTC datetime; no offset means UTC."""
     if not isinstance(value, str):
-        problems.add(loc, f"must be an ISO 8601 time string, got {_describe(value)}")
+        problems.add(loc, f"must be an ISO 8601 time string, got {describe_value(value)}")
         return None
     try:
         parsed = parse_iso_time(value.strip())
     except ValueError as err:
         # A leap second or a date that does not exist is said as such; other text is shown after the reason.
         reason = str(err)
-        problems.add(loc, f"{reason}: {_describe(value)}" if reason == NOT_ISO_8601 else reason)
+        problems.add(loc, f"{reason}: {describe_value(value)}" if reason == NOT_ISO_8601 else reason)
         return None
     try:
         if parsed.tzinfo is None:
             parsed = parsed.replace(tzinfo=timezone.utc)
         parsed = parsed.astimezone(timezone.utc)
     except (ValueError, OverflowError):
-        problems.add(loc, f"{NOT_ISO_8601}: {_describe(value)}")
+        problems.add(loc, f"{NOT_ISO_8601}: {describe_value(value)}")
         return None
     if not EARLIEST_TIME <= parsed < LATEST_TIME:
         problems.add(loc, f"time {utc_text(parsed)} is outside the supported years 1900 to 2099")
@@ -411,7 +411,7 @@ def _camera_from_fields(fields: Mapping[str, Any], where: Callable[[str], str],
         name = fields["name"]
         if not isinstance(name, str) or not _CAMERA_NAME_RE.fullmatch(name):
             problems.add(where("name"), "must be 1 to 64 letters, digits or . _ + -, got "
-                         + _describe(name))
+                         + describe_value(name))
             ok = False
         else:
             values["name"] = name
@@ -494,7 +494,7 @@ def _velocity(components: Any, loc: str, problems: ProblemCollector
               ) -> tuple[float, float, float] | None:
     """Three finite numbers (km/s, GCRS) with a speed below MAX_SPEED_KM_S."""
     if not isinstance(components, list) or len(components) != 3:
-        problems.add(loc, f"must be an array of 3 numbers [vx, vy, vz] in km/s, got {_describe(components)}"
+        problems.add(loc, f"must be an array of 3 numbers [vx, vy, vz] in km/s, got {describe_value(components)}"
                           + (f" of {len(components)}" if isinstance(components, list) else ""))
         return None
     values = [_as_number(v, f"{loc}[{i}]", problems) for i, v in enumerate(components)]
@@ -687,7 +687,7 @@ def _json_camera(value: Any, default: Camera | None, problems: ProblemCollector)
     if isinstance(value, str):
         return _named_camera(value, "camera", problems)
     if not isinstance(value, dict):
-        problems.add("camera", f"must be an object or a camera name, got {_describe(value)}")
+        problems.add("camera", f"must be an object or a camera name, got {describe_value(value)}")
         return None
     return _camera_from_fields(value, lambda key: f"camera.{_key_label(key)}", problems)
 
@@ -695,7 +695,7 @@ def _json_camera(value: Any, default: Camera | None, problems: ProblemCollector)
 def _json_source(value: Any, loc: str, camera: Camera | None, problems: ProblemCollector
                  ) -> tuple[float, float, float] | None:
     if not isinstance(value, dict):
-        problems.add(loc, f"must be an object {{\"x\", \"y\", \"brightness\"}}, got {_describe(value)}")
+        problems.add(loc, f"must be an object {{\"x\", \"y\", \"brightness\"}}, got {describe_value(value)}")
         return None
     _unknown_keys(value, _SOURCE_KEYS, loc, "source", problems)
     numbers = {}
@@ -718,7 +718,7 @@ def _json_source(value: Any, loc: str, camera: Camera | None, problems: ProblemC
 def _json_snapshot(value: Any, loc: str, camera: Camera | None, problems: ProblemCollector
                    ) -> _Draft | None:
     if not isinstance(value, dict):
-        problems.add(loc, f"must be an object {{\"index\", \"time\", \"sources\"}}, got {_describe(value)}")
+        problems.add(loc, f"must be an object {{\"index\", \"time\", \"sources\"}}, got {describe_value(value)}")
         return None
     _unknown_keys(value, _SNAPSHOT_KEYS, loc, "snapshot", problems)
     for key in _SNAPSHOT_KEYS:
@@ -729,7 +729,7 @@ def _json_snapshot(value: Any, loc: str, camera: Camera | None, problems: Proble
     draft = _Draft(index, f"{loc}.index", time, f"{loc}.time")
     sources = value.get("sources", [])
     if not isinstance(sources, list):
-        problems.add(f"{loc}.sources", f"must be an array of sources, got {_describe(sources)}")
+        problems.add(f"{loc}.sources", f"must be an array of sources, got {describe_value(sources)}")
     elif len(sources) > MAX_SOURCES_PER_SNAPSHOT:
         problems.add(f"{loc}.sources",
                      f"{len(sources)} sources; at most {MAX_SOURCES_PER_SNAPSHOT} are allowed per snapshot")
@@ -749,7 +749,7 @@ def _json_snapshots(value: Any, camera: Camera | None, problems: ProblemCollecto
         problems.add("snapshots", "missing (required)")
         return []
     if not isinstance(value, list):
-        problems.add("snapshots", f"must be an array of snapshots, got {_describe(value)}")
+        problems.add("snapshots", f"must be an array of snapshots, got {describe_value(value)}")
         return []
     if not value:
         problems.add("snapshots", "must hold at least one snapshot")
@@ -774,9 +774,9 @@ def _sequence_from_json(text: str, filename: str | None, default_camera: Camera 
     problems = ProblemCollector(physical_bounds=physical_bounds)
     doc = _load_json(text, problems)
     if not isinstance(doc, dict):
-        raise TelemetryError.at("file", f"the top level must be a JSON object {{...}}, got {_describe(doc)}")
+        raise TelemetryError.at("file", f"the top level must be a JSON object {{...}}, got {describe_value(doc)}")
     if "format" in doc and doc["format"] != FORMAT_NAME:
-        problems.add("format", f"unsupported format: must be {FORMAT_NAME!r}, got {_describe(doc['format'])}")
+        problems.add("format", f"unsupported format: must be {FORMAT_NAME!r}, got {describe_value(doc['format'])}")
     sequence_id = _sequence_id(doc.get("sequence_id", _MISSING), "sequence_id", filename, problems)
     spacecraft = doc.get("spacecraft")
     if spacecraft is not None:
@@ -1037,7 +1037,7 @@ def _sequence_from_csv(text: str, filename: str | None, default_camera: Camera |
 
     if "format" in meta and meta["format"][0] != FORMAT_NAME:
         problems.add(meta_loc("format"),
-                     f"unsupported format: must be {FORMAT_NAME!r}, got {_describe(meta['format'][0])}")
+                     f"unsupported format: must be {FORMAT_NAME!r}, got {describe_value(meta['format'][0])}")
     sequence_id = _sequence_id(meta["sequence_id"][0] if "sequence_id" in meta else _MISSING,
                                meta_loc("sequence_id") if "sequence_id" in meta else "sequence_id",
                                filename, problems)

@@ -24,6 +24,7 @@ Guard rails (issue 13):
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from datetime import datetime, timezone
 
 import numpy as np
@@ -391,7 +392,8 @@ def _time_range_comment(start: datetime | None, end: datetime | None) -> str:
 _SEGMENT_TIME = re.compile(r"^(START_TIME|STOP_TIME) = (\S+)$", re.MULTILINE)
 
 
-def _overlap_comments(rows: list[ConfirmationRow], segments: list[str], names: dict[int, str]) -> list[str]:
+def _overlap_comments(rows: list[ConfirmationRow], segments: list[str],
+                      name_of: Callable[[int], str | None]) -> list[str]:
     """A warning for each pair of segments whose times overlap: one spacecraft has one attitude at a time,
     so two confirmed sequences over the same seconds mean one is another spacecraft's, or mis-timed."""
     spans = []
@@ -407,8 +409,8 @@ def _overlap_comments(rows: list[ConfirmationRow], segments: list[str], names: d
             if other_start > stop:
                 break
             warnings.append(
-                f"WARNING: the segments of sequences {names[c.seq_id]} (attitude {c.id}) and "
-                f"{names[other.seq_id]} (attitude {other.id}) overlap in time, from {format_epoch(other_start)} to "
+                f"WARNING: the segments of sequences {name_of(c.seq_id)} (attitude {c.id}) and "
+                f"{name_of(other.seq_id)} (attitude {other.id}) overlap in time, from {format_epoch(other_start)} to "
                 f"{format_epoch(min(stop, other_stop))}: a spacecraft has one attitude at a time, so one of them "
                 "is another spacecraft's or has wrong times")
     return warnings
@@ -435,13 +437,14 @@ def bulk_aem(ctx: AppContext, spacecraft: str, start: datetime | None, end: date
         segments.append(text[at + 1:].rstrip("\n"))
     version_line = rows[0].aem_text.split("\n", 1)[0]  # "CCSDS_AEM_VERS = 2.0", as the stored messages say
     created = datetime.now(timezone.utc)
-    names = {c.seq_id: ctx.storage.get_sequence(c.seq_id).sequence_id for c in rows}
     header = [version_line,
               *comment_lines([f"Confirmed attitudes of spacecraft {spacecraft}: {len(rows)} "
                               f"sequence{'s' * (len(rows) != 1)}, one segment each, as rendered at their "
                               "confirmation",
                               _time_range_comment(start, end),
-                              *_overlap_comments(rows, segments, names)]),
+                              # a sequence's id read only for a warning that names it
+                              *_overlap_comments(rows, segments,
+                                                 lambda seq_id: ctx.storage.get_sequence(seq_id).sequence_id)]),
               f"CREATION_DATE = {format_epoch(created)}", f"ORIGINATOR = {ORIGINATOR}"]
     text = "\n".join(header) + "\n\n" + "\n\n".join(segments) + "\n"
     stamp = "" if start is None else "-" + start.strftime("%Y%m%dT%H%M%S")

@@ -207,7 +207,7 @@ function operatorName() {
 // name the API's supersede field), before the reload, which brings a change notice into view below the status
 // line as it then is. Other refusals (a search replaced: `searchId` no longer the latest) keep the server's.
 async function sayRefused(err, d, done, again, failed, searchId = null) {
-  const key = (v) => v && `${v.confirmed_at ? "attitude" : "rejection"} ${v.id}`;
+  const key = (v) => v && JSON.stringify(verdictRef(v));
   const seen = currentVerdict();
   const review = await api.get(`/api/sequences/${d.id}/review`).catch(() => null);
   const now = review && (review.confirmation || review.rejection);
