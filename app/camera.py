@@ -55,6 +55,10 @@ class Camera:
     #: Bounds on the absolute values of the true k1, k2.
     k1_bound: float | None = None
     k2_bound: float | None = None
+    #: The focal length is not known at all (a photograph with no optics given): ``focal_length_px`` is a
+    #: nominal value for display, and identification searches the field of view from
+    #: :data:`app.identification.scale_free.FOV_RANGE_DEG` (:mod:`app.identification.scale_free`).
+    focal_length_unknown: bool = False
 
     # --- derived figures -------------------------------------------------
     @property
@@ -117,12 +121,13 @@ class Camera:
         area = fx * fy
         # 30x31 deg ~ 930 deg^2 -> 4.5, 12x12 deg ~ 144 deg^2 -> 6.5
         limit = 4.5 + (math.log10(930.0) - math.log10(area)) * (2.0 / math.log10(930.0 / 144.0))
-        return float(min(6.5, max(3.5, round(limit, 1))))
+        return float(min(9.0, max(3.5, round(limit, 1))))
 
     def to_dict(self) -> dict:
         """The telemetry camera object: optional fields only when set (k1, k2 when non-zero)."""
         d = asdict(self)
-        return {k: v for k, v in d.items() if v is not None and not (k in ("k1", "k2") and v == 0.0)}
+        return {k: v for k, v in d.items() if v is not None and not (k in ("k1", "k2") and v == 0.0)
+                and not (k == "focal_length_unknown" and not v)}
 
     def with_optics(self, focal_length_px: float | None = None, cx: float | None = None,
                     cy: float | None = None, k1: float | None = None, k2: float | None = None) -> Camera:
@@ -131,6 +136,12 @@ class Camera:
                    (("focal_length_px", focal_length_px), ("cx", cx), ("cy", cy), ("k1", k1), ("k2", k2))
                    if value is not None}
         return replace(self, **changes)
+
+    def known_at(self, focal_length_px: float, tolerance: float) -> Camera:
+        """This camera with a focal length now known to ``tolerance`` (a fraction): a camera whose focal
+        length was unknown, once the stars have fixed one."""
+        return replace(self, focal_length_px=float(focal_length_px), focal_length_tolerance=float(tolerance),
+                       focal_length_unknown=False)
 
     def optics(self) -> dict:
         """The parameters that decide where a star lands: focal_length_px, cx, cy, k1, k2."""

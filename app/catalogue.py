@@ -37,8 +37,9 @@ log = logging.getLogger(__name__)
 HIP2_EPOCH_JYEAR = 1991.25
 MAS_TO_RAD = np.pi / (180 * 3600 * 1000)
 SPEED_OF_LIGHT_KM_S = 299792.458
-#: Stars fainter than this never enter any index: Hp 7.0 keeps ~14,000 stars.
-CATALOGUE_FAINT_LIMIT = 7.0
+#: Stars fainter than this never enter any index: Hp 8.0 keeps ~41,000 stars, the deepest index's
+#: (:data:`app.identification.sky.DEPTHS`, for fields of 2-10 deg).
+CATALOGUE_FAINT_LIMIT = 8.0
 
 
 def radec_to_vectors(ra_rad: np.ndarray, dec_rad: np.ndarray) -> np.ndarray:

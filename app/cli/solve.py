@@ -113,6 +113,9 @@ def print_summary(doc) -> None:
     print(f"  {'rank':>4} {'RA deg':>10} {'Dec deg':>9} {'roll deg':>9} {'matched':>7} {'rms as':>7} "
           f"{'dev px/pt':>9} {'P(false)':>9}  stars")
     _print_candidates(doc.candidates)
+    if doc.candidates and doc.candidates[0].fov_deg is not None:
+        print(f"  field of view: {doc.candidates[0].fov_deg:.3f} deg (focal length "
+              f"{doc.candidates[0].focal_length_px:.1f} px), found from the stars")
     for note in doc.notes:  # how the search went
         print(f"  note: {note}")
     if doc.focal_length_contradiction is not None:  # a focal length declared wrong beyond its tolerance

@@ -119,8 +119,8 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
         if credible and len(sequence.snapshots) > 1:
             if c.camera is not None or (c.camera_fit is not None
                                         and departs(c.camera_fit, sequence.camera, HINT_PROBABILITY)):
-                c = fit_sequence_camera(sequence, extraction, c, sky)
-            fit = fit_sequence(sequence, extraction, pattern, c, sky)
+                c = fit_sequence_camera(sequence, extraction, c, sky.for_camera(c.camera or sequence.camera))
+            fit = fit_sequence(sequence, extraction, pattern, c, sky.for_camera(c.camera or sequence.camera))
         rate_deg_s = math.degrees(float(np.linalg.norm(fit.rate_rad_s))) if fit is not None else 0.0
         if rate_deg_s > MAX_PLAUSIBLE_RATE_DEG_S:
             notes.append(f"the sequence fit of candidate {c.rank} gives a body rate of {rate_deg_s:,.0f} deg/s, "
@@ -155,6 +155,7 @@ def source_stars(solved: SolvedSequence, sky: Sky, rank: int = 1,
         return None
     sequence, extraction = solved.sequence, solved.extraction
     camera = candidate.camera or sequence.camera
+    sky = sky.for_camera(camera)  # the depth the candidate was identified at
     t_ref = solved.reference_time
     fit = solved.sequence_fits.get(rank)
     tolerance = source_match_tolerance_rad(camera, extraction)

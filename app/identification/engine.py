@@ -25,6 +25,7 @@ from app.identification.methods import METHODS
 from app.identification.optics import focal_lengths_to_try, prepared_with_camera, refine_optics
 from app.identification.options import SearchOptions
 from app.identification.result import AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, FocalLengthContradiction, Solution
+from app.identification.scale_free import identify_unknown_scale
 from app.identification.sky import Sky
 from app.identification.verify import check_hypotheses, refine, refine_many
 
@@ -42,7 +43,7 @@ DIAGNOSIS_TOLERANCE = 0.2
 def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=None,
              options: SearchOptions = SearchOptions(),
              planets: Callable[[], dict[str, np.ndarray]] | None = None,
-             method: str = "bright_pair") -> Solution:
+             method: str = "bright_pair", hypotheses_before: int = 0) -> Solution:
     """Identify a pattern seen by ``camera`` at UTC ``t``.
 
     ``pattern`` has ``vectors`` (m, 3) camera-frame unit vectors, ``xy``
@@ -56,8 +57,14 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     The declared camera is tried first; when that does not settle the
     answer, focal lengths within the camera's declared tolerance follow
     (:mod:`app.identification.optics`), and every credible candidate has its
-    optics fitted with its attitude.
+    optics fitted with its attitude.  A camera whose focal length is unknown has its scale searched first
+    (:mod:`.scale_free`).  ``hypotheses_before`` counts hypotheses a caller tried already for this pattern
+    (a search over scales): they enter the false-match probability.
     """
+    if camera.focal_length_unknown:
+        return identify_unknown_scale(pattern, camera, t, sky, velocity_km_s=velocity_km_s, options=options,
+                                      planets=planets, method=method, identify=identify)
+    sky = sky.for_camera(camera)  # a narrow field needs fainter stars
     started = _time.perf_counter()
     generator = METHODS[method].hypotheses if method in METHODS else None
     if generator is None:
@@ -71,6 +78,7 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     focal_lengths = focal_lengths_to_try(camera, declared.xy) if options.search_focal_length \
         else [camera.focal_length_px]
     search = _Search(sky, options, generator, started, camera)
+    search.n_tried = hypotheses_before
     # The declared camera's first feature; then a few features at the focal length the pattern's bright
     # triangles point to, when that is clearly another (when it is the declared one, their match is refined
     # as a bright-pair hypothesis of its own); the declared camera's next features; then the first feature
@@ -140,6 +148,16 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
                       f"{ESTIMATE_MIN_OFFSET:.1%}" if abs(offset) > camera.focal_tolerance else "")
             notes.append(f"the pattern's bright triangles put the focal length at "
                          f"{estimate.focal_length_px:.1f} px ({offset:+.1%} of the declared{beyond}), searched first")
+            # Their match is a hypothesis at that focal length, as at the declared one: on real frames the
+            # first bright-pair edges often catch too few stars through a rotation made from two points
+            # (short edges, distortion), where the triangle's fitted rotation catches them all.
+            estimated = at(estimate.focal_length_px)
+            if METHODS[method].bright_triangles:
+                search.consider(estimated, estimate.rotation, np.array(estimate.pattern_edge),
+                                np.array(estimate.catalogue_pair), CHECK_RADIUS_PX * estimated.scale)
+                if search.settled(estimated, used=1):
+                    settled_at = estimated
+                    return
             yield estimate.focal_length_px, options.focal_search_features
         yield None, options.declared_features_first
         yield from ((f, 1) for f in searched)

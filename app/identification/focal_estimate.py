@@ -103,7 +103,7 @@ def _namings(triangle: np.ndarray, sides: np.ndarray, error: float) -> list[tupl
 def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, focal_length_px: float,
                           tolerance: float, side_error_rad: np.ndarray, triangles: BrightTriangles,
                           matched_within, nearest_star, star_vectors: np.ndarray,
-                          catch_probability: float) -> FocalEstimate | None:
+                          catch_probability: float, tried_out: list[int] | None = None) -> FocalEstimate | None:
     """The focal length of the first shape match of a pattern triangle that chance does not explain.
 
     ``pattern_triangles`` (K, 3) pattern rows (bright triangles of the
@@ -124,7 +124,8 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
     checked until then (or once :data:`MAX_TRIED` are checked).  The best
     match of each triangle has its focal length (:func:`_fitted_focal_length`)
     and rotation (Wahba) fitted on the points it caught, twice, before the
-    pattern is checked again and the chance test is made.
+    pattern is checked again and the chance test is made.  ``tried_out``, when given, gets the number of
+    shape matches checked appended (also when none passes: a search over scales counts them all).
     """
     m = plane.shape[0]
     v = _directions(plane, np.ones(1))[0]
@@ -169,8 +170,12 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
         n = int(np.count_nonzero(star >= 0))
         # The corners are caught by construction: P[Binomial(m - 3, p) >= n - 3] = P[... > n - 4].
         if n > 3 and tried * float(bdtrc(n - 4, m - 3, catch_probability)) <= CHANCE_LIMIT:
+            if tried_out is not None:
+                tried_out.append(tried)
             return FocalEstimate(f, n, m, tried, rotation, (int(c[0]), int(c[1])),
                                  (int(stars[best, 0]), int(stars[best, 1])))
+    if tried_out is not None:
+        tried_out.append(tried)
     return None
 
 
@@ -197,12 +202,15 @@ def _fitted_focal_length(plane: np.ndarray, declared_px: float, start_px: float,
 
 
 def focal_estimate(p: PreparedPattern, triangles: BrightTriangles, options: SearchOptions,
-                   tolerance: float | None = None) -> FocalEstimate | None:
+                   tolerance: float | None = None, tried_out: list[int] | None = None) -> FocalEstimate | None:
     """:func:`estimate_focal_length` for a prepared pattern (seen through the declared camera), from its
     surely bright Delaunay triangles (:func:`app.identification.hypotheses.delaunay_triangles`), within
-    ``tolerance`` (a fraction; the camera's declared tolerance when None) of the declared focal length."""
+    ``tolerance`` (a fraction; the camera's declared tolerance when None) of the declared focal length;
+    ``tried_out`` as there."""
     found = delaunay_triangles(p.xy, p.camera) if p.m >= 3 else None
     if found is None:
+        if tried_out is not None:
+            tried_out.append(0)
         return None
     tri = found[0][found[1]]
     # A side errs by the edge window of the bright-pair lookup (systematic error + 4 sigma of its points).
@@ -215,7 +223,7 @@ def focal_estimate(p: PreparedPattern, triangles: BrightTriangles, options: Sear
     within, nearest = _star_within(p.field, radius)
     tolerance = p.camera.focal_tolerance if tolerance is None else tolerance
     return estimate_focal_length(tri, plane, p.camera.focal_length_px, tolerance, side_error,
-                                 triangles, within, nearest, p.field.vectors, float(catch))
+                                 triangles, within, nearest, p.field.vectors, float(catch), tried_out)
 
 
 def _star_within(field: StarField, radius_rad: float):

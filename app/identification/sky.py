@@ -26,6 +26,13 @@ log = logging.getLogger(__name__)
 
 #: Cell maps (1-5 MB each) kept on disk, the most recently made.
 MAX_CACHED_FILES = 12
+#: The catalogue depths (issue 26), each an index of its own: (faintest Hp, longest edge in degrees, the
+#: faintest camera limiting magnitude it serves).  The default index (Hp 6.5, ~8,000 stars) holds ~15 stars in
+#: a 10 x 7.5 deg field, enough for the method (it needs 4-6); a narrower field (2-8 deg: a limiting magnitude
+#: past 7, see :attr:`app.camera.Camera.limiting_magnitude`) needs fainter stars, and its longest edge is
+#: the diagonal of the widest field it serves (10 x 7.5 deg: 12.5 deg).  Hipparcos-2 is complete to Hp
+#: ~7.3-9 depending on the sky: Hp 8 is its depth where it is still nearly complete everywhere.
+DEPTHS = ((6.5, 45.0, 7.0), (8.0, 15.0, float("inf")))
 
 
 class Sky:
@@ -50,6 +57,29 @@ class Sky:
         self._alone_within = None
         self._digest = None
         self._triangles = None
+        self._depths: dict[tuple[float, float], Sky] = {}
+
+    def for_camera(self, camera) -> "Sky":
+        """The sky of the catalogue depth that ``camera``'s field needs (:data:`DEPTHS`): this one, or a
+        deeper one (built on first use, and kept on disk like the default index)."""
+        limit = camera.limiting_magnitude
+        for mag, edge, serves in DEPTHS:
+            if limit <= serves:
+                return self.at_depth(mag, edge)
+        return self
+
+    def at_depth(self, mag_limit: float, max_edge_deg: float) -> "Sky":
+        """The sky with an index of the stars to ``mag_limit`` (this one when it is that index).  The
+        deeper skies share this one's cache of skies, so each depth is loaded once per process."""
+        if abs(self.index.mag_limit - mag_limit) < 1e-9 and abs(np.degrees(self.index.max_edge_rad)
+                                                                 - max_edge_deg) < 1e-6:
+            return self
+        key = (mag_limit, max_edge_deg)
+        if key not in self._depths:
+            deeper = Sky(index=load_index(mag_limit=mag_limit, max_edge_deg=max_edge_deg))
+            deeper._depths = self._depths
+            self._depths[key] = deeper
+        return self._depths[key]
 
     def star_mask(self, mag_limit: float) -> np.ndarray:
         return self.index.mag <= mag_limit
@@ -195,9 +225,15 @@ class Sky:
         return self._motion_margins
 
     def apparent_vectors_of(self, hips, t: datetime, velocity_km_s=None) -> np.ndarray:
-        """Apparent places (unit vectors) of the stars with these HIP numbers at ``t``."""
-        rows = np.array([self._row_of_hip[int(h)] for h in hips], dtype=int)
-        return self.apparent_vectors(t, velocity_km_s)[rows]
+        """Apparent places (unit vectors) of the stars with these HIP numbers at ``t``: any star of the bundled
+        catalogue, so that stars named through a deeper sky (:meth:`for_camera`) are found here too."""
+        if all(int(h) in self._row_of_hip for h in hips):
+            rows = np.array([self._row_of_hip[int(h)] for h in hips], dtype=int)
+            return self.apparent_vectors(t, velocity_km_s)[rows]
+        every = load_catalogue()
+        row_of = every.index_of_hip()
+        rows = np.array([row_of[int(h)] for h in hips], dtype=int)
+        return every.subset(rows).apparent_vectors(t.replace(minute=0, second=0, microsecond=0), velocity_km_s)
 
     def name(self, row: int) -> str | None:
         entry = self.names.get(int(self.index.hip[row]))

@@ -80,7 +80,8 @@ EARLIEST_TIME = datetime(1900, 1, 1, tzinfo=timezone.utc)
 LATEST_TIME = datetime(2100, 1, 1, tzinfo=timezone.utc)
 
 _CAMERA_REQUIRED = ("width", "height", "focal_length_px", "cx", "cy")
-_CAMERA_OPTIONAL = ("k1", "k2", "name", "mag_limit", "focal_length_tolerance", "k1_bound", "k2_bound")
+_CAMERA_OPTIONAL = ("k1", "k2", "name", "mag_limit", "focal_length_tolerance", "k1_bound", "k2_bound",
+                    "focal_length_unknown")
 #: Optional camera fields bounded to [0, limit]: how well the declared optics are known.
 _CAMERA_UNCERTAINTY_LIMITS = {"focal_length_tolerance": MAX_FOCAL_LENGTH_TOLERANCE,
                               "k1_bound": MAX_DISTORTION_BOUND, "k2_bound": MAX_DISTORTION_BOUND}
@@ -407,6 +408,12 @@ def _camera_from_fields(fields: Mapping[str, Any], where: Callable[[str], str],
         if values.get(key) is not None and not 0.0 <= values[key] <= limit:
             problems.add(where(key), f"must be between 0 and {limit:g}, got {values[key]:g}")
             values[key] = None
+    unknown = fields.get("focal_length_unknown")
+    if unknown is not None and not isinstance(unknown, bool):
+        problems.add(where("focal_length_unknown"), "must be true or false, got " + describe_value(unknown))
+        ok = False
+    elif unknown:
+        values["focal_length_unknown"] = True
     if fields.get("name") is not None:
         name = fields["name"]
         if not isinstance(name, str) or not _CAMERA_NAME_RE.fullmatch(name):
@@ -420,7 +427,7 @@ def _camera_from_fields(fields: Mapping[str, Any], where: Callable[[str], str],
     return Camera(width=values["width"], height=values["height"],
                   focal_length_px=values["focal_length_px"], cx=values["cx"], cy=values["cy"],
                   k1=values.get("k1", 0.0), k2=values.get("k2", 0.0), name=values.get("name"),
-                  mag_limit=values.get("mag_limit"),
+                  mag_limit=values.get("mag_limit"), focal_length_unknown=values.get("focal_length_unknown", False),
                   **{key: values[key] for key in _CAMERA_UNCERTAINTY_LIMITS if key in values})
 
 
@@ -798,6 +805,8 @@ def _sequence_from_json(text: str, filename: str | None, default_camera: Camera 
 # =============================================================================
 def _csv_value(value: Any) -> str:
     """A camera parameter as written in the CSV header comment."""
+    if isinstance(value, bool):  # focal_length_unknown: JSON's spelling, read back by _csv_camera
+        return "true" if value else "false"
     return repr(float(value)) if isinstance(value, float) else str(value)
 
 
@@ -920,7 +929,8 @@ def _csv_camera(meta: dict[str, tuple[str, int]], default: Camera | None,
         if key in fields:
             problems.add(f"{loc}.{_key_label(key)}", "given twice")
             return None
-        fields[key] = value if key == "name" else _csv_scalar(value)
+        fields[key] = (value if key == "name" else {"true": True, "false": False}.get(value, value)
+                       if key == "focal_length_unknown" else _csv_scalar(value))
     return _camera_from_fields(fields, lambda key: f"{loc}.{_key_label(key)}", problems)
 
 

@@ -270,6 +270,10 @@ class CandidateDocument(Document):
     sigma_roll_arcsec: float | None = None
     sequence_fit: SequenceFitDocument | None = None
     camera_fit: CameraFitDocument | None = None
+    focal_length_px: float | None = Field(None, description="the focal length this candidate was identified "
+                                          "with, when not the declared one (fitted, or found by a search of the "
+                                          "field of view)")
+    fov_deg: float | None = Field(None, description="the horizontal field of view at that focal length")
 
     @classmethod
     def of(cls, candidate, fit=None) -> "CandidateDocument":
@@ -294,6 +298,8 @@ class CandidateDocument(Document):
             sigma_cross_boresight_arcsec=_rounded(candidate.sigma_cross_boresight_arcsec),
             sigma_roll_arcsec=_rounded(candidate.sigma_roll_arcsec),
             sequence_fit=None if fit is None else SequenceFitDocument.of(fit),
+            focal_length_px=None if candidate.camera is None else round(candidate.camera.focal_length_px, 3),
+            fov_deg=None if candidate.camera is None else round(candidate.camera.fov_deg[0], 5),
             camera_fit=None if candidate.camera_fit is None else CameraFitDocument.of(
                 candidate.camera_fit, adopted=candidate.camera is not None
                 and candidate.camera.optics() == candidate.camera_fit.camera.optics()))

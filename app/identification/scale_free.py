@@ -1,0 +1,167 @@
+"""Lost in space with an unknown field of view (issue 26): the scale from the stars themselves.
+
+Why.  A photograph, or a star-tracker test frame, often comes with no optics
+at all.  The bright-pair lookup needs the scale (an edge is looked up by its
+angle), but a triangle's *shape* does not depend on it
+(:mod:`.focal_estimate`): one lookup by shape finds the catalogue triangles a
+pattern triangle can be whatever the focal length, and each says which focal
+length it needs.  astrometry.net searches without a scale the same way (with
+four-star "quads"), as does tetra3 within its ``fov_max_error``.
+
+Bands.  The fields of view from :data:`FOV_RANGE_DEG` are split into bands
+whose focal lengths differ by :data:`BAND_RATIO` at most; each band is a
+nominal camera at its middle focal length, known to the band's half-width.
+Within a band the check radius (pixels at the nominal focal length) and the
+shape lookup's range of sizes are those of a declared camera with that
+tolerance, and the catalogue depth is the band's (:meth:`app.identification.sky.Sky.for_camera`:
+a narrow field needs fainter stars to hold a pattern).  The bands are
+searched from the widest field down (the shallow catalogue and large
+triangles are the cheapest), each by :func:`focal_estimate`, whose chance
+test counts every shape match checked.
+
+Answer.  At the first band whose triangles fit a focal length beyond chance,
+the pattern is identified as if that focal length had been declared, known to
+:data:`FOUND_TOLERANCE` (:func:`app.identification.engine.identify`: bright
+pairs, the estimate's own match as a hypothesis, refinement, the optics fit,
+the false-match probability).  Every shape match checked in the bands before
+counts among its hypotheses, so the false-match probability pays for the
+search over scales.  A band whose identification is not ``identified`` does
+not stop the search; the best answer found is returned, with notes saying
+what was searched and where the scale came from.
+
+Bound.  Each band checks at most :data:`app.identification.focal_estimate.MAX_TRIED`
+shape matches, and the whole search stops at ``options.timeout_s``.
+"""
+
+from __future__ import annotations
+
+import math
+import time as _time
+from dataclasses import dataclass, replace
+from datetime import datetime
+from typing import Callable
+
+import numpy as np
+
+from app.camera import Camera
+from app.identification.candidates import prepare_pattern
+from app.identification.focal_estimate import focal_estimate
+from app.identification.options import SearchOptions
+from app.identification.result import IDENTIFIED, NO_MATCH, Solution
+from app.identification.sky import Sky
+
+#: Horizontal fields of view searched when the optics are unknown, degrees: from a long lens on a star
+#: tracker's test bench to a wide photographic lens (astrometry.net's default scale range is wider still, but
+#: past 60 deg a pinhole with one radial term no longer describes the lenses).
+FOV_RANGE_DEG = (2.0, 60.0)
+#: Largest ratio of focal lengths within one band: the check radius (5 px at the band's middle) stays within
+#: 4-6 px of the truth, and the shape lookup's size range is a declared camera's at +-20 %.
+BAND_RATIO = 1.5
+#: The focal length a band's triangles fit is then known to this fraction: the estimate errs by ~0.1 % (all
+#: the caught points' pairs), a real lens's distortion moves the best pinhole focal length by ~1 %.
+FOUND_TOLERANCE = 0.02
+
+
+@dataclass(frozen=True)
+class Band:
+    """Focal lengths from ``low_px`` to ``high_px`` (a narrower field of view at the higher)."""
+
+    low_px: float
+    high_px: float
+
+    @property
+    def middle_px(self) -> float:
+        return 0.5 * (self.low_px + self.high_px)
+
+    @property
+    def tolerance(self) -> float:
+        """Half the band's width over its middle: the band as a declared camera's tolerance."""
+        return (self.high_px - self.low_px) / (self.high_px + self.low_px)
+
+
+def focal_length_for_fov(width_px: int, fov_deg: float) -> float:
+    """The pinhole focal length (pixels) at which ``width_px`` spans ``fov_deg`` horizontally."""
+    return (width_px / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
+
+
+def fov_for_focal_length(width_px: int, focal_length_px: float) -> float:
+    """The horizontal field of view (degrees) of ``width_px`` at ``focal_length_px``."""
+    return 2.0 * math.degrees(math.atan(width_px / 2.0 / focal_length_px))
+
+
+def bands(width_px: int, fov_range_deg: tuple[float, float] = FOV_RANGE_DEG,
+          ratio: float = BAND_RATIO) -> list[Band]:
+    """The bands covering ``fov_range_deg`` for a sensor ``width_px`` wide, widest field (shortest focal
+    length) first, in equal steps of log focal length no larger than ``ratio``."""
+    f_short = focal_length_for_fov(width_px, max(fov_range_deg))
+    f_long = focal_length_for_fov(width_px, min(fov_range_deg))
+    n = max(1, math.ceil(math.log(f_long / f_short) / math.log(ratio) - 1e-9))
+    edges = f_short * (f_long / f_short) ** (np.arange(n + 1) / n)
+    return [Band(float(a), float(b)) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=None,
+                           options: SearchOptions = SearchOptions(),
+                           planets: Callable[[], dict[str, np.ndarray]] | None = None,
+                           method: str = "bright_pair",
+                           identify: Callable[..., Solution]) -> Solution:
+    """Identify ``pattern`` (see :func:`app.identification.engine.identify`) seen by ``camera``, whose focal
+    length is unknown (``camera.focal_length_unknown``): the scale searched band by band (module doc).
+
+    ``identify`` is the engine's own function (passed in: the engine calls this one), run at the focal length
+    a band's triangles fit.
+    """
+    started = _time.perf_counter()
+    tried = 0
+    searched: list[str] = []
+    best: Solution | None = None
+    for band in bands(camera.width):
+        if _time.perf_counter() - started > options.timeout_s:
+            searched.append("time-out")
+            break
+        nominal = replace(camera.known_at(band.middle_px, band.tolerance), mag_limit=None)
+        band_sky = sky.for_camera(nominal)
+        seen = replace(pattern, vectors=nominal.pixels_to_vectors(pattern.xy))
+        prepared = prepare_pattern(seen, nominal, t, band_sky, velocity_km_s, options)
+        checked: list[int] = []
+        estimate = focal_estimate(prepared, band_sky.bright_triangles(), options, band.tolerance, checked)
+        tried += sum(checked)
+        fovs = f"{fov_for_focal_length(camera.width, band.high_px):.1f}-{fov_for_focal_length(camera.width, band.low_px):.1f}"
+        if estimate is None:
+            searched.append(f"{fovs} deg (stars to Hp {prepared_depth(band_sky, nominal, options):.1f}): "
+                            f"no fit in {sum(checked)} triangles")
+            continue
+        found = camera.known_at(estimate.focal_length_px, FOUND_TOLERANCE)
+        solution = identify(replace(pattern, vectors=found.pixels_to_vectors(pattern.xy)), found, t, band_sky,
+                            velocity_km_s=velocity_km_s, options=options, planets=planets, method=method,
+                            hypotheses_before=tried)
+        # Each candidate's camera is the one it was found with (the declared one had no focal length).
+        solution = replace(solution, candidates=tuple(c if c.camera is not None else replace(c, camera=found)
+                                                      for c in solution.candidates))
+        fov = fov_for_focal_length(camera.width, estimate.focal_length_px)
+        searched.append(f"{fovs} deg: the triangles fit {fov:.2f} deg ({estimate.focal_length_px:.1f} px, "
+                        f"{estimate.n_matched} of {estimate.n_points} points), {solution.status}")
+        if best is None or _better(solution, best):
+            best = solution
+        if solution.status == IDENTIFIED:
+            break
+    elapsed = _time.perf_counter() - started
+    note = ("the field of view was unknown: searched " + f"{FOV_RANGE_DEG[0]:g}-{FOV_RANGE_DEG[1]:g} deg by "
+            "the shapes of the pattern's bright triangles, widest first (" + "; ".join(searched) + ")")
+    if best is None:
+        return Solution(status=NO_MATCH, candidates=(), elapsed_s=elapsed, notes=(note,))
+    return replace(best, elapsed_s=elapsed, notes=(note, *best.notes))
+
+
+def prepared_depth(sky: Sky, camera: Camera, options: SearchOptions) -> float:
+    """The catalogue depth a pattern seen by ``camera`` is matched against in ``sky``."""
+    return min(camera.limiting_magnitude + options.mag_margin, sky.index.mag_limit)
+
+
+def _better(a: Solution, b: Solution) -> bool:
+    """Whether ``a`` is a better answer than ``b``: a lower status rank, then a smaller best false-match
+    probability."""
+    rank = {IDENTIFIED: 0, "ambiguous": 1, NO_MATCH: 2}
+    pa = a.candidates[0].false_match_probability if a.candidates else 1.0
+    pb = b.candidates[0].false_match_probability if b.candidates else 1.0
+    return (rank.get(a.status, 3), pa) < (rank.get(b.status, 3), pb)
