@@ -25,6 +25,7 @@ from app.attitude import propagate
 from app.attitude.sequence import SequenceFit, fit_constant_rate, rate_from_motion, wahba_per_snapshot
 from app.attitude.wahba import cross_boresight_and_roll_sigma
 from app.camera_fit import calibrate as calibrate_camera, default_priors, parameters_for
+from app.catalogue import vectors_to_radec
 from app.extraction import Extraction, Pattern, extract
 from app.identification.engine import classify, identify, is_rival
 from app.identification.methods import METHODS, Method
@@ -42,6 +43,16 @@ __all__ = ["AMBIGUOUS", "IDENTIFIED", "METHODS", "NO_MATCH", "Candidate", "Focal
            "PlanetMatch", "Prior",
            "SearchOptions", "Sky", "Solution", "SolvedSequence", "StarMatch", "classify", "fit_sequence",
            "identify", "identify_near_prior", "solve_sequence", "source_stars"]
+
+
+#: The image centre's direction is taken through optics with a free principal point (and k1) from this many
+#: matched stars: a real lens's axis is often off the sensor's centre (tilted sensors, off-axis test frames:
+#: 3-8 px of residual with a centred pinhole), and with fewer stars the principal point trades off against
+#: the attitude too freely.  The centre's direction itself hardly depends on that trade-off (moving the
+#: principal point and turning the camera together leaves it in place), which is why it is reported.
+MIN_STARS_FOR_FREE_CENTRE = 10
+#: ... with a weak prior: the principal point within this fraction of the sensor's width of its declared place.
+PRINCIPAL_POINT_PRIOR_FRACTION = 0.1
 
 
 #: A sequence fit turning faster than this is not trusted: stars streak across many pixels within one
@@ -135,10 +146,44 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
             c = replace(c, rotation_matrix=fit.rotation,
                         sigma_cross_boresight_arcsec=math.degrees(cross) * 3600,
                         sigma_roll_arcsec=math.degrees(roll) * 3600)
-        candidates.append(c)
+        candidates.append(replace(c, centre_radec_deg=image_centre_radec(c, pattern, sequence.camera, t, sky,
+                                                                         velocity_km_s=sequence.velocity_km_s)))
     solution = replace(solution, candidates=tuple(candidates), status=status, notes=tuple(notes))
     return SolvedSequence(sequence=sequence, extraction=extraction, pattern=pattern, solution=solution,
                           sequence_fits=fits)
+
+
+def image_centre_radec(candidate: Candidate, pattern: Pattern, declared, t, sky: Sky, *,
+                       velocity_km_s=None) -> tuple[float, float]:
+    """RA, Dec (degrees) of the centre pixel ``((width - 1)/2, (height - 1)/2)`` under ``candidate``.
+
+    Through the candidate's camera (or ``declared``); from
+    :data:`MIN_STARS_FOR_FREE_CENTRE` matched stars, through optics fitted on
+    them with the attitude (focal length, k1, and the principal point with a
+    weak prior of :data:`PRINCIPAL_POINT_PRIOR_FRACTION` of the width),
+    least squares in pixels (:func:`app.camera_fit.fit_attitude_and_camera`).
+    """
+    from app.camera_fit import fit_attitude_and_camera
+
+    camera = candidate.camera or declared
+    rotation = candidate.rotation_matrix
+    centre = np.array([[(camera.width - 1) / 2.0, (camera.height - 1) / 2.0]])
+    matched = [m for m in candidate.matches if 0 <= m.pattern_index < len(pattern.xy)]
+    if len(matched) >= MIN_STARS_FOR_FREE_CENTRE:
+        names = ("focal_length_px", "k1", "cx", "cy")
+        spread = PRINCIPAL_POINT_PRIOR_FRACTION * camera.width
+        priors = {**default_priors(camera, names), "cx": (camera.cx, spread), "cy": (camera.cy, spread)}
+        xy = pattern.xy[[m.pattern_index for m in matched]]
+        stars = sky.apparent_vectors_of([m.hip for m in matched], t, velocity_km_s)
+        sigma = float(np.median(np.asarray(pattern.sigma_px)[[m.pattern_index for m in matched]]))
+        try:
+            free = fit_attitude_and_camera(xy, stars, rotation, camera, max(sigma, 0.05), fit=names, priors=priors)
+            camera, rotation = free.camera, free.rotation
+        except ValueError:  # the stars cannot separate the parameters: the candidate's own camera
+            pass
+    direction = rotation.T @ camera.pixels_to_vectors(centre)[0]
+    ra, dec = vectors_to_radec(direction[None])
+    return float(np.degrees(ra[0]) % 360.0), float(np.degrees(dec[0]))
 
 
 def source_stars(solved: SolvedSequence, sky: Sky, rank: int = 1,

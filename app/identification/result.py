@@ -58,6 +58,10 @@ class Candidate:
     #: The optics fitted with the attitude (reported whenever the candidate was credible enough): on the
     #: pattern, or over the whole sequence's sightings (app.identification.fit_sequence_camera).
     camera_fit: CameraAttitudeFit | Calibration | None = None
+    #: RA, Dec (degrees) of the image's centre pixel, as astrometry.net reports a frame: the boresight's when
+    #: the principal point is the centre, else through the optics (principal point free) fitted on the
+    #: candidate's stars (:func:`app.identification.image_centre_radec`).  None: not computed.
+    centre_radec_deg: tuple[float, float] | None = None
 
     @property
     def n_matched(self) -> int:

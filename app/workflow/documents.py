@@ -274,6 +274,9 @@ class CandidateDocument(Document):
                                           "with, when not the declared one (fitted, or found by a search of the "
                                           "field of view)")
     fov_deg: float | None = Field(None, description="the horizontal field of view at that focal length")
+    centre_ra_deg: float | None = Field(None, description="RA of the image's centre pixel (ra_deg is the "
+                                        "boresight's, the principal point's: the same for a centred lens)")
+    centre_dec_deg: float | None = Field(None, description="Dec of the image's centre pixel")
 
     @classmethod
     def of(cls, candidate, fit=None) -> "CandidateDocument":
@@ -300,6 +303,8 @@ class CandidateDocument(Document):
             sequence_fit=None if fit is None else SequenceFitDocument.of(fit),
             focal_length_px=None if candidate.camera is None else round(candidate.camera.focal_length_px, 3),
             fov_deg=None if candidate.camera is None else round(candidate.camera.fov_deg[0], 5),
+            centre_ra_deg=None if candidate.centre_radec_deg is None else round(candidate.centre_radec_deg[0], 7),
+            centre_dec_deg=None if candidate.centre_radec_deg is None else round(candidate.centre_radec_deg[1], 7),
             camera_fit=None if candidate.camera_fit is None else CameraFitDocument.of(
                 candidate.camera_fit, adopted=candidate.camera is not None
                 and candidate.camera.optics() == candidate.camera_fit.camera.optics()))
