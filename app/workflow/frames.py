@@ -29,6 +29,7 @@ import os
 import re
 import time
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 
 import numpy as np
@@ -112,6 +113,8 @@ class FramesRequest:
     map_spacecraft: str | None
     hot_map: HotPixelMap | None
     limits: FrameLimits
+    #: The caller's time of a pass of one frame (the ``time`` field), over the sidecar's and the file's.
+    time: datetime | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -127,14 +130,17 @@ class FramesResult:
 
 
 def upload_sha256(files: list[tuple[str, bytes]], sidecar: bytes | None, sequence_id: str | None,
-                  spacecraft: str | None, fov_deg: float | None) -> str:
+                  spacecraft: str | None, fov_deg: float | None, time: datetime | None = None) -> str:
     """The hash that makes an upload of frames "the same": the frames' content, the sidecar, the fields
-    and the detector's defaults (file names and order do not count)."""
+    and the detector's defaults (file names do not count; their order does only for frames without a
+    time, which are assumed 1 s apart in that order)."""
     key = {"frames": frames_content_sha256([file_sha256(data) for _, data in files]),
            "sidecar": None if sidecar is None else hashlib.sha256(sidecar).hexdigest(),
            "names": sorted(archive.clean_filename(name) or "" for name, _ in files),
            "sequence_id": sequence_id, "spacecraft": spacecraft, "fov_deg": fov_deg,
            "detector": DetectionOptions().to_dict()}
+    if time is not None:  # absent otherwise: the uploads stored before the field keep their hash
+        key["time"] = utc_text(time)
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()
 
 
@@ -335,11 +341,12 @@ def stretch_to_8bit(image: np.ndarray) -> np.ndarray:
     return np.clip(np.round(scaled * 255.0), 0, 255).astype(np.uint8)
 
 
-def encode_png(grey: np.ndarray) -> bytes:
+def encode_png(image: np.ndarray) -> bytes:
+    """A PNG of 8-bit grey (H, W) or colour (H, W, 3) pixels."""
     from PIL import Image
 
     stream = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(grey, dtype=np.uint8), mode="L").save(stream, format="PNG")
+    Image.fromarray(np.ascontiguousarray(image, dtype=np.uint8)).save(stream, format="PNG")
     return stream.getvalue()
 
 
@@ -442,9 +449,15 @@ def frame_previews_document(ctx: AppContext, seq_id: int) -> FramePreviewsDocume
 
 def frame_preview_png(ctx: AppContext, seq_id: int, snapshot: int) -> bytes:
     """The PNG of one snapshot's preview; NotFound (saying why) when there is none."""
+    return frame_preview_row(ctx, seq_id, snapshot).png
+
+
+def frame_preview_row(ctx: AppContext, seq_id: int, snapshot: int):
+    """One snapshot's stored preview (:class:`app.storage.FramePreviewRow`, with its PNG); NotFound (saying
+    why) when there is none."""
     row = ctx.storage.frame_preview(seq_id, snapshot)
     if row is not None:
-        return row.png
+        return row
     stored = archive.require_sequence(ctx, seq_id)
     if not ctx.storage.frame_previews(seq_id):
         raise NotFound(f"sequence {seq_id} has no frame images: it was uploaded as a spot list, or as frames "
@@ -478,9 +491,11 @@ def is_frames_path(path: str) -> bool:
         return False
 
 
-def frames_sequence_from_path(path: str, *, fov_deg: float | None = None) -> Sequence:
+def frames_sequence_from_path(path: str, *, fov_deg: float | None = None,
+                              caller_time: datetime | None = None) -> Sequence:
     """One pass from an image file (with ``<stem>.frames.json`` beside it, if any) or a folder of frames
-    (every image in it, with its ``frames.json``, if any; the folder's name is the default id).
+    (every image in it, in name order, with its ``frames.json``, if any; the folder's name is the default
+    id).  ``caller_time``: the caller's time of a pass of one frame (over the sidecar's and the file's own).
 
     No archive here: the hot-pixel map is the pass's own.  Raises TelemetryError (located) for
     anything invalid, at ``file`` for files that cannot be read.
@@ -525,6 +540,6 @@ def frames_sequence_from_path(path: str, *, fov_deg: float | None = None) -> Seq
         raise TelemetryError.at("file", f"cannot read the file: {exc.strerror or type(exc).__name__}") from None
     try:
         return frames_to_sequence(files, sidecar=sidecar, fov_deg=fov_deg, default_id=default_id, limits=limits,
-                                  deadline=time.monotonic() + limits.timeout_s).sequence
+                                  deadline=time.monotonic() + limits.timeout_s, caller_time=caller_time).sequence
     except FramesTimeout as exc:
         raise TelemetryError.at("file", str(exc)) from None
