@@ -29,6 +29,7 @@ import logging
 import math
 import sys
 
+from app.cli.annotation import Annotator, add_annotate_argument
 from app.cli.common import add_fov_argument, for_each_file, indented_error
 
 #: The lost-in-space identifiers a file can be solved with, and both compared.
@@ -49,6 +50,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--prior", type=parse_prior, default=None, metavar="RA,DEC,ROLL[,SIGMA_DEG]",
                    help="tracking mode from this attitude (degrees; its 1-sigma defaults to 1 deg)")
     add_fov_argument(p)
+    add_annotate_argument(p)
 
 
 def candidate_count(text: str) -> int:
@@ -87,16 +89,19 @@ def run(args: argparse.Namespace) -> int:
     from app.workflow.files import invalid_solve_document, solve_document
 
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
+    annotate = Annotator(args.annotate, args.files)  # --annotate OUT.png: the solved frame drawn
     sky = Sky()
     options = SearchOptions() if args.candidates is None else SearchOptions(max_candidates=args.candidates)
 
     def solve_one(path, sequence):
-        return solve_document(path, sequence, sky, options=options,
-                              method="tf" if args.method == "tf" else "bright_pair", prior=args.prior,
-                              compare_tf=args.method == "both")
+        doc = solve_document(path, sequence, sky, options=options,
+                             method="tf" if args.method == "tf" else "bright_pair", prior=args.prior,
+                             compare_tf=args.method == "both")
+        return annotate(path, sequence, doc)
 
-    return for_each_file(args.files, solve_one, invalid_solve_document, args.json, print_summary,
-                         fov_deg=args.fov_deg)
+    status = for_each_file(args.files, solve_one, invalid_solve_document, args.json, print_summary,
+                           fov_deg=args.fov_deg)
+    return max(status, annotate.status)  # after the batch: a PNG that could not be written is an error
 
 
 #: Stars named per candidate in the table (``--json`` has them all).

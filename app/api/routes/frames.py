@@ -171,3 +171,23 @@ def frame_preview_png(seq_id: int = SeqId, snapshot: int = Path(ge=0, le=100_000
                       ctx: AppContext = Depends(get_context)):
     png = framing.frame_preview_png(ctx, seq_id, snapshot)
     return Response(png, media_type="image/png")
+
+
+_ANNOTATED_RESPONSE = {200: {"content": {"image/png": {}},
+                             "description": "The frame with the candidate's stars named, the constellation lines, "
+                                            "the unmatched sources and an RA/Dec grid (colour PNG, docs/annotate.md)"},
+                       404: {"description": "No such sequence, no frame image of that snapshot, no search yet, no "
+                                            "candidate of that rank, or no attitude known at that snapshot"}}
+
+
+@router.get("/api/sequences/{seq_id}/frames/{snapshot}/annotated.png", response_class=Response,
+            responses=_ANNOTATED_RESPONSE,
+            summary="One snapshot's frame annotated with a candidate of the latest search (as astrometry.net's)")
+def annotated_frame_png(seq_id: int = SeqId, snapshot: int = Path(ge=0, le=100_000, description="snapshot index"),
+                        rank: int = Query(1, **ID_LIMITS, description="the candidate's rank in the latest search"),
+                        ctx: AppContext = Depends(get_context)):
+    from app.workflow.annotate import annotated_frame_png as annotated
+
+    png = annotated(ctx, seq_id, snapshot, rank)
+    return Response(png, media_type="image/png",
+                    headers={"Content-Disposition": f'inline; filename="sequence-{seq_id}-{snapshot}-rank-{rank}.png"'})
