@@ -44,6 +44,7 @@ from app.frames.images import file_sha256
 from app.storage import MAX_PREVIEW_PNG_BYTES, StaleHotPixelMap
 from app.telemetry import Sequence
 from app.telemetry.errors import Problem, TelemetryError
+from app.timefmt import utc_text
 from app.workflow import archive
 from app.workflow.context import AppContext
 from app.workflow.documents import Document, FramePreviewInfo, FramePreviewsDocument, UploadDocument
@@ -130,23 +131,22 @@ class FramesResult:
 
 
 def upload_sha256(files: list[tuple[str, bytes]], sidecar: bytes | None, sequence_id: str | None,
-                  spacecraft: str | None, fov_deg: float | None, time: datetime | None = None) -> str:
+                  spacecraft: str | None, fov_deg: float | None, caller_time: datetime | None = None) -> str:
     """The hash that makes an upload of frames "the same": the frames' content, the sidecar, the fields
-    and the detector's defaults (file names do not count; their order does only for frames without a
-    time, which are assumed 1 s apart in that order)."""
+    and the detector's defaults (file names and order do not count)."""
     key = {"frames": frames_content_sha256([file_sha256(data) for _, data in files]),
            "sidecar": None if sidecar is None else hashlib.sha256(sidecar).hexdigest(),
            "names": sorted(archive.clean_filename(name) or "" for name, _ in files),
            "sequence_id": sequence_id, "spacecraft": spacecraft, "fov_deg": fov_deg,
            "detector": DetectionOptions().to_dict()}
-    if time is not None:  # absent otherwise: the uploads stored before the field keep their hash
-        key["time"] = utc_text(time)
+    if caller_time is not None:  # absent otherwise: the uploads stored before the field keep their hash
+        key["time"] = utc_text(caller_time)
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()
 
 
 def prepare_frames(ctx: AppContext, files: list[tuple[str, bytes]], sidecar: bytes | None,
                    sequence_id: str | None, spacecraft: str | None,
-                   fov_deg: float | None) -> FramesRequest | UploadDocument:
+                   fov_deg: float | None, caller_time: datetime | None = None) -> FramesRequest | UploadDocument:
     """Check an upload of frames; the stored sequence's document when the same upload was stored before.
 
     Raises TelemetryError (located problems) for a bad sidecar or too many files or bytes.
@@ -158,7 +158,7 @@ def prepare_frames(ctx: AppContext, files: list[tuple[str, bytes]], sidecar: byt
     if len(files) > limits.max_frames:
         raise TelemetryError.at("body.files", f"{len(files)} files; at most {limits.max_frames} frames per pass")
     parsed_sidecar = parse_sidecar(sidecar) if sidecar is not None else None
-    key = upload_sha256(files, sidecar, sequence_id, spacecraft, fov_deg)
+    key = upload_sha256(files, sidecar, sequence_id, spacecraft, fov_deg, caller_time)
     seq_id = ctx.storage.find_frame_upload(key)
     if seq_id is not None:
         return _stored_document(ctx, seq_id)
@@ -170,7 +170,7 @@ def prepare_frames(ctx: AppContext, files: list[tuple[str, bytes]], sidecar: byt
         hot_map = current_hot_pixel_map(ctx, map_spacecraft, peek[0], peek[1])
     return FramesRequest(files=files, sidecar=parsed_sidecar, sequence_id=sequence_id, spacecraft=spacecraft,
                          fov_deg=fov_deg, upload_sha256=key, map_spacecraft=map_spacecraft, hot_map=hot_map,
-                         limits=limits)
+                         limits=limits, time=caller_time)
 
 
 def frames_job(request: FramesRequest, *, sky=None) -> FramesResult:
@@ -179,7 +179,8 @@ def frames_job(request: FramesRequest, *, sky=None) -> FramesResult:
     try:
         frame_pass = frames_to_sequence(request.files, sidecar=request.sidecar, sequence_id=request.sequence_id,
                                         spacecraft=request.spacecraft, fov_deg=request.fov_deg,
-                                        hot_map=request.hot_map, limits=request.limits, deadline=deadline)
+                                        hot_map=request.hot_map, limits=request.limits, deadline=deadline,
+                                        caller_time=request.time)
     except TelemetryError as exc:
         return FramesResult(problems=[p.to_dict() for p in exc.problems])
     except FramesTimeout as exc:
