@@ -413,8 +413,7 @@ def annotate(grey: np.ndarray, scale: int, annotation: Annotation) -> np.ndarray
     blocks) enlarged by :func:`canvas_zoom`, with everything of ``annotation`` drawn over it."""
     camera, R = annotation.camera, annotation.rotation
     painter = _Painter(grey, scale, camera)
-    title = _title(annotation)
-    title_box = _draw_title(painter, title)
+    title_lines, title_box = _title_layout(painter, _title(annotation))
 
     circles = []  # (canvas x, y, label)
     if R is not None:
@@ -466,6 +465,7 @@ def annotate(grey: np.ndarray, scale: int, annotation: Annotation) -> np.ndarray
     for box, text, colour in labels:
         painter.text(draw, box, text, colour)
     painter.merge(overlay)
+    _draw_title(painter, title_lines, title_box)  # last: over a circle that falls under it
     return np.asarray(painter.image.convert("RGB"))
 
 
@@ -483,10 +483,9 @@ def _title(annotation: Annotation) -> list[str]:
     return parts
 
 
-def _draw_title(painter: _Painter, parts: list[str]) -> tuple[float, float, float, float]:
-    """The title at the top left on a dark box, its parts joined by ' · ', wrapped to the canvas."""
-    pad = max(3, painter.font_px // 3)
-    limit = painter.image.width - 2 * pad - 4
+def _title_layout(painter: _Painter, parts: list[str]) -> tuple[list[str], tuple[float, float, float, float]]:
+    """The title's lines (its parts joined by ' · ', wrapped to the canvas) and its box at the top left."""
+    limit = painter.image.width - 2 * _title_pad(painter) - 4
     lines = [parts[0]]
     for part in parts[1:]:
         joined = f"{lines[-1]} · {part}"
@@ -494,15 +493,27 @@ def _draw_title(painter: _Painter, parts: list[str]) -> tuple[float, float, floa
             lines[-1] = joined
         else:
             lines.append(part)
-    line_height = round(painter.font_px * 1.3)
+    pad = _title_pad(painter)
     width = max(painter.text_size(line)[0] for line in lines)
-    box = (0.0, 0.0, width + 2 * pad, len(lines) * line_height + 2 * pad)
+    return lines, (0.0, 0.0, width + 2 * pad, len(lines) * _title_line_height(painter) + 2 * pad)
+
+
+def _title_pad(painter: _Painter) -> int:
+    return max(3, painter.font_px // 3)
+
+
+def _title_line_height(painter: _Painter) -> int:
+    return round(painter.font_px * 1.3)
+
+
+def _draw_title(painter: _Painter, lines: list[str], box: tuple[float, float, float, float]) -> None:
+    """The title's lines on a dark box."""
+    pad, height = _title_pad(painter), _title_line_height(painter)
     overlay, draw = painter.layer()
     draw.rectangle(box, fill=(0, 0, 0, TITLE_BOX_ALPHA))
     for i, line in enumerate(lines):
-        painter.text(draw, painter.text_box(line, pad, pad + i * line_height), line, TITLE_COLOUR)
+        painter.text(draw, painter.text_box(line, pad, pad + i * height), line, TITLE_COLOUR)
     painter.merge(overlay)
-    return box
 
 
 def _star_label_box(painter: _Painter, x: float, y: float, text: str):
