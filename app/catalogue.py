@@ -119,8 +119,11 @@ class Catalogue:
         return v / np.linalg.norm(v, axis=1, keepdims=True)
 
     def apparent_vectors(self, t: datetime, velocity_km_s=None) -> np.ndarray:
-        """Directions seen by an observer at UTC ``t`` (proper motion + aberration)."""
+        """Directions seen by an observer at UTC ``t`` (proper motion + aberration); with
+        ``velocity_km_s`` :data:`MEAN_PLACE`, the mean places at ``t`` (proper motion only)."""
         v = self.mean_vectors(julian_year(t))
+        if is_mean_place(velocity_km_s):
+            return v
         beta = observer_velocity_km_s(t, velocity_km_s) / SPEED_OF_LIGHT_KM_S
         v = v + beta[None, :]
         return v / np.linalg.norm(v, axis=1, keepdims=True)
@@ -132,6 +135,19 @@ class Catalogue:
     @functools.cached_property
     def _row_of_hip(self) -> dict[int, int]:
         return {int(h): i for i, h in enumerate(self.hip)}
+
+
+#: The ``velocity_km_s`` that asks for no aberration at all: the mean (astrometric) place, the star's
+#: direction from the solar-system barycentre, which star atlases and astrometry.net's WCS give.  For
+#: snapshots whose time is unknown (:attr:`app.telemetry.Sequence.time_assumed`): the Earth's velocity,
+#: and so the aberration (up to 20.5"), is unknown with it, and the mean place is the one place a
+#: solution can state without a time.
+MEAN_PLACE = "mean place"
+
+
+def is_mean_place(velocity_km_s) -> bool:
+    """Whether a ``velocity_km_s`` argument is :data:`MEAN_PLACE` (else None or three numbers)."""
+    return isinstance(velocity_km_s, str) and velocity_km_s == MEAN_PLACE
 
 
 def observer_velocity_km_s(t: datetime, velocity_km_s=None) -> np.ndarray:

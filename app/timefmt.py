@@ -9,7 +9,8 @@ writes without a zone, in :mod:`app.ccsds`.)
 
 Reading: :func:`parse_utc` for the ground station's own text, and
 :func:`parse_iso_time` for text from outside, with the reason when it is not
-a time.  :func:`datetime.fromisoformat` answers "second must be in 0..59" or
+a time (:func:`parse_utc_time`: the same, as UTC within the supported
+years).  :func:`datetime.fromisoformat` answers "second must be in 0..59" or
 "day is out of range for month", and a parser that turns every such failure
 into "not an ISO 8601 time" is wrong for ``2020-02-30T00:00:00Z`` (well
 formed, but the date does not exist) and misleading for a leap second
@@ -78,6 +79,33 @@ def parse_iso_time(text: str) -> datetime:
         return datetime.fromisoformat(text)
     except ValueError:
         raise ValueError(why_not_a_time(text)) from None
+
+
+#: The years a time may lie in: where the astronomical corrections and the built-in planet ephemeris hold.
+FIRST_YEAR, LAST_YEAR = 1900, 2099
+
+
+def parse_utc_time(text: str) -> datetime:
+    """An outside ISO 8601 text (``Z``, an offset, or none: then UTC) as an aware UTC datetime of
+    :data:`FIRST_YEAR` to :data:`LAST_YEAR`: the rule of every time a caller gives besides the telemetry
+    itself (a sidecar's, ``--time``, the API's ``time`` field, an EXIF time).
+
+    Raises ValueError whose message says why, with the text when it is no time at all, so callers put
+    only the location before it.
+    """
+    stripped = text.strip()
+    try:
+        t = parse_iso_time(stripped.removesuffix("Z").removesuffix("z"))
+    except ValueError as exc:
+        reason = str(exc)
+        raise ValueError(f"{reason}: {stripped[:40]!r}" if reason == NOT_ISO_8601 else reason) from None
+    try:  # an offset can carry year 1 or 9999 out of datetime's range
+        t = t.replace(tzinfo=timezone.utc) if t.tzinfo is None else t.astimezone(timezone.utc)
+    except OverflowError:
+        t = None
+    if t is None or not FIRST_YEAR <= t.year <= LAST_YEAR:
+        raise ValueError(f"{stripped[:40]!r} is outside the supported years {FIRST_YEAR} to {LAST_YEAR}")
+    return t
 
 
 def why_not_a_time(text: str) -> str:

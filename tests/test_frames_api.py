@@ -112,8 +112,8 @@ def _cube() -> bytes:
 @pytest.mark.parametrize("files, data, location", [
     ([("files", ("x.png", b"no image here", "image/png"))], {"fov_deg": "20"}, "x.png"),
     ([("files", ("cube.fits", _cube(), "application/fits"))], {"fov_deg": "20"}, "cube.fits[0]"),
-    ([("files", ("t.png", frame_png_bytes(np.zeros((64, 64), np.uint16)), "image/png"))], {"fov_deg": "20"},
-     "t.png.time"),
+    ([("files", ("t.png", frame_png_bytes(np.zeros((64, 64), np.uint16)), "image/png"))],
+     {"fov_deg": "20", "time": "yesterday"}, "body.time"),
     ([("files", ("t.png", frame_png_bytes(np.zeros((64, 64), np.uint16)), "image/png")),
       ("sidecar", ("s.json", b"{not json", "application/json"))], {}, "sidecar"),
     ([("files", ("t.png", frame_png_bytes(np.zeros((64, 64), np.uint16)), "image/png"))], {"fov_deg": "abc"},

@@ -1,4 +1,5 @@
-"""Benchmarks: simulated sequences with truth, measured in one process.
+"""Benchmarks: simulated sequences with truth, and real frames with independent references (``real``),
+measured in one process.
 
 Each suite is a module with ``run(...) -> dict`` (JSON-serialisable figures)
 and ``format_table(result) -> str``; ``python -m app bench`` runs them.

@@ -1,4 +1,4 @@
-"""`python -m app bench [--suite NAME] [--n N] [--seed S] [--think S] [--json]`: benchmark figures.
+"""`python -m app bench [--suite NAME] [--n N] [--seed S] [--think S] [--frames DIR] [--json]`: benchmark figures.
 
 Suites: ``extraction`` (issue 2: tracked stars kept, ghosts and hot pixels
 rejected, time per sequence), ``identification`` (issue 3: top-1/top-5
@@ -17,6 +17,10 @@ workers, see :mod:`app.bench.batch`); ``load`` also takes ``--servers 2
 ``calibration`` (the pulls of many calibrations: are the stated sigmas
 honest and the fit centred? ``--n`` trials of 20 sequences, default 60; see
 :mod:`app.bench.calibration`).
+``real`` (issue 26: real star-camera frames against astrometry.net's WCS, side by side with
+cedar-solve; ``--frames DIR``, default ``$STARID_REAL_FRAMES`` or ``../shared/real-frames``;
+``--time-from-reference`` gives each frame its reference's time in a sidecar; ``--n`` the first N
+frames; see :mod:`app.bench.real`).
 Every figure is measured now, on this machine, in one process (the load
 suite adds the server's), from simulated sequences drawn with ``--seed``.
 """
@@ -27,11 +31,12 @@ import argparse
 import importlib
 import json
 import logging
+import os
 import sys
 import time
 
 SUITES = ("extraction", "identification", "sequence", "load", "seeds", "camera", "peer", "frames", "batch",
-          "calibration")
+          "calibration", "real")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -51,6 +56,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="load suite: a postgresql:// URL; the run makes a fresh database on that server")
     p.add_argument("--think", type=float, default=None, metavar="SECONDS",
                    help="load suite: each client's pause between its loops (default 1; 0 = saturation)")
+    p.add_argument("--frames", default=None, metavar="DIR",
+                   help="real suite: the folder of NAME.png + NAME.json frames (default $STARID_REAL_FRAMES, "
+                        "else ../shared/real-frames beside the repository)")
+    p.add_argument("--time-from-reference", action="store_true",
+                   help="real suite: a sidecar gives each frame its reference's time_approximate (default: no time)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
 
 
@@ -66,6 +76,9 @@ def run(args: argparse.Namespace) -> int:
         print("error: --servers must be at least 1, and several servers need --database postgresql://...",
               file=sys.stderr)
         return 2
+    if args.frames is not None and not os.path.isdir(args.frames):
+        print(f"error: --frames {args.frames}: not a folder", file=sys.stderr)
+        return 2
     suites = SUITES if args.suite == "all" else (args.suite,)
     results = {}
     for name in suites:
@@ -80,6 +93,8 @@ def run(args: argparse.Namespace) -> int:
             kwargs["adversarial"] = module.ADVERSARIAL_CLIENTS
         if name == "load":
             kwargs.update(servers=args.servers, database=args.database)
+        if name == "real":
+            kwargs.update(frames_dir=args.frames, time_from_reference=args.time_from_reference)
         results[name] = module.run(**kwargs)
         results[name]["wall_s"] = round(time.perf_counter() - t0, 1)
         if not args.json:

@@ -1,13 +1,15 @@
-"""What the file-processing commands share: the batch loop over telemetry files, and ``--fov-deg``."""
+"""What the file-processing commands share: the batch loop over telemetry files, ``--fov-deg`` and ``--time``."""
 
 from __future__ import annotations
 
 import argparse
 import logging
 import sys
+from datetime import datetime
 from typing import Callable
 
-from app.cli.upload import fov_deg, truth_note  # one parser, one wording (upload.py needs only the standard library)
+# One parser, one wording (upload.py needs only the standard library).
+from app.cli.upload import TIME_HELP, fov_deg, truth_note, utc_time
 from app.workflow.documents import Document
 from app.workflow.files import input_files, telemetry_files
 
@@ -19,6 +21,10 @@ FOV_HELP = ("horizontal field of view of image files and folders of frames, degr
 
 def add_fov_argument(p: argparse.ArgumentParser, help_text: str = FOV_HELP) -> None:
     p.add_argument("--fov-deg", type=fov_deg, default=None, metavar="DEG", help=help_text)
+
+
+def add_time_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--time", type=utc_time, default=None, metavar="ISO8601", help=TIME_HELP)
 
 
 def command_line_inputs(paths: list[str]) -> list[str]:
@@ -38,7 +44,8 @@ def indented_error(doc) -> str:
 
 def for_each_file(paths: list[str], process: Callable[[str, object], Document],
                   invalid: Callable[[str, str], Document], as_json: bool,
-                  print_summary: Callable[[Document], None], *, fov_deg: float | None = None) -> int:
+                  print_summary: Callable[[Document], None], *, fov_deg: float | None = None,
+                  time: datetime | None = None) -> int:
     """Run ``process(path, sequence)`` on every telemetry file, in input order (folders: their telemetry
     files, or their frames as one pass; see :func:`command_line_inputs`).
 
@@ -48,13 +55,13 @@ def for_each_file(paths: list[str], process: Callable[[str, object], Document],
     files must not be lost to a bug triggered by one of them, so the
     failure is reported as that file's error (the traceback only in the
     debug log) instead of ending the command.  With ``as_json`` each result
-    is one line of JSON on stdout.  ``fov_deg`` is the optics of image inputs
-    (a spot-list file given with it is invalid: see
-    :func:`app.workflow.files.telemetry_files`).  Returns the exit status: 0
+    is one line of JSON on stdout.  ``fov_deg`` is the optics of image inputs,
+    ``time`` the time of a pass of one frame (a spot-list file given with
+    either is invalid: see :func:`app.workflow.files.telemetry_files`).  Returns the exit status: 0
     if every file was valid, 2 otherwise.
     """
     status = 0
-    for path, sequence, error in telemetry_files(command_line_inputs(paths), fov_deg=fov_deg):
+    for path, sequence, error in telemetry_files(command_line_inputs(paths), fov_deg=fov_deg, time=time):
         if error is not None:
             doc = invalid(path, str(error))
             status = 2

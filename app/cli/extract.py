@@ -15,8 +15,10 @@ members, and the batch goes on.  Exit status 0 when every file was valid,
 
 Image files and folders of frames are one pass each (README "Full-frame
 images"); ``--fov-deg DEG`` gives their optics when neither a sidecar nor
-the FITS header does (and wins over both).  A spot-list file given with
-``--fov-deg`` is reported invalid (it carries its own camera).
+the FITS header does (and wins over both); ``--time ISO8601`` the time of a
+pass of one frame (over its sidecar's, FITS header's and EXIF time).  A
+spot-list file given with ``--fov-deg`` or ``--time`` is reported invalid
+(it carries its own camera and times).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from __future__ import annotations
 import argparse
 from collections import Counter
 
-from app.cli.common import add_fov_argument, for_each_file, indented_error
+from app.cli.common import add_fov_argument, add_time_argument, for_each_file, indented_error
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -33,6 +35,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "or folders of frames")
     p.add_argument("--json", action="store_true", help="one JSON object per file, one per line")
     add_fov_argument(p)
+    add_time_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -42,7 +45,8 @@ def run(args: argparse.Namespace) -> int:
     def invalid(path, message):
         return ExtractDocument(file=path, sequence_id=None, status="invalid", error=message)
 
-    return for_each_file(args.files, extract_document, invalid, args.json, print_summary, fov_deg=args.fov_deg)
+    return for_each_file(args.files, extract_document, invalid, args.json, print_summary, fov_deg=args.fov_deg,
+                         time=args.time)
 
 
 def print_summary(doc) -> None:

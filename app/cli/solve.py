@@ -18,8 +18,11 @@ sigma default 1 deg) instead of searched for over the whole sky.
 
 Image files and folders of frames are one pass each (README "Full-frame
 images"); ``--fov-deg DEG`` gives their optics when neither a sidecar nor
-the FITS header does (and wins over both).  A spot-list file given with
-``--fov-deg`` is reported invalid (it carries its own camera).
+the FITS header does (and wins over both); ``--time ISO8601`` the time of a
+pass of one frame (over its sidecar's, FITS header's and EXIF time; with no
+time at all a frame is solved at an assumed one and a note says what that
+costs).  A spot-list file given with ``--fov-deg`` or ``--time`` is reported
+invalid (it carries its own camera and times).
 """
 
 from __future__ import annotations
@@ -29,7 +32,8 @@ import logging
 import math
 import sys
 
-from app.cli.common import add_fov_argument, for_each_file, indented_error
+from app.cli.annotation import Annotator, add_annotate_argument
+from app.cli.common import add_fov_argument, add_time_argument, for_each_file, indented_error
 
 #: The lost-in-space identifiers a file can be solved with, and both compared.
 METHODS = ("bright_pair", "tf", "both")
@@ -49,6 +53,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--prior", type=parse_prior, default=None, metavar="RA,DEC,ROLL[,SIGMA_DEG]",
                    help="tracking mode from this attitude (degrees; its 1-sigma defaults to 1 deg)")
     add_fov_argument(p)
+    add_time_argument(p)
+    add_annotate_argument(p)
 
 
 def candidate_count(text: str) -> int:
@@ -87,16 +93,19 @@ def run(args: argparse.Namespace) -> int:
     from app.workflow.files import invalid_solve_document, solve_document
 
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
+    annotate = Annotator(args.annotate, args.files)  # --annotate OUT.png: the solved frame drawn
     sky = Sky()
     options = SearchOptions() if args.candidates is None else SearchOptions(max_candidates=args.candidates)
 
     def solve_one(path, sequence):
-        return solve_document(path, sequence, sky, options=options,
-                              method="tf" if args.method == "tf" else "bright_pair", prior=args.prior,
-                              compare_tf=args.method == "both")
+        doc = solve_document(path, sequence, sky, options=options,
+                             method="tf" if args.method == "tf" else "bright_pair", prior=args.prior,
+                             compare_tf=args.method == "both")
+        return annotate(path, sequence, doc)
 
-    return for_each_file(args.files, solve_one, invalid_solve_document, args.json, print_summary,
-                         fov_deg=args.fov_deg)
+    status = for_each_file(args.files, solve_one, invalid_solve_document, args.json, print_summary,
+                           fov_deg=args.fov_deg, time=args.time)
+    return max(status, annotate.status)  # after the batch: a PNG that could not be written is an error
 
 
 #: Stars named per candidate in the table (``--json`` has them all).

@@ -1,4 +1,4 @@
-"""`python -m app upload DIR_OR_FILES --server URL [--token T] [--fov-deg DEG]`: send telemetry to a server.
+"""`python -m app upload DIR_OR_FILES --server URL [--token T] [--fov-deg DEG] [--time ISO8601]`: send telemetry.
 
 Directories are searched (not recursively) for ``*.json`` and ``*.csv``
 files, leaving out ``*.truth.json`` (the simulator's truth files; stderr
@@ -10,8 +10,9 @@ an image file named explicitly (FITS, PNG, JPEG, TIFF) is one pass, with
 directory holding images is one pass of all of them, with its
 ``frames.json`` as the sidecar (not sent as a spot list).  ``--fov-deg``
 (horizontal field of view, degrees, 0.1 to 120, known to +-5 %) is sent as
-the passes' ``fov_deg`` field; a spot-list file is refused with it, unsent
-(it carries its own camera), and the others go on.  A progress bar goes to stderr and one
+the passes' ``fov_deg`` field, ``--time`` (ISO 8601, the time of a pass of one frame) as their
+``time`` field; a spot-list file is refused with either, unsent (it carries its own camera and
+times), and the others go on.  A progress bar goes to stderr and one
 line per file to stdout: ``created``, ``duplicate``, ``invalid`` with the
 server's message, ``too large`` or ``error``; a stored file is followed by
 an indented ``note:`` line when other stored uploads have its spacecraft
@@ -43,11 +44,13 @@ import urllib.parse
 import urllib.request
 import uuid
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 
 # What files are, by name and kind: the rule every interface follows (a standard-library module).
 from app.filenames import (FOLDER_SIDECAR, IMAGE_SUFFIXES, SPOT_LIST_SUFFIXES, TRUTH_SUFFIX, image_sidecar,
                            special_file)
+from app.timefmt import parse_utc_time, utc_text  # standard library only, as app.filenames
 
 #: --fov-deg's bounds (the API's fov_deg field).
 FOV_MIN_DEG, FOV_MAX_DEG = 0.1, 120.0
@@ -56,6 +59,11 @@ FOV_MIN_DEG, FOV_MAX_DEG = 0.1, 120.0
 BUSY_RETRIES = 2
 BUSY_PAUSE_S = 1.0
 BAR_WIDTH = 30
+#: ``--time`` of ``upload``, ``extract`` and ``solve``.
+TIME_HELP = ("the time of an image pass of one frame, ISO 8601 (UTC unless it says its zone, e.g. "
+             "2024-03-12T21:04:10Z); wins over a sidecar's, the FITS header's and the EXIF time. Without any "
+             "time a frame is solved at an assumed one (J2000.0, mean places, no planets) and says so. "
+             "Refused for spot-list files, which carry their own times")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -68,6 +76,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="horizontal field of view of the image passes, degrees (0.1 to 120, known to +-5 %%; "
                         "wins over a sidecar's camera and the FITS header's optics); a spot-list file given "
                         "with it is refused, unsent: it carries its own camera")
+    p.add_argument("--time", type=utc_time, default=None, metavar="ISO8601", help=TIME_HELP)
+
+
+
+def utc_time(text: str) -> datetime:
+    """``--time`` of ``upload``, ``extract`` and ``solve``: an ISO 8601 time (:func:`app.timefmt.parse_utc_time`)."""
+    try:
+        return parse_utc_time(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def fov_deg(text: str) -> float:
@@ -265,8 +283,9 @@ def multipart_body(fields: list[tuple[str, str | None, bytes]]) -> tuple[bytes, 
 
 
 def upload_pass(server: str, frame_pass: FramePass, token: str | None, timeout: float,
-                fov: float | None = None) -> tuple[int | None, dict | None, str | None]:
-    """POST one pass of frames (and its sidecar, and ``fov_deg``) to ``/api/frames``; as :func:`upload_one`."""
+                fov: float | None = None, when: datetime | None = None) -> tuple[int | None, dict | None, str | None]:
+    """POST one pass of frames (and its sidecar, ``fov_deg`` and ``time``) to ``/api/frames``; as
+    :func:`upload_one`."""
     try:
         fields = [("files", image.name, image.read_bytes()) for image in frame_pass.images]
         if frame_pass.sidecar is not None:
@@ -275,6 +294,8 @@ def upload_pass(server: str, frame_pass: FramePass, token: str | None, timeout: 
         return None, None, f"cannot read the file: {exc.strerror or exc}"
     if fov is not None:
         fields.append(("fov_deg", None, repr(float(fov)).encode()))
+    if when is not None:
+        fields.append(("time", None, utc_text(when).encode()))
     body, content_type = multipart_body(fields)
     headers = {"Content-Type": content_type, "Accept": "application/json"}
     if token:
@@ -318,6 +339,7 @@ def run(args: argparse.Namespace) -> int:
             print("upload: no .json, .csv or image files found", file=sys.stderr)
         return 2
     fov = getattr(args, "fov_deg", None)
+    when = getattr(args, "time", None)
     interactive = sys.stderr.isatty()
     end = "\r" if interactive else "\n"
     try:
@@ -330,17 +352,18 @@ def run(args: argparse.Namespace) -> int:
         path = item.label if isinstance(item, FramePass) else item
         sys.stderr.write(progress_bar(k, len(files), path.name) + end)
         sys.stderr.flush()
-        if fov is not None and not isinstance(item, FramePass):
+        if (fov is not None or when is not None) and not isinstance(item, FramePass):
             if interactive:
                 sys.stderr.write(" " * (BAR_WIDTH + 60) + "\r")
-            print(f"{path}: invalid (not sent): --fov-deg applies to image files and folders of frames only; "
-                  "a spot list carries its own camera: upload it without --fov-deg", flush=True)
+            option, what = ("--fov-deg", "camera") if fov is not None else ("--time", "times")
+            print(f"{path}: invalid (not sent): {option} applies to image files and folders of frames only; "
+                  f"a spot list carries its own {what}: upload it without {option}", flush=True)
             counts["refused"] += 1
             continue
         try:
             for attempt in range(1 + BUSY_RETRIES):
                 if isinstance(item, FramePass):
-                    status, doc, error = upload_pass(args.server, item, args.token, args.timeout, fov)
+                    status, doc, error = upload_pass(args.server, item, args.token, args.timeout, fov, when)
                 else:
                     status, doc, error = upload_one(args.server, path, args.token, args.timeout,
                                                     max_bytes if isinstance(max_bytes, int) else None)

@@ -9,8 +9,10 @@ upload.  The document carries a top-level ``frames`` block (kept by the format a
 top-level key): the frames' content hash, the detector and its options, and per frame its file,
 hash, size, noise, what was detected and what was rejected and why.
 
-Times come from the sidecar (``tubsat-frames/1``, docs/formats.md) or the FITS headers
-(DATE-AVG, DATE-OBS + EXPTIME/2, MJD-OBS); optics from the sidecar's camera block, a field of
+Times, first found (:mod:`app.frames.times`): the caller's (one frame), the sidecar's
+(``tubsat-frames/1``, docs/formats.md), the FITS headers' (DATE-AVG, DATE-OBS + EXPTIME/2, MJD-OBS)
+or the EXIF ``DateTimeOriginal``; frames with none at all get an assumed time (J2000.0, 1 s apart
+in file-name order) and the sequence ``time_assumed``.  Optics from the sidecar's camera block, a field of
 view (sidecar ``fov_deg`` or the caller's ``fov_deg``) or the FITS header (FOCALLEN + XPIXSZ, or
 a WCS scale).  A field of view gives a camera with ``focal_length_tolerance`` 0.10: the
 identification searches focal lengths within +-10 % (:mod:`app.identification.optics`).  With no optics
@@ -26,7 +28,7 @@ import math
 import re
 import time
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import datetime
 
 import numpy as np
 
@@ -34,10 +36,11 @@ from app.camera import CAMERAS
 from app.frames.detect import DetectionError, DetectionOptions, Detections, detect
 from app.frames.hotpixels import HotPixelMap, near_hot_pixel, stationary_candidates
 from app.frames.images import Frame, FrameLimits, file_sha256, read_frames
+from app.frames.times import assumed_times, mixed_times_error
 from app.telemetry.errors import Problem, ProblemCollector, TelemetryError
 from app.telemetry.formats import dump_json, parse_telemetry
 from app.telemetry.model import FORMAT_NAME, Sequence
-from app.timefmt import NOT_ISO_8601, parse_iso_time, utc_text
+from app.timefmt import parse_utc_time, utc_text
 
 SIDECAR_FORMAT = "tubsat-frames/1"
 #: Focal length tolerance declared for optics given only as a field of view or a header focal length: a field
@@ -93,15 +96,10 @@ def _sidecar_time(value, loc: str, problems: ProblemCollector) -> datetime | Non
         problems.add(loc, "must be an ISO 8601 time string such as 2024-03-12T21:04:10.000Z")
         return None
     try:
-        t = parse_iso_time(value.strip().removesuffix("Z").removesuffix("z"))
+        return parse_utc_time(value)
     except ValueError as exc:  # a leap second or a date that does not exist is said as such
-        problems.add(loc, f"{exc}: {value[:40]!r}" if str(exc) == NOT_ISO_8601 else str(exc))
+        problems.add(loc, str(exc))
         return None
-    t = t.replace(tzinfo=timezone.utc) if t.tzinfo is None else t.astimezone(timezone.utc)
-    if not 1900 <= t.year <= 2099:
-        problems.add(loc, "outside the supported years 1900 to 2099")
-        return None
-    return t
 
 
 def parse_sidecar(data: bytes | str, name: str = "sidecar") -> Sidecar:
@@ -194,7 +192,9 @@ class _Measured:
     frame_location: str
     file: str
     part: int | None
-    time: datetime
+    time: datetime | None  # None until the pass's frames are known (then assumed)
+    #: Where the time came from: caller, sidecar, file (its FITS header or EXIF) or assumed.
+    time_from: str
     width: int
     height: int
     bits: int
@@ -207,7 +207,7 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
                        fov_deg: float | None = None, default_id: str | None = None,
                        options: DetectionOptions | None = None, hot_map: HotPixelMap | None = None,
                        limits: FrameLimits | None = None, deadline: float | None = None,
-                       decoded: list[Frame] | None = None) -> FramePass:
+                       decoded: list[Frame] | None = None, caller_time: datetime | None = None) -> FramePass:
     """One pass of frames -> its Sequence (see the module).  ``files``: (name, bytes), any order.
 
     ``sequence_id``, ``spacecraft``, ``fov_deg`` given here win over the sidecar's, which win over
@@ -215,6 +215,9 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
     ``hot_map``: the camera's stored map (applied before detection when its sensor size matches).
     ``deadline``: a ``time.monotonic()`` value; past it :class:`FramesTimeout` is raised between frames.
     ``decoded``: frames already read (``files`` then empty; their hash is their pixels'), for benchmarks.
+    ``caller_time``: the time of a pass of one frame (``--time``, the API's ``time`` field), over the
+    sidecar's and the file's; frames without any time are assumed 1 s apart in file-name order (HDUs and
+    pages in theirs), whatever order ``files`` come in.
     Raises TelemetryError (located) for anything invalid.
     """
     limits = limits or FrameLimits()
@@ -241,6 +244,7 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
     if unknown:
         raise TelemetryError.at("sidecar.frames", f"names file(s) not given: {', '.join(unknown[:5])}")
     measured: list[_Measured] = []
+    zone_notes: list[str] = []
     first_meta: dict = {}
     size: tuple[int, int] | None = None
     pixels_total = 0
@@ -267,20 +271,28 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
             if pixels_total > limits.max_total_pixels:
                 raise TelemetryError.at(frame.location, f"the frames hold more than {limits.max_total_pixels} pixels "
                                                         "in all (STARID_FRAMES_MAX_TOTAL_PIXELS)")
-            when = sidecar.times.get((short, frame.part), sidecar.times.get((short, None)))
-            if when is None:
-                when = frame.time
-            if when is None:
-                raise TelemetryError.at(f"{frame.location}.time",
-                                        "no time: give DATE-OBS (FITS) or list the file with its time in the sidecar")
+            if caller_time is not None and measured:
+                raise TelemetryError.at("time", "one time (--time, the time field) was given for a pass of several "
+                                                "frames: list each frame's time in the sidecar instead")
+            listed = sidecar.times.get((short, frame.part), sidecar.times.get((short, None)))
+            found_times = [(caller_time, "caller"), (listed, "sidecar"), (frame.time, "file")]
+            when, time_from = next(((t, source) for t, source in found_times if t is not None), (None, "assumed"))
             try:
                 found = detect(frame.pixels, options, saturation=frame.saturation, hot_pixels=prior_hot)
             except DetectionError as exc:
                 raise TelemetryError.at(frame.location, str(exc)) from None
-            measured.append(_Measured(frame.location, short, frame.part, when, frame.width, frame.height,
-                                      frame.bits, found, digest))
+            measured.append(_Measured(frame.location, short, frame.part, when, time_from, frame.width,
+                                      frame.height, frame.bits, found, digest))
+            if frame.meta.get("time_note") and time_from == "file":
+                zone_notes.append(frame.meta["time_note"])
     if deadline is not None and time.monotonic() > deadline:
         raise FramesTimeout(f"reading and detecting the frames took longer than {limits.timeout_s:g} s")
+    untimed = [m for m in measured if m.time is None]
+    if untimed and len(untimed) < len(measured):
+        raise mixed_times_error(untimed[0].frame_location, next(m.frame_location for m in measured if m.time))
+    for m, t in zip(sorted(untimed, key=lambda m: (m.file, -1 if m.part is None else m.part)),
+                    assumed_times(len(untimed))):
+        m.time = t
     measured.sort(key=lambda m: m.time)
     for earlier, later in zip(measured, measured[1:]):
         if later.time == earlier.time:
@@ -314,7 +326,8 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
                 reasons.append("mapped_hot_pixel")
             if reasons and len(rejected) < MAX_REJECTED_LISTED:
                 rejected.append([round(float(d.xy[k, 0]), 2), round(float(d.xy[k, 1]), 2), "+".join(reasons)])
-        reports.append({"file": m.file, "part": m.part, "sha256": m.sha256, "width": m.width, "height": m.height,
+        reports.append({"file": m.file, "part": m.part, "sha256": m.sha256, "time_from": m.time_from,
+                        "width": m.width, "height": m.height,
                         "bits": m.bits, "background": round(d.background, 3), "noise": round(d.noise, 4),
                         "detected": len(d), "kept": len(kept),
                         "saturated_kept": int(sum("saturated" in d.flags[k] for k in kept)),
@@ -333,12 +346,14 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
                    "options": options.to_dict(), "optics_from": optics_from,
                    "hot_pixel_map": {"version": start_map.version, "hot_pixels": len(hot),
                                      "frames_counted": updated.frames},
-                   "frames": reports},
+                   "frames": reports, **({"notes": zone_notes} if zone_notes else {})},
     }
     if doc["spacecraft"] is None:
         del doc["spacecraft"]
     if sidecar.velocity_km_s is not None:
         doc["velocity_km_s"] = sidecar.velocity_km_s
+    if untimed:
+        doc["time_assumed"] = True
     text = json.dumps(doc)
     try:
         sequence = parse_telemetry(text, max_bytes=len(text.encode()) + 1)

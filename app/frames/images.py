@@ -44,6 +44,7 @@ import numpy as np
 
 from app.config import MAX_SNAPSHOTS
 from app.filenames import FITS_SUFFIXES, IMAGE_SUFFIXES
+from app.frames.times import exif_time
 from app.telemetry.errors import TelemetryError
 
 _FITS_MAGIC = b"SIMPLE  ="
@@ -92,7 +93,7 @@ class Frame:
     file: str
     #: HDU number (FITS) or page (TIFF) within the file, None for single-image files.
     part: int | None
-    #: Mid-exposure time from the file's own metadata (FITS), None when it has none.
+    #: Mid-exposure time from the file's own metadata (FITS header, EXIF), None when it has none.
     time: datetime | None
     #: Pixel value at and above which a pixel is saturated (None: unknown, e.g. float images).
     saturation: float | None
@@ -318,8 +319,10 @@ def _pillow_frames(raw: bytes, name: str, limits: FrameLimits) -> Iterator[Frame
             _check_size(width, height, location, limits)
             pixels, bits, saturation = _pillow_pixels(image, location)
             pixels = _finite(pixels, location)
+            when, zone_note = exif_time(image, location)
             yield Frame(pixels=pixels, location=location, file=name, part=page if pages > 1 else None,
-                        time=None, saturation=saturation, bits=bits)
+                        time=when, saturation=saturation, bits=bits,
+                        meta={"time_note": zone_note} if zone_note else {})
 
 
 def _pillow_pixels(image, location: str) -> tuple[np.ndarray, int, float | None]:

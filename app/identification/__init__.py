@@ -100,7 +100,9 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
 
     ``method`` names one of :data:`METHODS`.  With a ``prior`` (required by
     ``tracking``, and turning any lost-in-space method into tracking) the
-    pattern is matched near it (:func:`identify_near_prior`).
+    pattern is matched near it (:func:`identify_near_prior`).  A sequence whose
+    time is assumed is matched to the stars' mean places, without planets
+    (:attr:`app.telemetry.Sequence.observer`).
     """
     from app.planets import planet_vectors
 
@@ -113,10 +115,10 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
     t = sequence.snapshots[extraction.reference].time
     if prior is not None:
         solution = identify_near_prior(pattern, sequence.camera, t, sky, prior.at(t), prior_sigma_deg=prior.sigma_deg,
-                                       velocity_km_s=sequence.velocity_km_s, options=options)
+                                       velocity_km_s=sequence.observer, options=options)
     else:
-        planets = (lambda: planet_vectors(t)) if with_planets else None
-        solution = identify(pattern, sequence.camera, t, sky, velocity_km_s=sequence.velocity_km_s,
+        planets = (lambda: planet_vectors(t)) if with_planets and not sequence.time_assumed else None
+        solution = identify(pattern, sequence.camera, t, sky, velocity_km_s=sequence.observer,
                             options=options, planets=planets, method=method)
     fits: dict[int, SequenceFit] = {}
     candidates = []

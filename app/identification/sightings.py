@@ -42,7 +42,7 @@ def identified_sightings(sequence, extraction, star_of_track: dict[int, int], sk
         return []
     t_ref = sequence.snapshots[extraction.reference].time
     hips = sorted(set(star_of_track.values()))
-    star_vector = dict(zip(hips, sky.apparent_vectors_of(hips, t_ref, sequence.velocity_km_s)))
+    star_vector = dict(zip(hips, sky.apparent_vectors_of(hips, t_ref, sequence.observer)))
     by_snapshot: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
     for track in extraction.tracks:
         if track.id in star_of_track:
@@ -71,7 +71,7 @@ def sources_field(sky, sequence, t_ref, camera, mag_margin: float = SearchOption
     """The stars a reported source of ``sequence`` may be: those down to ``camera``'s limiting magnitude
     plus the search's margin, at their apparent places at ``t_ref`` (the reference snapshot's time)."""
     return sky.field(t_ref, min(camera.limiting_magnitude + mag_margin, sky.index.mag_limit),
-                     sequence.velocity_km_s)
+                     sequence.observer)
 
 
 def stars_at(xy: np.ndarray, camera, rotation: np.ndarray, field: StarField, tolerance_rad: float) -> np.ndarray:

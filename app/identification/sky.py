@@ -16,7 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from app.attitude import angle_between
-from app.catalogue import Catalogue, julian_year, load_catalogue, star_names
+from app.catalogue import Catalogue, is_mean_place, julian_year, load_catalogue, star_names
 from app.identification.cells import MAX_SPACECRAFT_SPEED_KM_S, MAX_YEARS, NearStarCells, motion_margin_rad
 from app.identification.triangle_index import BrightTriangles, bright_triangles
 from app.identification.verify import StarField, chord
@@ -33,6 +33,14 @@ MAX_CACHED_FILES = 12
 #: the diagonal of the widest field it serves (10 x 7.5 deg: 12.5 deg).  Hipparcos-2 is complete to Hp
 #: ~7.3-9 depending on the sky: Hp 8 is its depth where it is still nearly complete everywhere.
 DEPTHS = ((6.5, 45.0, 7.0), (8.0, 15.0, float("inf")))
+
+
+def _observer_key(velocity_km_s):
+    """The observer of cached places: None (the Earth's centre), :data:`MEAN_PLACE` (no aberration), or
+    the spacecraft's velocity to 1 m/s (which moves the aberration by < 0.001 arcsec)."""
+    if velocity_km_s is None or is_mean_place(velocity_km_s):
+        return velocity_km_s
+    return tuple(np.round(velocity_km_s, 3))
 
 
 class Sky:
@@ -85,9 +93,9 @@ class Sky:
         return self.index.mag <= mag_limit
 
     def apparent_vectors(self, t: datetime, velocity_km_s=None) -> np.ndarray:
-        """Apparent places of every catalogue star in the index, for the hour of ``t``."""
-        key = (t.replace(minute=0, second=0, microsecond=0),
-               None if velocity_km_s is None else tuple(np.round(velocity_km_s, 3)))
+        """Apparent places of every catalogue star in the index, for the hour of ``t`` (mean places for
+        ``velocity_km_s`` :data:`app.catalogue.MEAN_PLACE`)."""
+        key = (t.replace(minute=0, second=0, microsecond=0), _observer_key(velocity_km_s))
         if key not in self._apparent:
             self._apparent[key] = self.catalogue.apparent_vectors(key[0], velocity_km_s)
             while len(self._apparent) > 32:
@@ -97,12 +105,12 @@ class Sky:
     def field(self, t: datetime, mag_limit: float, velocity_km_s=None) -> StarField:
         """The stars down to ``mag_limit`` (a prefix: stars are sorted brightest first) with a KD-tree."""
         n = int(self.star_mask(mag_limit).sum())
-        key = (t.replace(minute=0, second=0, microsecond=0), n,
-               None if velocity_km_s is None else tuple(np.round(velocity_km_s, 3)))
+        key = (t.replace(minute=0, second=0, microsecond=0), n, _observer_key(velocity_km_s))
         if key not in self._fields:
             vectors = self.apparent_vectors(t, velocity_km_s)[:n]
             static = (abs(julian_year(t) - self.index.epoch_jyear) <= MAX_YEARS
-                      and (velocity_km_s is None or float(np.linalg.norm(velocity_km_s)) <= MAX_SPACECRAFT_SPEED_KM_S))
+                      and (velocity_km_s is None or is_mean_place(velocity_km_s)
+                           or float(np.linalg.norm(velocity_km_s)) <= MAX_SPACECRAFT_SPEED_KM_S))
             cells = (lambda radius: self.near_star_cells(n, radius)) if static else None
             self._fields[key] = StarField.from_vectors(vectors, np.arange(n), cells=cells,
                                                        alone_within=self.alone_within()[:n] if static else None)

@@ -21,7 +21,10 @@ Choices made here (documented there too):
 * CSV columns may come in any order; extra columns are ignored (spreadsheet
   exports add them).  Rows of one snapshot must be contiguous.
 * Times must lie in 1900..2099 UTC, where the astronomical corrections and
-  the built-in planet ephemeris are valid.
+  the built-in planet ephemeris are valid.  ``time_assumed: true`` says they
+  are not known (frames that carried none): the stars are then placed
+  without aberration and planets are not looked for
+  (:attr:`~app.telemetry.model.Sequence.observer`).
 """
 
 from __future__ import annotations
@@ -85,10 +88,10 @@ _CAMERA_OPTIONAL = ("k1", "k2", "name", "mag_limit", "focal_length_tolerance", "
 #: Optional camera fields bounded to [0, limit]: how well the declared optics are known.
 _CAMERA_UNCERTAINTY_LIMITS = {"focal_length_tolerance": MAX_FOCAL_LENGTH_TOLERANCE,
                               "k1_bound": MAX_DISTORTION_BOUND, "k2_bound": MAX_DISTORTION_BOUND}
-_TOP_LEVEL_KEYS = ("format", "sequence_id", "spacecraft", "camera", "snapshots", "velocity_km_s")
+_TOP_LEVEL_KEYS = ("format", "sequence_id", "spacecraft", "camera", "snapshots", "velocity_km_s", "time_assumed")
 _SNAPSHOT_KEYS = ("index", "time", "sources")
 _SOURCE_KEYS = ("x", "y", "brightness")
-_CSV_META_KEYS = ("format", "sequence_id", "spacecraft", "camera", "velocity_km_s")
+_CSV_META_KEYS = ("format", "sequence_id", "spacecraft", "camera", "velocity_km_s", "time_assumed")
 
 _CAMERA_NAME_RE = re.compile(r"[A-Za-z0-9._+-]{1,64}")
 # ASCII digits only: Python's \d, int() and float() also take other scripts' digits ('٨٩', '１２'), which
@@ -188,6 +191,8 @@ def dump_csv(seq: Sequence) -> str:
     lines.append(f"# camera: {camera}")
     if seq.velocity_km_s is not None:
         lines.append("# velocity_km_s: " + " ".join(repr(float(v)) for v in seq.velocity_km_s))
+    if seq.time_assumed:
+        lines.append("# time_assumed: true")
     lines.append(",".join(CSV_COLUMNS))
     for snap in seq.snapshots:
         time = utc_text(snap.time)
@@ -793,11 +798,15 @@ def _sequence_from_json(text: str, filename: str | None, default_camera: Camera 
     if velocity is not None:
         velocity = _velocity(velocity, "velocity_km_s", problems)
     drafts = _json_snapshots(doc.get("snapshots", _MISSING), camera, problems)
+    time_assumed = doc.get("time_assumed", False)
+    if not isinstance(time_assumed, bool):
+        problems.add("time_assumed", f"must be true or false, got {describe_value(time_assumed)}")
     extra = {key: value for key, value in doc.items() if key not in _TOP_LEVEL_KEYS}
     _check_extra(extra, problems)
     problems.raise_if_any()
     return Sequence(sequence_id=sequence_id, spacecraft=spacecraft, camera=camera,
-                    snapshots=tuple(_snapshot(d) for d in drafts), velocity_km_s=velocity, extra=extra)
+                    snapshots=tuple(_snapshot(d) for d in drafts), velocity_km_s=velocity, extra=extra,
+                    time_assumed=time_assumed)
 
 
 # =============================================================================
@@ -1056,13 +1065,20 @@ def _sequence_from_csv(text: str, filename: str | None, default_camera: Camera |
         spacecraft = _as_text(meta["spacecraft"][0], meta_loc("spacecraft"), problems)
     camera = _csv_camera(meta, default_camera, problems)
     velocity = _csv_velocity(meta, problems)
+    time_assumed = False
+    if "time_assumed" in meta:
+        text = meta["time_assumed"][0]
+        time_assumed = {"true": True, "false": False}.get(text.lower())
+        if time_assumed is None:
+            problems.add(meta_loc("time_assumed"), f"must be true or false, got {describe_value(text)}")
     drafts = _csv_rows(lines, header, camera, problems)
     if not drafts and not problems:
         problems.add("file", "no snapshot rows after the header: at least one snapshot is required")
     _check_order(drafts, problems)
     problems.raise_if_any()
     return Sequence(sequence_id=sequence_id, spacecraft=spacecraft, camera=camera,
-                    snapshots=tuple(_snapshot(d) for d in drafts), velocity_km_s=velocity)
+                    snapshots=tuple(_snapshot(d) for d in drafts), velocity_km_s=velocity,
+                    time_assumed=bool(time_assumed))
 
 
 __all__ = ["CSV_COLUMNS", "Problem", "TelemetryError", "dump_csv", "dump_json",

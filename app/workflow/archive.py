@@ -208,7 +208,8 @@ def store_upload(ctx: AppContext, upload: ParsedUpload, extraction) -> UploadDoc
     row, created = ctx.storage.add_sequence(
         raw_text=upload.raw_text, filename=upload.filename, sequence_id=sequence.sequence_id,
         spacecraft=sequence.spacecraft, camera=sequence.camera.to_dict(),
-        first_time=sequence.snapshots[0].time if sequence.snapshots else None,
+        # An assumed time (frames that carried none) is no time to list or sort a pass by.
+        first_time=sequence.snapshots[0].time if sequence.snapshots and not sequence.time_assumed else None,
         n_snapshots=len(sequence.snapshots), camera_calibration=upload.camera_calibration,
         extraction=ExtractionDocument.of(extraction, hot_pixel_map=upload.hot_pixel_map).model_dump(mode="json"))
     if created:

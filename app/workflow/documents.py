@@ -430,7 +430,8 @@ class SequenceSummary(Document):
     spacecraft: str | None
     filename: str | None
     camera: dict[str, Any] | None
-    first_time: str | None
+    first_time: str | None = Field(description="time of the first snapshot (UTC); null when the times are only "
+                                               "assumed (frames that carried none: its telemetry's time_assumed)")
     n_snapshots: int | None
     uploaded_at: str | None
     status: Literal["new", "identified", "ambiguous", "no_match", "confirmed", "rejected"]

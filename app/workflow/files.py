@@ -11,11 +11,13 @@ from __future__ import annotations
 import hashlib
 import math
 from collections.abc import Iterator
+from datetime import datetime
 from pathlib import Path
 
 from app.attitude import rotation_angle_between
 from app.extraction import extract
 from app.filenames import FOLDER_SIDECAR, SPOT_LIST_SUFFIXES, TRUTH_SUFFIX, image_sidecar, special_file
+from app.frames.times import time_notes
 from app.identification import NO_MATCH, Prior, SearchOptions, Sky, solve_sequence, source_stars
 from app.telemetry import Sequence
 from app.telemetry.errors import TelemetryError
@@ -60,18 +62,19 @@ def input_files(paths: list[str]) -> tuple[list[str], list[str]]:
     return inputs, truth
 
 
-def telemetry_files(paths: list[str], *, fov_deg: float | None = None
+def telemetry_files(paths: list[str], *, fov_deg: float | None = None, time: datetime | None = None
                     ) -> Iterator[tuple[str, Sequence | None, TelemetryError | None]]:
     """``(path, sequence, None)`` for each input that parses, ``(path, None, error)`` for each that does not.
 
     ``paths`` are inputs as :func:`input_files` gives them.  An image file or a folder of frames is
     one pass (see :func:`_load`); ``fov_deg`` (the horizontal field of view in degrees, known to
-    +-5 %) gives its optics, over a sidecar's and the FITS header's.  A spot-list file carries its
-    own camera, so with ``fov_deg`` it is refused (:data:`FOV_SPOT_LIST`).
+    +-5 %) gives its optics, over a sidecar's and the FITS header's; ``time`` the time of a pass of one
+    frame, over the sidecar's and the file's own.  A spot-list file carries its own camera and times, so
+    with ``fov_deg`` or ``time`` it is refused (:data:`FOV_SPOT_LIST`, :data:`TIME_SPOT_LIST`).
     """
     for path in paths:
         try:
-            yield path, _load(path, fov_deg), None
+            yield path, _load(path, fov_deg, time), None
         except TelemetryError as exc:
             yield path, None, exc
 
@@ -85,7 +88,12 @@ FOV_SPOT_LIST = ("applies to image files and folders of frames only; a spot list
                  "(its camera block, else the default camera): leave --fov-deg out for it, or give it a camera block")
 
 
-def _load(path: str, fov_deg: float | None) -> Sequence:
+#: Why ``time`` is refused for a spot-list file: every snapshot has its own time there.
+TIME_SPOT_LIST = ("applies to image files and folders of frames only; a spot list carries its own times: leave "
+                  "--time out for it")
+
+
+def _load(path: str, fov_deg: float | None, time: datetime | None = None) -> Sequence:
     """Spot-list telemetry, or (an image file, a folder of images) the pass of frames it holds."""
     from app.workflow.frames import frames_sequence_from_path, is_frames_path
 
@@ -97,9 +105,11 @@ def _load(path: str, fov_deg: float | None) -> Sequence:
             raise TelemetryError.at("folder", EMPTY_FOLDER, filename=path)
         if fov_deg is not None:
             raise TelemetryError.at("--fov-deg", FOV_SPOT_LIST, filename=path)
+        if time is not None:
+            raise TelemetryError.at("--time", TIME_SPOT_LIST, filename=path)
         return load_telemetry_file(path)
     try:
-        return frames_sequence_from_path(path, fov_deg=fov_deg)
+        return frames_sequence_from_path(path, fov_deg=fov_deg, caller_time=time)
     except TelemetryError as exc:
         if exc.filename is not None:
             raise
@@ -145,8 +155,10 @@ def invalid_solve_document(path: str, message: str, digest: str | None = None) -
 
 def extract_document(path: str, sequence: Sequence) -> ExtractDocument:
     extraction = ExtractionDocument.of(extract(sequence))
-    return ExtractDocument(file=path, sequence_id=sequence.sequence_id, status="ok",
-                           **extraction.model_dump(include=set(ExtractDocument.model_fields) - {"file"}))
+    doc = ExtractDocument(file=path, sequence_id=sequence.sequence_id, status="ok",
+                          **extraction.model_dump(include=set(ExtractDocument.model_fields) - {"file"}))
+    doc.notes = list(doc.notes or []) + time_notes(sequence)
+    return doc
 
 
 def solve_document(path: str, sequence: Sequence, sky: Sky, *, options: SearchOptions,
@@ -168,7 +180,8 @@ def solve_document(path: str, sequence: Sequence, sky: Sky, *, options: SearchOp
         sources=[[int(t) if t >= 0 else None for t in per] for per in solved.extraction.track_of_source],
         source_stars=source_stars(solved, sky),
         candidates=[CandidateDocument.of(c, solved.sequence_fits.get(c.rank)) for c in s.candidates],
-        elapsed_ms=round(s.elapsed_s * 1000, 2), notes=list(solved.extraction.notes) + list(s.notes),
+        elapsed_ms=round(s.elapsed_s * 1000, 2),
+        notes=list(solved.extraction.notes) + list(s.notes) + time_notes(sequence),
         focal_length_contradiction=FocalLengthContradictionDocument.of(s.focal_length_contradiction))
     if compare_tf and prior is None:
         tf = solve_sequence(sequence, sky, options=options, extraction=solved.extraction, pattern=solved.pattern,

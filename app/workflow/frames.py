@@ -29,6 +29,7 @@ import os
 import re
 import time
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +44,7 @@ from app.frames.images import file_sha256
 from app.storage import MAX_PREVIEW_PNG_BYTES, StaleHotPixelMap
 from app.telemetry import Sequence
 from app.telemetry.errors import Problem, TelemetryError
+from app.timefmt import utc_text
 from app.workflow import archive
 from app.workflow.context import AppContext
 from app.workflow.documents import Document, FramePreviewInfo, FramePreviewsDocument, UploadDocument
@@ -112,6 +114,8 @@ class FramesRequest:
     map_spacecraft: str | None
     hot_map: HotPixelMap | None
     limits: FrameLimits
+    #: The caller's time of a pass of one frame (the ``time`` field), over the sidecar's and the file's.
+    time: datetime | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -127,7 +131,7 @@ class FramesResult:
 
 
 def upload_sha256(files: list[tuple[str, bytes]], sidecar: bytes | None, sequence_id: str | None,
-                  spacecraft: str | None, fov_deg: float | None) -> str:
+                  spacecraft: str | None, fov_deg: float | None, caller_time: datetime | None = None) -> str:
     """The hash that makes an upload of frames "the same": the frames' content, the sidecar, the fields
     and the detector's defaults (file names and order do not count)."""
     key = {"frames": frames_content_sha256([file_sha256(data) for _, data in files]),
@@ -135,12 +139,14 @@ def upload_sha256(files: list[tuple[str, bytes]], sidecar: bytes | None, sequenc
            "names": sorted(archive.clean_filename(name) or "" for name, _ in files),
            "sequence_id": sequence_id, "spacecraft": spacecraft, "fov_deg": fov_deg,
            "detector": DetectionOptions().to_dict()}
+    if caller_time is not None:  # absent otherwise: the uploads stored before the field keep their hash
+        key["time"] = utc_text(caller_time)
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()
 
 
 def prepare_frames(ctx: AppContext, files: list[tuple[str, bytes]], sidecar: bytes | None,
                    sequence_id: str | None, spacecraft: str | None,
-                   fov_deg: float | None) -> FramesRequest | UploadDocument:
+                   fov_deg: float | None, caller_time: datetime | None = None) -> FramesRequest | UploadDocument:
     """Check an upload of frames; the stored sequence's document when the same upload was stored before.
 
     Raises TelemetryError (located problems) for a bad sidecar or too many files or bytes.
@@ -152,7 +158,7 @@ def prepare_frames(ctx: AppContext, files: list[tuple[str, bytes]], sidecar: byt
     if len(files) > limits.max_frames:
         raise TelemetryError.at("body.files", f"{len(files)} files; at most {limits.max_frames} frames per pass")
     parsed_sidecar = parse_sidecar(sidecar) if sidecar is not None else None
-    key = upload_sha256(files, sidecar, sequence_id, spacecraft, fov_deg)
+    key = upload_sha256(files, sidecar, sequence_id, spacecraft, fov_deg, caller_time)
     seq_id = ctx.storage.find_frame_upload(key)
     if seq_id is not None:
         return _stored_document(ctx, seq_id)
@@ -164,7 +170,7 @@ def prepare_frames(ctx: AppContext, files: list[tuple[str, bytes]], sidecar: byt
         hot_map = current_hot_pixel_map(ctx, map_spacecraft, peek[0], peek[1])
     return FramesRequest(files=files, sidecar=parsed_sidecar, sequence_id=sequence_id, spacecraft=spacecraft,
                          fov_deg=fov_deg, upload_sha256=key, map_spacecraft=map_spacecraft, hot_map=hot_map,
-                         limits=limits)
+                         limits=limits, time=caller_time)
 
 
 def frames_job(request: FramesRequest, *, sky=None) -> FramesResult:
@@ -173,7 +179,8 @@ def frames_job(request: FramesRequest, *, sky=None) -> FramesResult:
     try:
         frame_pass = frames_to_sequence(request.files, sidecar=request.sidecar, sequence_id=request.sequence_id,
                                         spacecraft=request.spacecraft, fov_deg=request.fov_deg,
-                                        hot_map=request.hot_map, limits=request.limits, deadline=deadline)
+                                        hot_map=request.hot_map, limits=request.limits, deadline=deadline,
+                                        caller_time=request.time)
     except TelemetryError as exc:
         return FramesResult(problems=[p.to_dict() for p in exc.problems])
     except FramesTimeout as exc:
@@ -335,11 +342,12 @@ def stretch_to_8bit(image: np.ndarray) -> np.ndarray:
     return np.clip(np.round(scaled * 255.0), 0, 255).astype(np.uint8)
 
 
-def encode_png(grey: np.ndarray) -> bytes:
+def encode_png(image: np.ndarray) -> bytes:
+    """A PNG of 8-bit grey (H, W) or colour (H, W, 3) pixels."""
     from PIL import Image
 
     stream = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(grey, dtype=np.uint8), mode="L").save(stream, format="PNG")
+    Image.fromarray(np.ascontiguousarray(image, dtype=np.uint8)).save(stream, format="PNG")
     return stream.getvalue()
 
 
@@ -442,9 +450,15 @@ def frame_previews_document(ctx: AppContext, seq_id: int) -> FramePreviewsDocume
 
 def frame_preview_png(ctx: AppContext, seq_id: int, snapshot: int) -> bytes:
     """The PNG of one snapshot's preview; NotFound (saying why) when there is none."""
+    return frame_preview_row(ctx, seq_id, snapshot).png
+
+
+def frame_preview_row(ctx: AppContext, seq_id: int, snapshot: int):
+    """One snapshot's stored preview (:class:`app.storage.FramePreviewRow`, with its PNG); NotFound (saying
+    why) when there is none."""
     row = ctx.storage.frame_preview(seq_id, snapshot)
     if row is not None:
-        return row.png
+        return row
     stored = archive.require_sequence(ctx, seq_id)
     if not ctx.storage.frame_previews(seq_id):
         raise NotFound(f"sequence {seq_id} has no frame images: it was uploaded as a spot list, or as frames "
@@ -478,9 +492,11 @@ def is_frames_path(path: str) -> bool:
         return False
 
 
-def frames_sequence_from_path(path: str, *, fov_deg: float | None = None) -> Sequence:
+def frames_sequence_from_path(path: str, *, fov_deg: float | None = None,
+                              caller_time: datetime | None = None) -> Sequence:
     """One pass from an image file (with ``<stem>.frames.json`` beside it, if any) or a folder of frames
-    (every image in it, with its ``frames.json``, if any; the folder's name is the default id).
+    (every image in it, in name order, with its ``frames.json``, if any; the folder's name is the default
+    id).  ``caller_time``: the caller's time of a pass of one frame (over the sidecar's and the file's own).
 
     No archive here: the hot-pixel map is the pass's own.  Raises TelemetryError (located) for
     anything invalid, at ``file`` for files that cannot be read.
@@ -525,6 +541,6 @@ def frames_sequence_from_path(path: str, *, fov_deg: float | None = None) -> Seq
         raise TelemetryError.at("file", f"cannot read the file: {exc.strerror or type(exc).__name__}") from None
     try:
         return frames_to_sequence(files, sidecar=sidecar, fov_deg=fov_deg, default_id=default_id, limits=limits,
-                                  deadline=time.monotonic() + limits.timeout_s).sequence
+                                  deadline=time.monotonic() + limits.timeout_s, caller_time=caller_time).sequence
     except FramesTimeout as exc:
         raise TelemetryError.at("file", str(exc)) from None

@@ -22,6 +22,7 @@ import numpy as np
 
 from app.attitude import rotation_from_radec_roll
 from app.extraction import Extraction, Pattern
+from app.frames.times import time_notes
 from app.identification import METHODS, Prior, SearchOptions, solve_sequence
 from app.storage import SearchRow
 from app.telemetry import Sequence
@@ -126,7 +127,7 @@ def search_result(solved, method: str, pattern_version: int | None) -> SearchRes
                         pattern=PatternPoint.rows(solved.pattern),
                         candidates=[CandidateDocument.of(c, solved.sequence_fits.get(c.rank))
                                     for c in solution.candidates],
-                        notes=list(solved.extraction.notes) + list(solution.notes),
+                        notes=list(solved.extraction.notes) + list(solution.notes) + time_notes(solved.sequence),
                         elapsed_ms=round(solution.elapsed_s * 1000, 2),
                         focal_length_contradiction=FocalLengthContradictionDocument.of(
                             solution.focal_length_contradiction))
@@ -230,7 +231,8 @@ class CandidateViewJob:
     candidate: CandidateDocument
     camera: object
     time: object
-    velocity_km_s: object
+    velocity_km_s: object  # the sequence's observer (app.telemetry.Sequence.observer)
+    time_assumed: bool = False  # no planets are drawn at an assumed time
 
 
 def prepare_candidate_view(ctx: AppContext, seq_id: int, rank: int, mag: float) -> CandidateViewJob:
@@ -242,7 +244,7 @@ def prepare_candidate_view(ctx: AppContext, seq_id: int, rank: int, mag: float) 
     return CandidateViewJob(seq_id=seq_id, search_id=search.id, rank=rank, mag=mag, result=result,
                             candidate=candidate, camera=sequence.camera,
                             time=sequence.snapshots[result.reference_snapshot].time,
-                            velocity_km_s=sequence.velocity_km_s)
+                            velocity_km_s=sequence.observer, time_assumed=sequence.time_assumed)
 
 
 def candidate_view_job(job: CandidateViewJob, *, sky=None) -> CandidateView:
@@ -255,7 +257,8 @@ def candidate_view_job(job: CandidateViewJob, *, sky=None) -> CandidateView:
     result = job.result
     section = sky_section(rotation=job.candidate.rotation, camera=job.camera, t=job.time,
                           catalogue=load_catalogue(), names=star_names(), mag_limit=job.mag,
-                          pattern=result.pattern, candidate=job.candidate, planets=planet_vectors(job.time),
+                          pattern=result.pattern, candidate=job.candidate,
+                          planets=None if job.time_assumed else planet_vectors(job.time),
                           velocity_km_s=job.velocity_km_s)
     return CandidateView(sequence=job.seq_id, search_id=job.search_id, status=result.status, rank=job.rank,
                          n_candidates=len(result.candidates), reference_snapshot=result.reference_snapshot,

@@ -4,9 +4,11 @@
 // their track as the player names it), the blobs it rejected (orange diamonds, the reason in the
 // tooltip) and the camera's hot pixels (magenta squares). Wheel or +/- to zoom, drag to pan, Fit
 // for the whole frame; a click on a detection takes its track in or out of the pattern, as a
-// click in the player does. Telemetry strings only ever reach the page as text.
+// click in the player does. Annotated PNG downloads the frame annotated with the candidate shown
+// (GET .../frames/{i}/annotated.png?rank=N). Telemetry strings only ever reach the page as text.
 import * as api from "./api.js";
 import { $, placeLabel, snapshotName, trackColour } from "./dom.js";
+import { state } from "./state.js";
 
 const MAX_ZOOM = 32;            // screen pixels per sensor pixel at most
 const ZOOM_STEP = 1.5;          // one +/- press
@@ -46,6 +48,7 @@ export class FrameView {
     $("frame-zoom-in").addEventListener("click", () => this.zoomBy(ZOOM_STEP));
     $("frame-zoom-out").addEventListener("click", () => this.zoomBy(1 / ZOOM_STEP));
     $("frame-fit").addEventListener("click", () => { this.fit(); this.draw(); });
+    $("frame-annotated").addEventListener("click", () => this.downloadAnnotated());
     for (const id of ["frame-show-detections", "frame-show-rejected", "frame-show-hot"]) {
       $(id).addEventListener("change", () => this.draw());
     }
@@ -105,6 +108,35 @@ export class FrameView {
   }
 
   current() { return this.frames ? this.frames.get(this.index) ?? null : null; }
+
+  // The frame shown, annotated with the candidate shown: fetched first, so that a sequence not searched
+  // or a rank gone gives the server's sentence instead of a broken download.
+  async downloadAnnotated() {
+    const info = this.current(), rank = state.rank, id = this.seqId;
+    if (!info) { this.callbacks.onMessage("No frame image is kept of this snapshot to annotate."); return; }
+    if (!rank) { this.callbacks.onMessage("No candidate to annotate the frame with: search the sequence first."); return; }
+    let response;
+    try {
+      response = await fetch(`/api/sequences/${id}/frames/${info.snapshot}/annotated.png?rank=${rank}`);
+    } catch (err) {
+      this.callbacks.onMessage(`No annotated frame: the server cannot be reached (${err.message})`);
+      return;
+    }
+    if (!response.ok) {
+      const body = await response.json().catch(() => ({}));
+      this.callbacks.onMessage(`No annotated frame: ${body.detail || response.statusText}`);
+      return;
+    }
+    const url = URL.createObjectURL(await response.blob());
+    const a = document.createElement("a");
+    a.href = url;
+    a.download = `sequence-${id}-snapshot-${info.snapshot}-rank-${rank}.png`;
+    a.hidden = true;
+    document.body.append(a);
+    a.click();
+    a.remove();
+    setTimeout(() => URL.revokeObjectURL(url), 10000);
+  }
 
   // The sensor size of the sequence (every frame of a pass has the same).
   sensor() {
@@ -249,6 +281,7 @@ export class FrameView {
     canvas.dataset.snapshot = String(this.index);
     canvas.dataset.image = "";
     canvas.dataset.markers = "[]";
+    $("frame-annotated").disabled = !info;
     if (!info) return;
     const img = this.images.get(info.url);
     if (img && img.complete && img.naturalWidth) {

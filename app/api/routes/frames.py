@@ -7,6 +7,7 @@ import asyncio
 import math
 import time
 import unicodedata
+from datetime import datetime
 from typing import Annotated
 
 from fastapi import APIRouter, BackgroundTasks, Depends, Path, Query, Request
@@ -19,6 +20,7 @@ from app.api.routes.common import (ID_LIMITS, get_context, read_body_limited, re
                                    writer)
 from app.api.schemas import SpacecraftName
 from app.frames import FrameLimits
+from app.timefmt import parse_utc_time
 from app.workflow import AppContext, frames as framing
 from app.workflow.compute import BULK
 from app.workflow.documents import FramePreviewsDocument, UploadDocument
@@ -41,13 +43,16 @@ _UPLOAD_BODY = {
                        "also 32-bit float; a multi-extension FITS holds a whole pass), an optional `sidecar` "
                        "(tubsat-frames/1 JSON: per-file times and the camera, docs/formats.md) and optional "
                        "text fields `sequence_id`, `spacecraft`, `fov_deg` (horizontal field of view, degrees, "
-                       "known to +-5 %).",
+                       "known to +-5 %) and `time` (ISO 8601, UTC unless it says its zone: the time of a pass "
+                       "of one frame, over the sidecar's and the file's own; frames with no time at all are "
+                       "solved at an assumed time, J2000.0, and say so).",
         "content": {"multipart/form-data": {"schema": {
             "type": "object", "required": ["files"],
             "properties": {"files": {"type": "array", "items": {"type": "string", "format": "binary"}},
                            "sidecar": {"type": "string", "format": "binary"},
                            "sequence_id": {"type": "string"}, "spacecraft": {"type": "string"},
-                           "fov_deg": {"type": "number"}}}}},
+                           "fov_deg": {"type": "number"},
+                           "time": {"type": "string", "format": "date-time"}}}}},
     },
     "responses": {"200": {"description": "The same frames (and sidecar and fields) were uploaded before: the "
                                          "stored sequence"},
@@ -92,6 +97,16 @@ def _fov(form) -> float | None:
     return value
 
 
+def _time(form) -> datetime | None:
+    text = _text_field(form, "time", 64)
+    if text is None:
+        return None
+    try:
+        return parse_utc_time(text)
+    except ValueError as exc:
+        raise ApiError(422, f"time: {exc}", problems=[{"location": "body.time", "message": str(exc)}]) from None
+
+
 @router.post("/api/frames", status_code=201, openapi_extra=_UPLOAD_BODY, response_model=UploadDocument,
              summary="Upload the frames of one pass (201 created, 200 if the same frames were stored)")
 async def upload_frames(request: Request, background: BackgroundTasks,
@@ -123,9 +138,11 @@ async def upload_frames(request: Request, background: BackgroundTasks,
                 raise ApiError(422, "the sidecar is larger than 1 MiB",
                                problems=[{"location": "body.sidecar", "message": "larger than 1 MiB"}])
         sequence_id, spacecraft, fov = _text_field(form, "sequence_id"), _text_field(form, "spacecraft"), _fov(form)
+        caller_time = _time(form)
     finally:
         await form.close()
-    prepared = await run_in_threadpool(framing.prepare_frames, ctx, files, sidecar_bytes, sequence_id, spacecraft, fov)
+    prepared = await run_in_threadpool(framing.prepare_frames, ctx, files, sidecar_bytes, sequence_id, spacecraft, fov,
+                                       caller_time)
     if isinstance(prepared, UploadDocument):  # the same frames were stored before
         search_after_answer(background, ctx, prepared, search)
         return JSONResponse(prepared.model_dump(mode="json"), status_code=200, background=background)
@@ -171,3 +188,23 @@ def frame_preview_png(seq_id: int = SeqId, snapshot: int = Path(ge=0, le=100_000
                       ctx: AppContext = Depends(get_context)):
     png = framing.frame_preview_png(ctx, seq_id, snapshot)
     return Response(png, media_type="image/png")
+
+
+_ANNOTATED_RESPONSE = {200: {"content": {"image/png": {}},
+                             "description": "The frame with the candidate's stars named, the constellation lines, "
+                                            "the unmatched sources and an RA/Dec grid (colour PNG, docs/annotate.md)"},
+                       404: {"description": "No such sequence, no frame image of that snapshot, no search yet, no "
+                                            "candidate of that rank, or no attitude known at that snapshot"}}
+
+
+@router.get("/api/sequences/{seq_id}/frames/{snapshot}/annotated.png", response_class=Response,
+            responses=_ANNOTATED_RESPONSE,
+            summary="One snapshot's frame annotated with a candidate of the latest search (as astrometry.net's)")
+def annotated_frame_png(seq_id: int = SeqId, snapshot: int = Path(ge=0, le=100_000, description="snapshot index"),
+                        rank: int = Query(1, **ID_LIMITS, description="the candidate's rank in the latest search"),
+                        ctx: AppContext = Depends(get_context)):
+    from app.workflow.annotate import annotated_frame_png as annotated
+
+    png = annotated(ctx, seq_id, snapshot, rank)
+    return Response(png, media_type="image/png",
+                    headers={"Content-Disposition": f'inline; filename="sequence-{seq_id}-{snapshot}-rank-{rank}.png"'})

@@ -1,0 +1,483 @@
+"""Real-frames benchmark (issue 26).
+
+``python -m app bench --suite real [--frames DIR] [--time-from-reference] [--n N] [--json]``
+
+Real star-camera frames whose answers come from elsewhere, solved as a new user would solve them,
+side by side with cedar-solve, in one process.
+
+The frames
+----------
+``DIR`` (``--frames``, else ``$STARID_REAL_FRAMES``, else ``<repository root>/../shared/real-frames``)
+holds ``NAME.png`` with ``NAME.json``: ``ra_deg``, ``dec_deg`` of the image centre pixel from
+astrometry.net's WCS, ``pixel_scale_arcsec`` and ``fov_deg_horizontal`` (= the scale times the
+width), ``time_approximate`` (see the folder's README).  A frame's group is its name up to the first
+``-`` (``feb16``, ``xmas``, ``may8``).  ``--n N`` takes the first N frames in name order.
+
+The exact field of view
+-----------------------
+The WCS scale at its tangent point is ``1/f`` radians per pixel (gnomonic projection), so the
+focal length is ``f = 206264.806"/pixel_scale_arcsec`` px and the horizontal field of view in the
+sense both tools give it (a pinhole's angle between the left and right edges),
+``2 atan(width / 2f)`` (:func:`exact_fov_deg`).  The JSON's ``fov_deg_horizontal`` is the small-angle
+``width / f``: larger by 0.1 % (6 deg), 0.45 % (13 deg), 1.8-1.9 % (27 deg), an error of its own
+that this benchmark does not add.  The scale is astrometry.net's fit of each frame (with its SIP
+terms): it differs from frame to frame of one camera by up to 1.8 % (feb16) and 3.2 % (xmas).
+
+Ours
+----
+Each frame is solved through the workflow the ``solve`` command uses
+(:func:`app.workflow.files.telemetry_files`, then :func:`~app.workflow.files.solve_document`
+with the default search options and method), with one :class:`~app.identification.Sky` for the
+whole run, under four optics: ``--fov-deg`` exact, 5 % long (x 1.05), 5 % short (x 0.95) and none.
+The image is linked into a folder of the benchmark's own, so no sidecar is read (and none gives a
+time); ``--time-from-reference`` writes one there with the JSON's ``time_approximate``, for
+comparison.  A run that the workflow refuses is reported with its status ``invalid`` and the
+reason, as the command would print it.  ``perf_counter`` around the whole solve: reading the
+file, detection, identification.  One warm-up solve (the first frame, exact) before, not counted.
+
+The peer
+--------
+cedar-solve (tetra3) in its own environment (:func:`app.bench.peer.ensure_peer_env`, made once
+from PyPI), one long-lived :mod:`app.bench.peer_frames_runner`: its own centroiding
+(``get_centroids_from_image``, defaults) and ``solve_from_centroids`` with its default database
+on the same pixels (decoded by :func:`app.frames.read_frames`), interleaved frame by frame with
+ours.  Its time is its own ``perf_counter`` around those two calls (loading the array not
+counted).  Its optics: ``fov_estimate`` exact with its default ``fov_max_error`` (None: the
+estimate only seeds the search), the estimate 5 % long and short with ``fov_max_error`` 5 % of the
+estimate (tetra3 takes it in degrees and keeps a pattern when ``|fov - fov_estimate| <=
+fov_max_error``; for the short estimate the truth lies 5.3 % of the estimate away, just outside,
+as it lies just outside our own declared +-5 % focal-length tolerance), and ``fov_estimate``
+None.  Its RA, Dec are those of the image centre, (height/2, width/2) from the top-left corner in
+its convention, our ((width-1)/2, (height-1)/2): the reference's point, as ours.
+
+Figures
+-------
+A run is *claimed* when ours says ``identified`` / the peer ``MATCH_FOUND``; its error is the great
+circle between the reported RA, Dec (our boresight, the principal point's direction, which for a
+centred pinhole is the image centre pixel's) and the reference's (:func:`boresight_error_deg`).
+Per tool, optics and group (and all frames): identified within 0.1 deg, confidently wrong
+(claimed and more than 0.5 deg off), the median error of the claimed answers in arcsec, the
+slowest frame in seconds, and the invalid runs; issue 26's goals are checked on them.  When the
+peer cannot be made or started the suite says why and reports ours alone.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import statistics
+import sys
+import tempfile
+import time
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from app.attitude import angle_between
+from app.bench.peer import PeerError
+from app.catalogue import radec_to_vectors
+
+#: The optics a frame is solved under: name -> factor on the exact field of view (None: none given).
+OPTICS = {"exact": 1.0, "long": 1.05, "short": 0.95, "none": None}
+OPTICS_LABELS = {"exact": "exact", "long": "5 % long", "short": "5 % short", "none": "none given"}
+#: The peer's ``fov_max_error`` as a fraction of its ``fov_estimate`` when the estimate is off.
+PEER_FOV_MAX_ERROR = 0.05
+PEER_SOLVE_TIMEOUT_MS = 5000
+#: Right: within this of the reference; confidently wrong: claimed and farther than this.
+RIGHT_DEG = 0.1
+WRONG_DEG = 0.5
+ARCSEC_PER_RADIAN = 180.0 * 3600.0 / math.pi
+SIDECAR_FORMAT = "tubsat-frames/1"
+
+#: Issue 26's goals: the fraction of frames identified within 0.1 deg per optics, the worst frame's
+#: seconds with and without a field of view, the median error.
+GOAL_RIGHT_FRACTION = {"exact": 24 / 25, "long": 22 / 25, "short": 22 / 25, "none": 20 / 25}
+GOAL_SLOWEST_S = {"exact": 2.0, "long": 2.0, "short": 2.0, "none": 10.0}
+GOAL_MEDIAN_ARCSEC = 30.0
+
+
+class FramesUnavailable(Exception):
+    """The frames folder is missing or a reference file is unusable; ``str(exc)`` says where and why."""
+
+
+@dataclass(frozen=True)
+class RealFrame:
+    """One frame and its reference (the image centre pixel's direction, the exact field of view)."""
+
+    name: str
+    image: Path
+    width: int
+    height: int
+    ra_deg: float
+    dec_deg: float
+    fov_deg: float
+    time: str | None
+
+    @property
+    def group(self) -> str:
+        return group_of(self.name)
+
+
+# --- the pure parts ------------------------------------------------------------------------------
+
+def group_of(name: str) -> str:
+    """A frame's group: its name up to the first ``-`` (``may8-gain40-img0`` -> ``may8``)."""
+    return name.split("-", 1)[0]
+
+
+def exact_fov_deg(width: int, pixel_scale_arcsec: float) -> float:
+    """The pinhole's horizontal field of view, ``2 atan(width / 2f)`` with ``f = 1 / scale`` (radians/px)."""
+    focal_px = ARCSEC_PER_RADIAN / pixel_scale_arcsec
+    return math.degrees(2.0 * math.atan(width / (2.0 * focal_px)))
+
+
+def fov_from_focal_deg(width: int, focal_length_px: float) -> float:
+    """The horizontal field of view of a fitted focal length, in the same sense."""
+    return math.degrees(2.0 * math.atan(width / (2.0 * focal_length_px)))
+
+
+def boresight_error_deg(ra_deg: float, dec_deg: float, ref_ra_deg: float, ref_dec_deg: float) -> float:
+    """Great-circle angle between two directions, degrees (atan2 of |u x v| and u . v: exact near 0 and 180)."""
+    u, v = radec_to_vectors(np.radians([ra_deg, ref_ra_deg]), np.radians([dec_deg, ref_dec_deg]))
+    return float(np.degrees(angle_between(u, v)))
+
+
+def summarise(runs: list[dict]) -> dict:
+    """The figures of one tool under one optics over some frames (each run: ``claimed``, ``error_deg``,
+    ``seconds``, ``status``).
+
+    ``right``: claimed within :data:`RIGHT_DEG`; ``wrong``: claimed and more than :data:`WRONG_DEG`
+    off (between the two: neither); ``median_error_arcsec`` over the claimed answers; ``slowest_s``
+    over every run (an invalid one too: its time was spent).
+    """
+    claimed = [r for r in runs if r["claimed"] and r["error_deg"] is not None]
+    errors = [r["error_deg"] for r in claimed]
+    seconds = [r["seconds"] for r in runs if r["seconds"] is not None]
+    return {"frames": len(runs),
+            "right": sum(e <= RIGHT_DEG for e in errors),
+            "wrong": sum(e > WRONG_DEG for e in errors),
+            "claimed": len(claimed),
+            "invalid": sum(r["status"] in ("invalid", "error") for r in runs),
+            "median_error_arcsec": round(statistics.median(errors) * 3600.0, 1) if errors else None,
+            "slowest_s": round(max(seconds), 3) if seconds else None}
+
+
+def summarise_by_group(frames: list[dict], tool: str, optics: str) -> dict:
+    """``{group: summary, ..., "all": summary}`` of ``frames[i][tool][optics]`` (groups in name order)."""
+    groups = sorted({f["group"] for f in frames})
+    out = {g: summarise([f[tool][optics] for f in frames if f["group"] == g]) for g in groups}
+    out["all"] = summarise([f[tool][optics] for f in frames])
+    return out
+
+
+# --- the frames ----------------------------------------------------------------------------------
+
+def default_frames_dir() -> Path:
+    """``$STARID_REAL_FRAMES``, else ``shared/real-frames`` beside the repository's folder."""
+    explicit = os.environ.get("STARID_REAL_FRAMES")
+    if explicit:
+        return Path(explicit).expanduser()
+    return Path(__file__).resolve().parents[2].parent / "shared" / "real-frames"
+
+
+def load_frame(reference: Path) -> RealFrame:
+    """One ``NAME.json`` and its ``NAME.png``; FramesUnavailable naming the file and the key that is wrong."""
+    try:
+        doc = json.loads(reference.read_text())
+    except (OSError, ValueError) as exc:
+        raise FramesUnavailable(f"{reference}: cannot be read as JSON ({exc})") from None
+    if not isinstance(doc, dict):
+        raise FramesUnavailable(f"{reference}: must be a JSON object")
+    values = {}
+    for key in ("ra_deg", "dec_deg", "pixel_scale_arcsec", "width", "height"):
+        value = doc.get(key)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+                or (key in ("pixel_scale_arcsec", "width", "height") and value <= 0):
+            raise FramesUnavailable(f"{reference}: {key} must be a finite number"
+                                    f"{' above 0' if key not in ('ra_deg', 'dec_deg') else ''}, got {value!r}")
+        values[key] = float(value)
+    image = reference.with_suffix(".png")
+    if not image.is_file():
+        raise FramesUnavailable(f"{reference}: its image {image.name} is not beside it")
+    width, height = int(values["width"]), int(values["height"])
+    return RealFrame(name=reference.stem, image=image, width=width, height=height, ra_deg=values["ra_deg"],
+                     dec_deg=values["dec_deg"], fov_deg=exact_fov_deg(width, values["pixel_scale_arcsec"]),
+                     time=doc.get("time_approximate"))
+
+
+def load_frames(folder: Path) -> list[RealFrame]:
+    """Every ``NAME.json`` with its ``NAME.png`` in ``folder``, in name order."""
+    if not folder.is_dir():
+        raise FramesUnavailable(f"no frames folder at {folder}: give --frames DIR or set STARID_REAL_FRAMES")
+    frames = [load_frame(p) for p in sorted(folder.glob("*.json")) if p.with_suffix(".png").is_file()]
+    if not frames:
+        raise FramesUnavailable(f"{folder} holds no NAME.png with its NAME.json")
+    return frames
+
+
+def stage(frame: RealFrame, folder: Path, *, time_from_reference: bool) -> Path:
+    """The frame's image linked into ``folder`` (so no sidecar of the frames folder is read), with a
+    sidecar giving ``time_approximate`` when asked; the path to solve."""
+    link = folder / frame.image.name
+    if not link.exists():
+        link.symlink_to(frame.image.resolve())
+    sidecar = folder / f"{frame.name}.frames.json"
+    if time_from_reference:
+        if frame.time is None:
+            raise FramesUnavailable(f"{frame.name}.json has no time_approximate for --time-from-reference")
+        sidecar.write_text(json.dumps({"format": SIDECAR_FORMAT,
+                                       "frames": [{"file": frame.image.name, "time": frame.time}]}))
+    elif sidecar.exists():
+        sidecar.unlink()
+    return link
+
+
+# --- ours ----------------------------------------------------------------------------------------
+
+def solve_ours(frame: RealFrame, sky, fov_deg: float | None, folder: Path, *,
+               time_from_reference: bool = False) -> dict:
+    """Our run on one frame under one optics (``fov_deg`` None: no field of view given), through the
+    ``solve`` command's workflow; the record of :func:`summarise` plus ``ra_deg``, ``dec_deg``,
+    ``fov_deg`` (fitted, when the answer fits a focal length) and ``notes``."""
+    from app.identification import SearchOptions
+    from app.workflow.files import invalid_solve_document, solve_document, telemetry_files
+
+    path = str(stage(frame, folder, time_from_reference=time_from_reference))
+    t0 = time.perf_counter()
+    try:
+        docs = [invalid_solve_document(p, str(error)) if error is not None
+                else solve_document(p, sequence, sky, options=SearchOptions())
+                for p, sequence, error in telemetry_files([path], fov_deg=fov_deg)]
+    except Exception as exc:  # noqa: BLE001 - the command reports a bug as that file's error; so does this
+        return {**_unanswered("error", time.perf_counter() - t0),
+                "notes": [f"could not be processed ({type(exc).__name__}: {exc})"]}
+    seconds = time.perf_counter() - t0
+    (doc,) = docs
+    notes = list(doc.notes)
+    if doc.error:
+        notes.insert(0, doc.error.removeprefix(f"{path}: "))
+    if doc.focal_length_contradiction is not None:
+        notes.append(doc.focal_length_contradiction.note)
+    if not doc.candidates:
+        return {**_unanswered(doc.status, seconds), "notes": notes}
+    first = doc.candidates[0]
+    fit = first.camera_fit
+    return {"status": doc.status, "claimed": doc.status == "identified", "ra_deg": first.ra_deg,
+            "dec_deg": first.dec_deg, "error_deg": boresight_error_deg(first.ra_deg, first.dec_deg,
+                                                                       frame.ra_deg, frame.dec_deg),
+            "fov_deg": (round(fov_from_focal_deg(frame.width, fit.focal_length_px), 4)
+                        if fit is not None and fit.focal_length_px else None),
+            "seconds": round(seconds, 4), "notes": notes}
+
+
+def _unanswered(status: str, seconds: float | None) -> dict:
+    return {"status": status, "claimed": False, "ra_deg": None, "dec_deg": None, "error_deg": None,
+            "fov_deg": None, "seconds": None if seconds is None else round(seconds, 4)}
+
+
+# --- the peer ------------------------------------------------------------------------------------
+
+def peer_optics(frame: RealFrame, optics: str) -> dict:
+    """The peer's ``fov_estimate`` and ``fov_max_error`` (degrees) under one optics."""
+    factor = OPTICS[optics]
+    if factor is None:
+        return {"fov_estimate": None, "fov_max_error": None}
+    estimate = frame.fov_deg * factor
+    return {"fov_estimate": estimate, "fov_max_error": None if factor == 1.0 else PEER_FOV_MAX_ERROR * estimate}
+
+
+def solve_peer(peer, frame: RealFrame, pixels_path: Path, optics: str) -> dict:
+    """The peer's run on one frame under one optics, in the record of :func:`solve_ours`."""
+    answer = peer.solve({"image": str(pixels_path), "size": [frame.height, frame.width],
+                         **peer_optics(frame, optics), "solve_timeout_ms": PEER_SOLVE_TIMEOUT_MS})
+    if "error" in answer:  # killed after a time-out, or crashed (RestartingPeer restarts it)
+        return {**_unanswered(answer.get("status", "ERROR"), None), "notes": [answer["error"]]}
+    seconds = (answer["centroid_ms"] + answer["solve_ms"]) / 1000.0
+    notes = [f"{answer['n_centroids']} centroids, {answer.get('matches')} matched"]
+    if answer["status"] != "MATCH_FOUND" or answer["ra_deg"] is None:
+        return {**_unanswered(answer["status"], seconds), "notes": notes}
+    return {"status": answer["status"], "claimed": True, "ra_deg": answer["ra_deg"], "dec_deg": answer["dec_deg"],
+            "error_deg": boresight_error_deg(answer["ra_deg"], answer["dec_deg"], frame.ra_deg, frame.dec_deg),
+            "fov_deg": None if answer["fov_deg"] is None else round(answer["fov_deg"], 4),
+            "seconds": round(seconds, 4), "notes": notes}
+
+
+def start_peer():
+    """``(peer, facts, None)``: the long-lived cedar-solve image runner, its environment made if
+    needed; or ``(None, None, why not)``."""
+    from app.bench import peer as peer_suite
+
+    try:
+        python, facts = peer_suite.ensure_peer_env()
+    except peer_suite.PeerUnavailable as exc:
+        return None, None, f"cedar-solve environment unavailable: {exc}"
+    runner = Path(peer_suite.__file__).with_name("peer_frames_runner.py")
+    try:
+        peer = peer_suite.RestartingPeer([str(python), "-I", str(runner)], env=peer_suite._clean_env())
+    except peer_suite.PeerError as exc:
+        return None, None, f"cedar-solve could not be started: {exc}"
+    return peer, facts, None
+
+
+def save_pixels(frame: RealFrame, folder: Path) -> Path:
+    """The frame's pixels as the runner reads them (a ``.npy`` of rows from the top)."""
+    from app.frames import read_frames
+
+    pixels = next(read_frames(frame.image.read_bytes(), frame.image.name)).pixels
+    path = folder / f"{frame.name}.npy"
+    np.save(path, pixels)
+    return path
+
+
+# --- the suite -----------------------------------------------------------------------------------
+
+def run(n_sequences: int | None = None, seed: int = 1, frames_dir: str | Path | None = None,
+        time_from_reference: bool = False) -> dict:
+    """The suite (``seed`` unused: nothing here is drawn); ``{"skipped": REASON}`` without frames."""
+    from app.identification import Sky
+
+    folder = Path(frames_dir) if frames_dir is not None else default_frames_dir()
+    try:
+        frames = load_frames(folder)
+    except FramesUnavailable as exc:
+        print(f"real: skipped: {exc}", file=sys.stderr)
+        return {"skipped": str(exc)}
+    frames = frames[:n_sequences] if n_sequences else frames
+    peer, facts, peer_note = start_peer()
+    if peer is None:
+        print(f"real: the peer is not measured: {peer_note}", file=sys.stderr)
+    load_before = round(os.getloadavg()[0], 2)
+    sky = Sky()
+    rows = []
+    peer_failed = None  # why the peer stopped answering during the run, if it did
+    try:
+        with tempfile.TemporaryDirectory(prefix="starid-real-") as scratch:
+            scratch = Path(scratch)
+            warm_up = solve_ours(frames[0], sky, frames[0].fov_deg, scratch, time_from_reference=time_from_reference)
+            for frame in frames:
+                pixels = save_pixels(frame, scratch) if peer is not None else None
+                row = {"name": frame.name, "group": frame.group, "ra_deg": frame.ra_deg, "dec_deg": frame.dec_deg,
+                       "fov_exact_deg": round(frame.fov_deg, 4), "ours": {}, "peer": {}}
+                for optics, factor in OPTICS.items():
+                    fov = None if factor is None else frame.fov_deg * factor
+                    row["ours"][optics] = solve_ours(frame, sky, fov, scratch, time_from_reference=time_from_reference)
+                    if peer is not None and peer_failed is None:
+                        try:
+                            row["peer"][optics] = solve_peer(peer, frame, pixels, optics)
+                        except PeerError as exc:  # restarted too often: the remaining runs say so
+                            peer_failed = f"cedar-solve failed during the run: {exc}"
+                            print(f"real: {peer_failed}", file=sys.stderr)
+                    if peer is not None and peer_failed is not None:
+                        row["peer"][optics] = {**_unanswered("ERROR", None), "notes": [peer_failed]}
+                print(f"real: {frame.name}: " + ", ".join(f"{o} {r['status']}" for o, r in row["ours"].items()),
+                      file=sys.stderr)
+                rows.append(row)
+    finally:
+        if peer is not None:
+            peer.close()
+    tools = ("ours", "peer") if peer is not None else ("ours",)
+    summary = {tool: {optics: summarise_by_group(rows, tool, optics) for optics in OPTICS} for tool in tools}
+    return {"frames_dir": str(folder), "n_frames": len(rows), "time_from_reference": time_from_reference,
+            "groups": dict(sorted(Counter(r["group"] for r in rows).items())),
+            "peer": ({"measured": True, "package": "cedar-solve", "version": facts.get("version"),
+                      "numpy": facts.get("numpy"), "restarts": peer.restarts, "failed": peer_failed,
+                      "fov_max_error_fraction": PEER_FOV_MAX_ERROR}
+                     if peer is not None else {"measured": False, "note": peer_note}),
+            "warm_up_s": warm_up["seconds"], "frames": rows, "summary": summary,
+            "invalid_reasons": invalid_reasons(rows), "goals": goals(summary),
+            "load_average_before": load_before, "load_average_after": round(os.getloadavg()[0], 2)}
+
+
+def invalid_reasons(rows: list[dict]) -> dict:
+    """``{optics: {reason: how many}}``: why ours was refused (the first note of an invalid run, the
+    frame's name in it said ``NAME``), each reason once."""
+    out = {}
+    for optics in OPTICS:
+        reasons = Counter((r["ours"][optics]["notes"] or ["(no reason given)"])[0].replace(r["name"], "NAME")
+                          for r in rows if r["ours"][optics]["status"] in ("invalid", "error"))
+        if reasons:
+            out[optics] = dict(reasons.most_common())
+    return out
+
+
+def goals(summary: dict) -> dict:
+    """Issue 26's goals on ours (and against the peer when it was measured): ``{goal: met}``."""
+    ours = summary["ours"]
+    out = {}
+    for optics, fraction in GOAL_RIGHT_FRACTION.items():
+        a = ours[optics]["all"]
+        needed = math.ceil(fraction * a["frames"] - 1e-9)
+        out[f"{optics}: right >= {needed}/{a['frames']}"] = a["right"] >= needed
+    out["0 confidently wrong"] = all(ours[o]["all"]["wrong"] == 0 for o in OPTICS)
+    medians = [ours[o]["all"]["median_error_arcsec"] for o in OPTICS]
+    out[f"median error <= {GOAL_MEDIAN_ARCSEC:g} arcsec"] = all(m is not None and m <= GOAL_MEDIAN_ARCSEC
+                                                               for m in medians)
+    out["slowest <= 2 s with a field of view, 10 s without"] = all(
+        ours[o]["all"]["slowest_s"] is not None and ours[o]["all"]["slowest_s"] <= GOAL_SLOWEST_S[o] for o in OPTICS)
+    if "peer" in summary:
+        out["more right than the peer in every group"] = all(
+            ours[o][g]["right"] > summary["peer"][o][g]["right"] for o in OPTICS for g in ours[o] if g != "all")
+    return out
+
+
+# --- the table -----------------------------------------------------------------------------------
+
+STATUS_CODES = {"identified": "id", "ambiguous": "amb", "no_match": "nm", "invalid": "inv", "error": "err",
+                "MATCH_FOUND": "id", "NO_MATCH": "nm", "TIMEOUT": "t/o", "TOO_FEW": "few", "CANCELLED": "cxl",
+                "TIMEOUT_KILLED": "kil", "ERROR": "err"}
+
+
+def _cell(run: dict) -> str:
+    """``id 41" 1.23s``: status, error (arcsec below a degree, else degrees), seconds."""
+    code = STATUS_CODES.get(run["status"], run["status"][:4])
+    e = run["error_deg"]
+    error = "-" if e is None else (f'{e * 3600:.0f}"' if e < 1.0 else f"{e:.0f}d")
+    seconds = "-" if run["seconds"] is None else f"{run['seconds']:.2f}s"
+    return f"{code:>3} {error:>5} {seconds:>6}"
+
+
+def format_table(result: dict) -> str:
+    if "skipped" in result:
+        return f"skipped: {result['skipped']}"
+
+    def f(v, fmt=".1f"):
+        return "-" if v is None else format(v, fmt)
+
+    peer = result["peer"]
+    groups = ", ".join(f"{g} {n}" for g, n in result["groups"].items())
+    lines = [f"{result['n_frames']} real frames in {result['frames_dir']} ({groups}); "
+             + ("a sidecar gives the reference's time_approximate" if result["time_from_reference"]
+                else "no sidecar, no time") + f"; our warm-up solve {result['warm_up_s']:.2f} s (not counted)",
+             ("peer: cedar-solve {version} (numpy {numpy}, default database, its own centroiding), restarts "
+              "{restarts}; fov_max_error: default with the exact estimate, 5 % of the estimate when it is off"
+              .format(**peer) + (f"; {peer['failed']}" if peer["failed"] else ""))
+             if peer["measured"] else f"peer: not measured: {peer['note']}",
+             f"load average {result['load_average_before']} before, {result['load_average_after']} after (2 cores)",
+             "",
+             f"{'tool':<12} {'optics':<11} {'group':<6} {'right':>7} {'wrong':>6} {'claimed':>8} {'invalid':>8} "
+             f"{'median as':>10} {'slowest s':>10}"]
+    for tool, name in (("ours", "ours"), ("peer", "cedar-solve")):
+        for optics, by_group in result["summary"].get(tool, {}).items():
+            for group, s in by_group.items():
+                lines.append(f"{name:<12} {OPTICS_LABELS[optics]:<11} {group:<6} "
+                             f"{s['right']:>3}/{s['frames']:<3} {s['wrong']:>6} {s['claimed']:>8} {s['invalid']:>8} "
+                             f"{f(s['median_error_arcsec']):>10} {f(s['slowest_s'], '.2f'):>10}")
+    lines.append(f"(right: claimed - ours identified, the peer MATCH_FOUND - within {RIGHT_DEG} deg of the WCS's image "
+                 f"centre; wrong: claimed and over {WRONG_DEG} deg off; median as: error of the claimed answers, "
+                 "arcsec; slowest: ours reading + detection + identification, the peer its centroiding + solve)")
+    for tool, name in (("ours", "ours"), ("peer", "cedar-solve")):
+        if tool not in result["summary"]:
+            continue
+        lines += ["", f"{name} per frame (status, error, seconds):",
+                  f"{'frame':<18} " + " ".join(f"{OPTICS_LABELS[o]:>16}" for o in OPTICS)]
+        for row in result["frames"]:
+            lines.append(f"{row['name']:<18} " + " ".join(f"{_cell(row[tool][o]):>16}" for o in OPTICS))
+    for optics, reasons in result["invalid_reasons"].items():
+        for reason, count in reasons.items():
+            lines.append(f"ours {OPTICS_LABELS[optics]}: {count} invalid: {reason}")
+    verdicts = (f"{goal} {'met' if met else 'NOT met'}" for goal, met in result["goals"].items())
+    lines += ["", "issue 26 goals: " + ", ".join(verdicts)]
+    return "\n".join(lines)
