@@ -265,11 +265,14 @@ def solve_ours(frame: RealFrame, sky, fov_deg: float | None, folder: Path, *,
         return {**_unanswered(doc.status, seconds), "notes": notes}
     first = doc.candidates[0]
     fit = first.camera_fit
-    return {"status": doc.status, "claimed": doc.status == "identified", "ra_deg": first.ra_deg,
-            "dec_deg": first.dec_deg, "error_deg": boresight_error_deg(first.ra_deg, first.dec_deg,
-                                                                       frame.ra_deg, frame.dec_deg),
-            "fov_deg": (round(fov_from_focal_deg(frame.width, fit.focal_length_px), 4)
-                        if fit is not None and fit.focal_length_px else None),
+    # The reference is the image centre pixel's direction: ours is the candidate's centre_ra/dec (the boresight
+    # when that is missing, as for a centred lens).
+    ra = first.centre_ra_deg if first.centre_ra_deg is not None else first.ra_deg
+    dec = first.centre_dec_deg if first.centre_dec_deg is not None else first.dec_deg
+    focal = first.focal_length_px or (fit.focal_length_px if fit is not None else None)
+    return {"status": doc.status, "claimed": doc.status == "identified", "ra_deg": ra,
+            "dec_deg": dec, "error_deg": boresight_error_deg(ra, dec, frame.ra_deg, frame.dec_deg),
+            "fov_deg": round(fov_from_focal_deg(frame.width, focal), 4) if focal else None,
             "seconds": round(seconds, 4), "notes": notes}
 
 
