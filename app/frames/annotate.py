@@ -529,13 +529,18 @@ def _star_label_box(painter: _Painter, x: float, y: float, text: str):
 
 def _grid_label_box(painter: _Painter, line: GridLine):
     """At one end of the line where it meets the frame's edge (a Dec line's left end, an RA line's
-    bottom end first), inside the canvas; None where both ends are taken."""
+    bottom end first), inside the canvas; a Dec circle wholly inside at its leftmost point, an RA line
+    that ends at a pole on the frame only at its edge end; None where there is no room."""
     inside = painter.on_canvas(list(line.runs))
     if len(inside) == 0:
         return None
     w, h = painter.text_size(line.label)
+    W, H = painter.image.width, painter.image.height
     key = inside[:, 0] if line.kind == "dec" else -inside[:, 1]
     ends = [inside[int(np.argmin(key))], inside[int(np.argmax(key))]]
+    near = max(12.0, 0.03 * W)
+    at_edge = [(x, y) for x, y in ends if min(x, y, W - 1 - x, H - 1 - y) <= near]
+    ends = at_edge or (ends[:1] if line.kind == "dec" else [])
     gap = 4.0
     # Beside the end, on the canvas side of it, then slid along the edge to fit.
     candidates = [painter.box_within(x + gap if x < painter.image.width / 2 else x - gap - w,
