@@ -82,6 +82,13 @@ export function fmtTime(text) {
   return text ? text.replace("T", " ").replace(/\.\d+Z$/, "Z") : "-";
 }
 
+// A time of a sequence whose frames carried none (its telemetry's time_assumed): solved at an assumed time,
+// J2000.0 and 1 s apart, which is said wherever a time of it is shown, never passed off as the observation's.
+export const ASSUMED_TIME = "assumed: the frames carried no time; stars at mean places, no planets";
+export function sequenceTime(text, telemetry) {
+  return telemetry?.time_assumed ? `${text} (${ASSUMED_TIME})` : text;
+}
+
 // A snapshot named as the CLI and the API name it: by its 0-based position in the file (snapshots[2],
 // "reference_snapshot": 2), which is also its "index" in files numbered from 0. Given the sequence's
 // telemetry snapshots, `count` adds its position in words that cannot be taken for the index, and a file

@@ -7,7 +7,8 @@
 // hands: another console's search or pattern edit of the same sequence is announced, and a
 // confirmation names the search it was made on. Every action ends in a visible result or error.
 import * as api from "./api.js";
-import { $, el, toast, errorText, fmt, fmtProbability, fmtTime, plural, snapshotName, store, stored } from "./dom.js";
+import { $, ASSUMED_TIME, el, toast, errorText, fmt, fmtProbability, fmtTime, plural, sequenceTime, snapshotName, store,
+  stored } from "./dom.js";
 import { FrameView } from "./frame.js";
 import { SnapshotPlayer } from "./player.js";
 import { drawSky, hitAt } from "./sky.js";
@@ -162,7 +163,8 @@ async function loadDetail(id, { fresh = false } = {}) {
   if (fresh) $("change-notice").hidden = true;
   $("seq-title").textContent = detail.sequence_id || `sequence #${detail.id}`;
   $("seq-meta").textContent = `#${detail.id} · ${detail.spacecraft || "unknown spacecraft"} · ${detail.camera.name || "camera"} · ` +
-    `${plural(detail.n_snapshots, "snapshot")} from ${fmtTime(detail.first_time)}${detail.filename ? ` · ${detail.filename}` : ""}`;
+    `${plural(detail.n_snapshots, "snapshot")} ${detail.telemetry.time_assumed ? `with no time (${ASSUMED_TIME})`
+      : `from ${fmtTime(detail.first_time)}`}${detail.filename ? ` · ${detail.filename}` : ""}`;
   const badge = $("seq-status");
   badge.textContent = statusText(detail.status);
   badge.className = `badge ${detail.status}`;
@@ -409,7 +411,8 @@ function drawCandidate() {
       "pattern points with a catalogue star (a planet explains a point without one)"],
     ["RA, Dec", `${c.ra_deg.toFixed(4)}°, ${c.dec_deg.toFixed(4)}°`, "boresight"],
     ["roll", `${c.roll_deg.toFixed(4)}°`, "position angle of the image's up direction, from north through east"],
-    ["field", `${view.sky.center.constellation}, ${view.reference_time}`, "constellation at the centre, reference time"],
+    ["field", `${view.sky.center.constellation}, ${sequenceTime(view.reference_time, state.detail?.telemetry)}`,
+      "constellation at the centre, reference time"],
   ];
   if (c.camera_fit) facts.push(["optics", opticsText(c.camera_fit),
     "optics fitted with this attitude (focal length from 3 stars, k1 from 6); 'used': the declared camera was " +

@@ -1,7 +1,7 @@
 // Snapshot player: the sequence on the sensor frame, sources coloured by track,
 // rejected sources marked by reason, tracks drawn as trails; play / step / slider;
 // clicks toggle tracks in or out of the pattern, or pick points by hand.
-import { $, placeLabel, snapshotName, trackColour } from "./dom.js";
+import { $, placeLabel, sequenceTime, snapshotName, trackColour } from "./dom.js";
 
 const CLICK_RADIUS_CSS = 10;   // how close (CSS pixels) a click must be to a source or trail
 const SNAP_RADIUS_PX = 6;      // a picked point snaps to a reported source this close (sensor pixels)
@@ -104,7 +104,8 @@ export class SnapshotPlayer {
     const name = snapshotName(this.index, { snapshots, reference: ref, count: true });
     $("snapshot-label").textContent = name;
     this.slider.setAttribute("aria-valuetext", name);
-    $("player-caption").textContent = snapshots[this.index]?.time ?? "";
+    const time = snapshots[this.index]?.time;
+    $("player-caption").textContent = time ? sequenceTime(time, this.detail.telemetry) : "";
 
     // Trails: every track through all its sightings, faint; dashed grey when out of the pattern.
     ctx.lineWidth = 1.5;

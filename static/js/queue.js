@@ -194,8 +194,10 @@ export async function loadSequences({ periodic = false } = {}) {
   }, el("span", { class: "mono seq-name", title: s.filename || "" }, s.sequence_id || `#${s.id}`),
   el("span", { class: `badge ${s.status}` }, statusText(s.status)),
   // Minutes are enough to tell passes apart, and keep the line to one line in a narrow sidebar.
-  el("span", { class: "sub", title: fmtTime(s.first_time) },
-    `#${s.id} · ${s.spacecraft || "unknown spacecraft"} · ${fmtTime(s.first_time).slice(0, 16)}`))));
+  // No first time: its frames carried none (solved at an assumed time, which is no time to list it by).
+  el("span", { class: "sub", title: s.first_time ? fmtTime(s.first_time) : "no time: the frames carried none" },
+    `#${s.id} · ${s.spacecraft || "unknown spacecraft"} · ` +
+    `${s.first_time ? fmtTime(s.first_time).slice(0, 16) : "no time"}`))));
   if (!page.items.length) list.replaceChildren(el("li", { class: "dim" }, page.total ? "no more" : "no sequences match"));
   const last = Math.min(page.total, state.seqOffset + page.items.length);
   $("seq-page-info").textContent = page.total ? `${state.seqOffset + 1}-${last} of ${page.total}` : "0";
