@@ -129,13 +129,14 @@ def test_bad_uploads_give_located_422s(api, files, data, location):
     assert body["detail"] and any(p["location"] == location for p in body["problems"]), body
 
 
-def test_no_optics_and_not_multipart_are_refused_clearly(api, rendered):
+def test_no_optics_is_stored_with_the_field_of_view_unknown_and_not_multipart_is_refused(api, rendered):
     frames, times, _ = rendered
     png = frame_png_bytes(frames[0])
     sidecar = json.dumps({"frames": [{"file": "a.png", "time": "2024-01-01T00:00:00Z"}]}).encode()
     r = api.post("/api/frames", files=[("files", ("a.png", png, "image/png")), ("sidecar", ("s.json", sidecar))])
-    assert r.status_code == 422 and r.json()["problems"][0]["location"] == "camera"
-    assert "fov_deg" in r.json()["problems"][0]["message"]
+    assert r.status_code == 201  # issue 26: the identification searches the field of view
+    stored = api.get(f"/api/sequences/{r.json()['id']}").json()
+    assert stored["camera"]["focal_length_unknown"] is True, stored["camera"]
     r = api.post("/api/frames", content=png, headers={"Content-Type": "image/png"})
     assert r.status_code == 415
 

@@ -50,7 +50,7 @@ __all__ = ["AMBIGUOUS", "IDENTIFIED", "METHODS", "NO_MATCH", "Candidate", "Focal
 #: 3-8 px of residual with a centred pinhole), and with fewer stars the principal point trades off against
 #: the attitude too freely.  The centre's direction itself hardly depends on that trade-off (moving the
 #: principal point and turning the camera together leaves it in place), which is why it is reported.
-MIN_STARS_FOR_FREE_CENTRE = 10
+MIN_STARS_FOR_FREE_CENTRE = 8
 #: ... with a weak prior: the principal point within this fraction of the sensor's width of its declared place.
 PRINCIPAL_POINT_PRIOR_FRACTION = 0.1
 
