@@ -53,8 +53,9 @@ its convention, our ((width-1)/2, (height-1)/2): the reference's point, as ours.
 Figures
 -------
 A run is *claimed* when ours says ``identified`` / the peer ``MATCH_FOUND``; its error is the great
-circle between the reported RA, Dec (our boresight, the principal point's direction, which for a
-centred pinhole is the image centre pixel's) and the reference's (:func:`boresight_error_deg`).
+circle between the reported RA, Dec of the image centre pixel (ours: the first candidate's
+``centre_ra_deg``, ``centre_dec_deg``, its boresight - the principal point's direction - when it
+has none) and the reference's (:func:`boresight_error_deg`).
 Per tool, optics and group (and all frames): identified within 0.1 deg, confidently wrong
 (claimed and more than 0.5 deg off), the median error of the claimed answers in arcsec, the
 slowest frame in seconds, and the invalid runs; issue 26's goals are checked on them.  When the
