@@ -156,7 +156,7 @@ def annotate_solve(path: str, sequence: Sequence, doc: SolveDocument) -> bytes:
     shot = sequence.snapshots[snapshot]
     annotation = frame_annotation(camera=camera, status=status, candidate=candidate,
                                   rotation=None if candidate is None else candidate.rotation, t=shot.time,
-                                  velocity_km_s=sequence.velocity_km_s, source_xy=shot.xy,
+                                  velocity_km_s=sequence.observer, source_xy=shot.xy,
                                   source_tracks=doc.sources[snapshot] if doc.sources else [])
     return encode_png(annotate(grey, 1, annotation))
 
@@ -203,6 +203,6 @@ def annotated_frame_png(ctx: AppContext, seq_id: int, snapshot: int, rank: int) 
     grey = np.asarray(Image.open(io.BytesIO(preview.png)).convert("L"))
     shot = sequence.snapshots[snapshot]
     annotation = frame_annotation(camera=sequence.camera, status=status, candidate=candidate, rotation=rotation,
-                                  t=shot.time, velocity_km_s=sequence.velocity_km_s, source_xy=shot.xy,
+                                  t=shot.time, velocity_km_s=sequence.observer, source_xy=shot.xy,
                                   source_tracks=[None if t < 0 else int(t) for t in extraction.track_of_source[snapshot]])
     return encode_png(annotate(grey, preview.scale, annotation))
