@@ -20,6 +20,7 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.special import chdtri
 
 from app.attitude import propagate
 from app.attitude.sequence import SequenceFit, fit_constant_rate, rate_from_motion, wahba_per_snapshot
@@ -34,7 +35,7 @@ from app.identification.optics import ADOPT_PROBABILITY, HINT_PROBABILITY, depar
 from app.identification.options import SearchOptions
 from app.identification.result import (AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, FocalLengthContradiction,
                                        PlanetMatch, Solution, StarMatch)
-from app.identification.sightings import (identified_sightings, observations, sighting_noise_px,
+from app.identification.sightings import (claimed_once, identified_sightings, observations, sighting_noise_px,
                                           source_match_tolerance_rad, sources_field, stars_at)
 from app.identification.sky import Sky
 from app.telemetry import Sequence
@@ -53,6 +54,9 @@ __all__ = ["AMBIGUOUS", "IDENTIFIED", "METHODS", "NO_MATCH", "Candidate", "Focal
 MIN_STARS_FOR_FREE_CENTRE = 8
 #: ... with a weak prior: the principal point within this fraction of the sensor's width of its declared place.
 PRINCIPAL_POINT_PRIOR_FRACTION = 0.1
+#: A pattern point is taken for the star it sees within this many pixels (or 3 times the candidate's RMS
+#: residual, when larger) for the image centre's fit: real centroids err by 1-2 px (trailed, saturated stars).
+CENTRE_MATCH_PX = 3.0
 
 
 #: A sequence fit turning faster than this is not trusted: stars streak across many pixels within one
@@ -159,33 +163,69 @@ def image_centre_radec(candidate: Candidate, pattern: Pattern, declared, t, sky:
                        velocity_km_s=None) -> tuple[float, float]:
     """RA, Dec (degrees) of the centre pixel ``((width - 1)/2, (height - 1)/2)`` under ``candidate``.
 
-    Through the candidate's camera (or ``declared``); from
-    :data:`MIN_STARS_FOR_FREE_CENTRE` matched stars, through optics fitted on
+    Every pattern point (not only the brightest the search used) is matched
+    to the star it sees within :data:`CENTRE_MATCH_PX` (or 3 times the
+    candidate's RMS residual) through the candidate's camera (or
+    ``declared``) and attitude, each star once; from
+    :data:`MIN_STARS_FOR_FREE_CENTRE` such stars the optics are fitted on
     them with the attitude (focal length, k1, and the principal point with a
-    weak prior of :data:`PRINCIPAL_POINT_PRIOR_FRACTION` of the width),
-    least squares in pixels (:func:`app.camera_fit.fit_attitude_and_camera`).
+    weak prior of :data:`PRINCIPAL_POINT_PRIOR_FRACTION` of the width; least
+    squares in pixels, :func:`app.camera_fit.fit_attitude_and_camera`), and
+    the stars matched again through the fit, twice.  With fewer stars, the
+    centre is seen through the candidate's own camera.
     """
     from app.camera_fit import fit_attitude_and_camera
 
     camera = candidate.camera or declared
     rotation = candidate.rotation_matrix
     centre = np.array([[(camera.width - 1) / 2.0, (camera.height - 1) / 2.0]])
-    matched = [m for m in candidate.matches if 0 <= m.pattern_index < len(pattern.xy)]
-    if len(matched) >= MIN_STARS_FOR_FREE_CENTRE:
-        names = ("focal_length_px", "k1", "cx", "cy")
-        spread = PRINCIPAL_POINT_PRIOR_FRACTION * camera.width
-        priors = {**default_priors(camera, names), "cx": (camera.cx, spread), "cy": (camera.cy, spread)}
-        xy = pattern.xy[[m.pattern_index for m in matched]]
-        stars = sky.apparent_vectors_of([m.hip for m in matched], t, velocity_km_s)
-        sigma = float(np.median(np.asarray(pattern.sigma_px)[[m.pattern_index for m in matched]]))
+    depth = sky.for_camera(camera)
+    field = depth.field(t, min(camera.limiting_magnitude + SearchOptions().mag_margin, depth.index.mag_limit),
+                        velocity_km_s)
+    rms_px = (candidate.rms_arcsec or 0.0) / camera.pixel_scale_arcsec
+    tolerance_px = max(CENTRE_MATCH_PX, 3.0 * rms_px)
+    xy = np.asarray(pattern.xy, dtype=float)
+    sigma = np.nan_to_num(np.asarray(pattern.sigma_px, dtype=float), nan=0.5)
+    names = ("focal_length_px", "k1", "cx", "cy")
+    spread = PRINCIPAL_POINT_PRIOR_FRACTION * camera.width
+    priors = {**default_priors(camera, names), "cx": (camera.cx, spread), "cy": (camera.cy, spread)}
+    fitted_camera, fitted_rotation = camera, rotation
+    for _ in range(2):
+        stars = stars_at(xy, fitted_camera, fitted_rotation, field, tolerance_px * fitted_camera.pixel_scale_rad)
+        ok = claimed_once(stars)
+        if np.count_nonzero(ok) < MIN_STARS_FOR_FREE_CENTRE:
+            break
         try:
-            free = fit_attitude_and_camera(xy, stars, rotation, camera, max(sigma, 0.05), fit=names, priors=priors)
-            camera, rotation = free.camera, free.rotation
+            free = fit_attitude_and_camera(xy[ok], field.vectors[stars[ok]], fitted_rotation, camera,
+                                           max(float(np.median(sigma[ok])), 0.05), fit=names, priors=priors)
         except ValueError:  # the stars cannot separate the parameters: the candidate's own camera
-            pass
-    direction = rotation.T @ camera.pixels_to_vectors(centre)[0]
+            break
+        if not _principal_point_departs(free, camera):
+            # The stars do not ask for another principal point: the camera's own, with the focal length and
+            # k1 fitted (a free principal point on a centred lens only adds its noise to the centre).
+            try:
+                free = fit_attitude_and_camera(xy[ok], field.vectors[stars[ok]], fitted_rotation, camera,
+                                               max(float(np.median(sigma[ok])), 0.05), fit=names[:2],
+                                               priors=default_priors(camera, names[:2]))
+            except ValueError:
+                break
+        fitted_camera, fitted_rotation = free.camera, free.rotation
+    direction = fitted_rotation.T @ fitted_camera.pixels_to_vectors(centre)[0]
     ra, dec = vectors_to_radec(direction[None])
     return float(np.degrees(ra[0]) % 360.0), float(np.degrees(dec[0]))
+
+
+def _principal_point_departs(fit, camera) -> bool:
+    """Whether ``fit``'s principal point departs from ``camera``'s beyond chance (:data:`HINT_PROBABILITY`):
+    the squared Mahalanobis distance of (cx, cy) against the chi-square quantile of 2 degrees of freedom."""
+    names = list(fit.covariance_names)
+    at = [names.index("cx"), names.index("cy")]
+    d = np.array([fit.camera.cx - camera.cx, fit.camera.cy - camera.cy])
+    try:
+        distance = float(d @ np.linalg.solve(fit.covariance[np.ix_(at, at)], d))
+    except np.linalg.LinAlgError:
+        return False
+    return distance > chdtri(2, HINT_PROBABILITY)
 
 
 def source_stars(solved: SolvedSequence, sky: Sky, rank: int = 1,
