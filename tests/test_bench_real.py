@@ -157,3 +157,17 @@ def test_feb16_2_with_the_exact_field_of_view_against_the_wcs(sky, tmp_path):
     assert 0 < out["seconds"] < 20
     assert all(isinstance(n, str) for n in out["notes"])
     assert real.summarise([out])["right"] == 1
+
+
+@pytest.mark.parametrize("name", ["feb16-2", "xmas-image4", "may8-gain40-img0"])
+def test_a_plain_frame_of_each_group_solves_with_no_time_and_no_field_of_view(sky, tmp_path, name):
+    """Issue 26: a PNG as it comes (no sidecar, no time, no optics) is identified where astrometry.net put it,
+    with the field of view it measured: a 13 deg frame of trailed stars, a 27 deg frame of off-centre optics,
+    a 6 deg frame that needs stars to Hp 8."""
+    frame = real.load_frame(real.default_frames_dir() / f"{name}.json")
+    out = real.solve_ours(frame, sky, None, tmp_path, time_from_reference=False)
+    assert out["status"] == "identified", out["notes"]
+    assert out["error_deg"] <= real.RIGHT_DEG
+    assert out["fov_deg"] == pytest.approx(frame.fov_deg, rel=0.02)
+    assert any("field of view was unknown" in note for note in out["notes"])
+    assert any("no time" in note for note in out["notes"])
