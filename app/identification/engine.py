@@ -461,7 +461,19 @@ def is_rival(candidate: Candidate, best: Candidate, options: SearchOptions) -> b
     produced it with probability ``P_best``; the other way round, ``P_other``.
     Their ratio is the odds between the two explanations; beyond
     ``rival_odds`` the weaker one is no rival, however unlikely by chance alone.
+    Nor is a candidate that names the same stars for the points both match
+    (at least two, none named otherwise): it is the same identification with
+    fewer or other points caught (on real frames, found again at another
+    searched focal length, a few tenths of a degree away), not another
+    explanation.
     """
     p, p_best = candidate.false_match_probability, best.false_match_probability
     return (p <= options.rival_probability and candidate.rms_arcsec <= options.rival_rms_factor * best.rms_arcsec
-            and p <= options.rival_odds * max(p_best, 1e-300))
+            and p <= options.rival_odds * max(p_best, 1e-300) and not same_identification(candidate, best))
+
+
+def same_identification(a: Candidate, b: Candidate) -> bool:
+    """Whether two candidates name the same star for every pattern point both match, at least two of them."""
+    star_of = {m.pattern_index: m.hip for m in b.matches}
+    common = [(m.hip, star_of[m.pattern_index]) for m in a.matches if m.pattern_index in star_of]
+    return len(common) >= 2 and all(x == y for x, y in common)

@@ -232,25 +232,35 @@ def test_dropped_frames_and_their_sidecar_are_one_pass(server, api, new_page, tm
     assert not watched.errors, watched.errors
 
 
-def test_a_frame_without_optics_gives_the_located_error_and_stores_nothing(server, api, new_page, tmp_path):
+def test_a_frame_with_no_time_and_no_optics_is_stored_and_a_bad_field_of_view_is_located(server, api, new_page,
+                                                                                         tmp_path):
+    """Issue 26: a plain image (no sidecar, no time, no field of view) is stored, its time assumed and its field
+    of view to be searched; a field of view out of range is refused at the field, and nothing is stored."""
     frames, _, _ = simulate_frames(np.random.default_rng(518), CAMERA, n_frames=1)
     png = tmp_path / "lonely.png"
     png.write_bytes(frame_png_bytes(frames[0]))
-    before = len(all_sequences(api))
+    before = {s["id"] for s in all_sequences(api)}
 
     watched = open_console(new_page, server)
     page = watched.page
-    assert page.locator("#upload-fov").input_value() == ""
+    page.fill("#upload-fov", "500")
     page.set_input_files("#file-input", [str(png)])
     item = page.locator(".upload-item[data-kind='frames']")
-    expect_text(item, "lonely.png")
     problems = item.locator(".problems li")
     problems.first.wait_for(timeout=TIMEOUT_MS)
-    assert item.locator(".error").count() == 1
     locations = [problems.nth(k).locator("code").inner_text() for k in range(problems.count())]
-    # Located on the file: it has no time (and no optics), and no sidecar or field of view gives them.
-    assert any(loc.startswith("lonely.png") for loc in locations), locations
+    assert locations == ["field of view"], locations  # the console names its own field
     watched.screenshot("frames-06-upload-error")
-    assert len(all_sequences(api)) == before
+    assert {s["id"] for s in all_sequences(api)} == before
+
+    page.fill("#upload-fov", "")
+    again = tmp_path / "lonely-again.png"  # a new choice of file (the same one again would not be a change)
+    again.write_bytes(png.read_bytes())
+    page.set_input_files("#file-input", [str(again)])
+    expect_text(page.locator(".upload-item[data-file='lonely-again.png']"), r"1 frame → #\d+")
+    new = [s for s in all_sequences(api) if s["id"] not in before]
+    assert len(new) == 1
+    stored = api(f"/api/sequences/{new[0]['id']}")
+    assert stored["camera"]["focal_length_unknown"] is True
     # The only console error allowed is Chromium's own report of the refused (422) request.
     assert [e for e in watched.errors if "status of 422" not in e] == []
