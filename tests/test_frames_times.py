@@ -410,3 +410,19 @@ def test_the_time_field_gives_the_time_of_a_frame(api):
     two = api.post("/api/frames", data={"fov_deg": "20", "time": "2018-02-16T06:00:00Z"},
                    files=[("files", ("a.png", _png(11), "image/png")), ("files", ("b.png", _png(12), "image/png"))])
     assert two.status_code == 422 and two.json()["problems"][0]["location"] == "time", two.text
+
+
+def test_a_confirmed_attitude_of_an_assumed_time_says_so_first_in_every_ccsds_message(api):
+    """The epochs of a sequence whose frames carried no time are J2000.0, not observation times: each message
+    (APM, AEM, ACM) says so in its first comment, where a reader of the file alone sees it."""
+    from app.workflow.confirm import TIME_ASSUMED_COMMENT
+
+    seq_id = _upload_real(api).json()["id"]
+    assert api.post(f"/api/sequences/{seq_id}/search", json={"method": "bright_pair"}).json()["status"] == "identified"
+    confirmed = api.post(f"/api/sequences/{seq_id}/confirm", json={"rank": 1, "operator": "ann"})
+    assert confirmed.status_code == 201, confirmed.text
+    for url in (confirmed.json()["apm_url"], confirmed.json()["aem_url"], confirmed.json()["acm_url"]):
+        text = api.get(url).text
+        comments = [line.split("COMMENT", 1)[1].strip() for line in text.splitlines() if line.startswith("COMMENT")]
+        assert comments and comments[0] == TIME_ASSUMED_COMMENT, (url, comments[:2])
+        assert "2000-01-01T12:00:00" in text

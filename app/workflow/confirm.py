@@ -45,6 +45,16 @@ from app.workflow.text import require_audit_text
 #: Originator written into the CCSDS messages.
 ORIGINATOR = "STARID GROUND STATION"
 CAMERA_FRAME_COMMENT = "REF_FRAME_B SENSOR_1 is the star camera frame: +X pixel column, +Y pixel row, +Z boresight"
+#: First comment of every message of a sequence whose frames carried no time (issue 26): its epochs are the
+#: stated J2000.0 epoch, not when the frames were taken, and a reader of the message alone must know that.
+TIME_ASSUMED_COMMENT = ("WARNING: the frames carried no time: the epochs are assumed (J2000.0 plus 1 s a frame), "
+                        "not observation times, and the attitude is referred to the stars' J2000.0 mean places "
+                        "(no aberration)")
+
+
+def _time_comments(sequence) -> list[str]:
+    """:data:`TIME_ASSUMED_COMMENT` when ``sequence``'s time was assumed, else nothing."""
+    return [TIME_ASSUMED_COMMENT] if sequence.time_assumed else []
 
 
 def _object_names(row: SequenceRow) -> tuple[str, str]:
@@ -68,9 +78,9 @@ def _uncertainty_comments(candidate: CandidateDocument) -> list[str]:
 
 def render_apm(row: SequenceRow, candidate: CandidateDocument, epoch: datetime, operator: str,
                confirmed_at: datetime, comment: str | None, override_reason: str | None = None,
-               overridden: list[str] | None = None) -> str:
+               overridden: list[str] | None = None, time_assumed: bool = False) -> str:
     name, object_id = _object_names(row)
-    comments = [f"Star pattern identification of sequence {object_id} (archive id {row.id}), "
+    comments = [*([TIME_ASSUMED_COMMENT] if time_assumed else []), f"Star pattern identification of sequence {object_id} (archive id {row.id}), "
                 f"candidate rank {candidate.rank}",
                 f"Confirmed by {operator}; deviation {candidate.deviation_arcsec} arcsec, "
                 f"false-match probability {candidate.false_match_probability}",
@@ -114,7 +124,7 @@ def render_aem(row: SequenceRow, item: LoadedSequence, candidate: CandidateDocum
     name, object_id = _object_names(row)
     return aem_kvn(epochs=times, quaternions_xyzw=[quaternion_from_rotation(R) for R in rotations],
                    originator=ORIGINATOR, object_name=name, object_id=object_id, creation_date=confirmed_at,
-                   comments=[f"Attitude of each snapshot of sequence {object_id} (archive id {row.id}) from "
+                   comments=[*_time_comments(item.sequence), f"Attitude of each snapshot of sequence {object_id} (archive id {row.id}) from "
                              f"candidate rank {candidate.rank} confirmed by {operator}", CAMERA_FRAME_COMMENT])
 
 
@@ -152,8 +162,8 @@ def render_acm(row: SequenceRow, item: LoadedSequence, candidate: CandidateDocum
                   + (f"the sequence's attitude and body rate are fitted over {fit.snapshots_used} snapshots by "
                      f"batch least squares (reduced chi-square {fit.chi2_reduced})" if fit is not None
                      else "no body rate was fitted")))
-    comments = [f"Star pattern identification of sequence {object_id} (archive id {row.id}), "
-                f"candidate rank {candidate.rank}, confirmed by {operator}", CAMERA_FRAME_COMMENT]
+    comments = [*_time_comments(item.sequence), f"Star pattern identification of sequence {object_id} (archive id "
+                f"{row.id}), candidate rank {candidate.rank}, confirmed by {operator}", CAMERA_FRAME_COMMENT]
     if overridden:
         comments.append(f"Confirmed by operator override ({'; '.join(overridden)}): {override_reason}")
     if comment:
@@ -216,7 +226,8 @@ def record_confirmation(ctx: AppContext, seq_id: int, rank: int, operator: str, 
     epoch = item.sequence.snapshots[result.reference_snapshot].time
     # One instant for the record and the messages' CREATION_DATE, so they agree exactly.
     confirmed_at = datetime.now(timezone.utc)
-    apm = render_apm(row, candidate, epoch, operator, confirmed_at, comment, override_reason, overridden)
+    apm = render_apm(row, candidate, epoch, operator, confirmed_at, comment, override_reason, overridden,
+                     time_assumed=item.sequence.time_assumed)
     aem = render_aem(row, item, candidate, operator, confirmed_at)
     acm = render_acm(row, item, candidate, epoch=epoch, method=result.method, search_id=search.id, operator=operator,
                      confirmed_at=confirmed_at, comment=comment, override_reason=override_reason, overridden=overridden)
