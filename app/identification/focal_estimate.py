@@ -103,7 +103,8 @@ def _namings(triangle: np.ndarray, sides: np.ndarray, error: float) -> list[tupl
 def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, focal_length_px: float,
                           tolerance: float, side_error_rad: np.ndarray, triangles: BrightTriangles,
                           matched_within, nearest_star, star_vectors: np.ndarray,
-                          catch_probability: float, tried_out: list[int] | None = None) -> FocalEstimate | None:
+                          catch_probability: float, tried_out: list[int] | None = None,
+                          max_tried: int = MAX_TRIED) -> FocalEstimate | None:
     """The focal length of the first shape match of a pattern triangle that chance does not explain.
 
     ``pattern_triangles`` (K, 3) pattern rows (bright triangles of the
@@ -121,7 +122,7 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
     The triangles are taken in order of their shape tolerance (the most
     telling first), all shape matches of one at once, and the search stops
     at the first match that passes the chance test, counting every match
-    checked until then (or once :data:`MAX_TRIED` are checked).  The best
+    checked until then (or once ``max_tried``, :data:`MAX_TRIED` by default, are checked).  The best
     match of each triangle has its focal length (:func:`_fitted_focal_length`)
     and rotation (Wahba) fitted on the points it caught, twice, before the
     pattern is checked again and the chance test is made.  ``tried_out``, when given, gets the number of
@@ -137,7 +138,7 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
     shape_tolerance = [2 * err / sides[2] + SHAPE_MARGIN for _, sides, err in named]
     tried = 0
     for k in np.argsort(shape_tolerance, kind="stable").tolist():
-        if tried >= MAX_TRIED:
+        if tried >= max_tried:
             break
         c, s, err = named[k]
         rows = shape_matches(triangles, s[0] / s[2], s[1] / s[2], int(sense_of(v[c][None])[0]), shape_tolerance[k],
@@ -202,11 +203,12 @@ def _fitted_focal_length(plane: np.ndarray, declared_px: float, start_px: float,
 
 
 def focal_estimate(p: PreparedPattern, triangles: BrightTriangles, options: SearchOptions,
-                   tolerance: float | None = None, tried_out: list[int] | None = None) -> FocalEstimate | None:
+                   tolerance: float | None = None, tried_out: list[int] | None = None,
+                   max_tried: int = MAX_TRIED) -> FocalEstimate | None:
     """:func:`estimate_focal_length` for a prepared pattern (seen through the declared camera), from its
     surely bright Delaunay triangles (:func:`app.identification.hypotheses.delaunay_triangles`), within
     ``tolerance`` (a fraction; the camera's declared tolerance when None) of the declared focal length;
-    ``tried_out`` as there."""
+    ``tried_out`` and ``max_tried`` as there."""
     found = delaunay_triangles(p.xy, p.camera) if p.m >= 3 else None
     if found is None:
         if tried_out is not None:
@@ -223,7 +225,7 @@ def focal_estimate(p: PreparedPattern, triangles: BrightTriangles, options: Sear
     within, nearest = _star_within(p.field, radius)
     tolerance = p.camera.focal_tolerance if tolerance is None else tolerance
     return estimate_focal_length(tri, plane, p.camera.focal_length_px, tolerance, side_error,
-                                 triangles, within, nearest, p.field.vectors, float(catch), tried_out)
+                                 triangles, within, nearest, p.field.vectors, float(catch), tried_out, max_tried)
 
 
 def _star_within(field: StarField, radius_rad: float):

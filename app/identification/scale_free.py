@@ -29,8 +29,7 @@ search over scales.  A band whose identification is not ``identified`` does
 not stop the search; the best answer found is returned, with notes saying
 what was searched and where the scale came from.
 
-Bound.  Each band checks at most :data:`app.identification.focal_estimate.MAX_TRIED`
-shape matches, and the whole search stops at ``options.timeout_s``.
+Bound.  Each band checks at most :data:`BAND_MAX_TRIED` shape matches, and the whole search stops at ``options.timeout_s``.
 """
 
 from __future__ import annotations
@@ -57,6 +56,10 @@ FOV_RANGE_DEG = (2.0, 60.0)
 #: Largest ratio of focal lengths within one band: the check radius (5 px at the band's middle) stays within
 #: 4-6 px of the truth, and the shape lookup's size range is a declared camera's at +-20 %.
 BAND_RATIO = 1.5
+#: Shape matches checked at most in one band: a band spans +-20 % of scale where a declared camera spans its
+#: +-5-10 %, so its triangles have several times the shape matches (:data:`focal_estimate.MAX_TRIED` for a
+#: declared camera), and on real frames the first triangles often hold an artefact.
+BAND_MAX_TRIED = 6000
 #: The focal length a band's triangles fit is then known to this fraction: the estimate errs by ~0.1 % (all
 #: the caught points' pairs), a real lens's distortion moves the best pinhole focal length by ~1 %.
 FOUND_TOLERANCE = 0.02
@@ -124,7 +127,8 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
         seen = replace(pattern, vectors=nominal.pixels_to_vectors(pattern.xy))
         prepared = prepare_pattern(seen, nominal, t, band_sky, velocity_km_s, options)
         checked: list[int] = []
-        estimate = focal_estimate(prepared, band_sky.bright_triangles(), options, band.tolerance, checked)
+        estimate = focal_estimate(prepared, band_sky.bright_triangles(), options, band.tolerance, checked,
+                                  BAND_MAX_TRIED)
         tried += sum(checked)
         fovs = f"{fov_for_focal_length(camera.width, band.high_px):.1f}-{fov_for_focal_length(camera.width, band.low_px):.1f}"
         if estimate is None:
