@@ -414,6 +414,13 @@ function drawCandidate() {
     ["field", `${view.sky.center.constellation}, ${sequenceTime(view.reference_time, state.detail?.telemetry)}`,
       "constellation at the centre, reference time"],
   ];
+  if (c.fov_deg !== null && c.fov_deg !== undefined) facts.push(["field of view",
+    `${c.fov_deg.toFixed(3)}° (f ${fmt(c.focal_length_px, 1)} px)`,
+    "the horizontal field of view this candidate was found with: fitted on its stars, or found by the search " +
+    "when the optics were unknown"]);
+  if (c.centre_ra_deg !== null && c.centre_ra_deg !== undefined) facts.push(["image centre",
+    `${c.centre_ra_deg.toFixed(4)}°, ${c.centre_dec_deg.toFixed(4)}°`,
+    "RA, Dec of the image's centre pixel (astrometry.net's reference point); RA, Dec above are the boresight's"]);
   if (c.camera_fit) facts.push(["optics", opticsText(c.camera_fit),
     "optics fitted with this attitude (focal length from 3 stars, k1 from 6); 'used': the declared camera was " +
     "rejected by the stars, or the pattern was found at another focal length"]);

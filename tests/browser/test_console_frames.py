@@ -262,5 +262,13 @@ def test_a_frame_with_no_time_and_no_optics_is_stored_and_a_bad_field_of_view_is
     assert len(new) == 1
     stored = api(f"/api/sequences/{new[0]['id']}")
     assert stored["camera"]["focal_length_unknown"] is True
+    # Searched as it came: the candidate says the field of view the stars gave, and where the centre points.
+    expect_text(page.locator("#seq-title"), "lonely")
+    facts = page.locator("#cand-facts")
+    expect_text(facts, r"field of view\s*\d+\.\d{3}°")
+    shown = float(re.search(r"field of view\s*(\d+\.\d+)°", facts.inner_text()).group(1))
+    assert abs(shown / CAMERA.fov_deg[0] - 1) < 0.01, shown
+    expect_text(facts, r"image centre")
+    watched.screenshot("frames-07-fov-found")
     # The only console error allowed is Chromium's own report of the refused (422) request.
     assert [e for e in watched.errors if "status of 422" not in e] == []
