@@ -2,7 +2,7 @@
 ``solve IMAGE --annotate OUT.png`` for a real frame, and served for a stored frame by the API.
 
 The drawing tests use a blank frame, a centred pinhole camera (f = 1000 px) and the attitude of RA 0,
-Dec 0, roll 0, whose rows are written out by hand from the README's conventions (north up, east to the
+Dec 0, roll 0, whose rows are written out by hand from docs/conventions.md (north up, east to the
 left): camera x = -east = (0, -1, 0), y = -north = (0, 0, -1), z = the boresight (1, 0, 0).  A
 direction at RA a, Dec d is then camera (-cos d sin a, -sin d, cos d cos a), so it lands on
 

@@ -14,8 +14,7 @@ coordinates of a large file come from numpy seeded by a drawn seed, so that
 example.
 
 The CI run is short; ``STARID_FUZZ_EXAMPLES=N`` runs N examples (the
-10-minute run of issue 12 used the number in the README's Reliability
-section).
+10-minute run of issue 12 used the number in docs/reliability.md).
 """
 
 from __future__ import annotations

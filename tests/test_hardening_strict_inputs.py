@@ -1,7 +1,7 @@
 """Hostile-input trial, strict inputs: guard rails not crossed by strings, a search id that is no search of
 the sequence, digits of other scripts in CSV telemetry, leap seconds and dates that do not exist.
 
-What is checked is the API's and the format's contract (README "REST API",
+What is checked is the API's and the format's contract (docs/cli-and-api.md "REST API",
 docs/formats.md): JSON's own booleans and integers in request bodies (pydantic's
 lax mode took "yes" as true and true as the rank 1), ISO 8601 times in the AEM
 export's range (a number was read as a Unix time), a located 422 saying the

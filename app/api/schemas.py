@@ -181,7 +181,7 @@ class PatternReset(_Strict):
 
 
 class PriorAttitude(_Strict):
-    """A prior attitude for tracking: boresight RA/Dec, roll (README conventions) and its 1-sigma, degrees."""
+    """A prior attitude for tracking: boresight RA/Dec, roll (docs/conventions.md) and its 1-sigma, degrees."""
 
     ra_deg: Number = Field(ge=0.0, lt=360.0, allow_inf_nan=False)
     dec_deg: Number = Field(ge=-90.0, le=90.0, allow_inf_nan=False)

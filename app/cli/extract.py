@@ -13,8 +13,8 @@ An invalid file gets status ``invalid``, its validation error and null
 members, and the batch goes on.  Exit status 0 when every file was valid,
 2 otherwise.
 
-Image files and folders of frames are one pass each (README "Full-frame
-images"); ``--fov-deg DEG`` gives their optics when neither a sidecar nor
+Image files and folders of frames are one pass each (docs/frames.md);
+``--fov-deg DEG`` gives their optics when neither a sidecar nor
 the FITS header does (and wins over both); ``--time ISO8601`` the time of a
 pass of one frame (over its sidecar's, FITS header's and EXIF time).  A
 spot-list file given with ``--fov-deg`` or ``--time`` is reported invalid

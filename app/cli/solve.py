@@ -16,8 +16,8 @@ find no match).
 predictional estimate): the pattern is matched near that attitude (degrees;
 sigma default 1 deg) instead of searched for over the whole sky.
 
-Image files and folders of frames are one pass each (README "Full-frame
-images"); ``--fov-deg DEG`` gives their optics when neither a sidecar nor
+Image files and folders of frames are one pass each (docs/frames.md);
+``--fov-deg DEG`` gives their optics when neither a sidecar nor
 the FITS header does (and wins over both); ``--time ISO8601`` the time of a
 pass of one frame (over its sidecar's, FITS header's and EXIF time; with no
 time at all a frame is solved at an assumed one and a note says what that

@@ -6,8 +6,8 @@ field of view, the roll, the status), drawn with Pillow over the frame as 8-bit 
 
 Geometry, the only thing here that can be wrong without looking wrong: a sky direction ``v`` (an
 ICRS unit vector, apparent place) lands on frame pixel ``camera.vectors_to_pixels(R v)``, the
-solved camera model (distortion included) under the attitude ``R`` (ICRS -> camera, README
-"Conventions").  The canvas is the grey image enlarged by an integer ``zoom``; the grey image is
+solved camera model (distortion included) under the attitude ``R`` (ICRS -> camera,
+docs/conventions.md).  The canvas is the grey image enlarged by an integer ``zoom``; the grey image is
 the frame averaged over ``scale`` x ``scale`` blocks (1 for the frame itself, more for the stored
 previews), so frame pixel ``x`` is canvas pixel ``(x + 0.5) k - 0.5`` with ``k = zoom / scale``
 (pixel centres stay pixel centres).  Great-circle arcs (figure segments) and grid lines are
@@ -199,7 +199,7 @@ def position_angle_deg(centre: np.ndarray, towards: np.ndarray) -> float:
 
 def image_centre_pointing(camera: Camera, rotation: np.ndarray) -> tuple[float, float, float]:
     """(RA, Dec, roll) in degrees of the image's centre pixel: where it points, and the position angle of
-    the image's up direction (-y) there (the README's roll, at the image centre)."""
+    the image's up direction (-y) there (docs/conventions.md's roll, at the image centre)."""
     x0, y0 = (camera.width - 1) / 2, (camera.height - 1) / 2
     v = camera.pixels_to_vectors(np.array([[x0, y0], [x0, y0 - 1.0]])) @ np.asarray(rotation, dtype=float)
     ra, dec = vectors_to_radec(v[0])

@@ -1,7 +1,7 @@
 """Detecting and centroiding stars in a frame with ``sep`` (Source Extractor as a library).
 
 Why sep: measured against photutils on rendered frames with known truth
-(``python -m app bench --suite frames``, README "Full-frame images"): the same
+(``python -m app bench --suite frames``, docs/frames.md): the same
 completeness and centroid accuracy at a fraction of the time per megapixel.
 
 Steps, per frame:

@@ -11,7 +11,7 @@ Bad input never escapes as a library exception: every problem becomes a
 or page), e.g. ``frames/b.png: not a readable image (cannot identify image
 file)`` or ``pass.fits[3]: 3-D image (NAXIS = 3); a frame is 2-D``.
 
-Pixel convention (README "Conventions"): the returned ``pixels[row, col]``
+Pixel convention (docs/conventions.md): the returned ``pixels[row, col]``
 has row 0 at the top of the sensor, so pixel (x=col, y=row) has its centre at
 (x, y) and (0, 0) is the centre of the top-left pixel.  PNG, JPEG and TIFF
 store the top row first.  FITS images are stored bottom row first *by display

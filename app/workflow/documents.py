@@ -248,7 +248,7 @@ class CameraFitDocument(Document):
 
 
 class CandidateDocument(Document):
-    """One ranked attitude candidate (README: "What a candidate says")."""
+    """One ranked attitude candidate (docs/cli-and-api.md, "Formats")."""
 
     rank: int
     deviation_arcsec: float

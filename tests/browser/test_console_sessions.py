@@ -18,7 +18,7 @@ import pytest
 
 SAMPLES = Path(__file__).resolve().parents[2] / "sample_telemetry"
 TIMEOUT_MS = 20_000
-#: The work queue's order: what needs an operator first (README, app/storage.py SEQUENCE_ORDERS).
+#: The work queue's order: what needs an operator first (docs/console.md, app/storage.py SEQUENCE_ORDERS).
 QUEUE_ORDER = ["ambiguous", "no_match", "identified", "new", "rejected", "confirmed"]
 
 
@@ -533,7 +533,7 @@ def test_the_sky_view_explains_itself(server, api, new_page, tmp_path):
     boxes = [{"x": lab["x"], "y": lab["y"], "width": lab["w"], "height": lab["h"]} for lab in labels]
     assert not any(boxes_overlap(p, q) for i, p in enumerate(boxes) for q in boxes[i + 1:])
 
-    # North and east: the README's roll is the position angle of the image's up (-y) from north through
+    # North and east: docs/conventions.md's roll is the position angle of the image's up (-y) from north through
     # east, so the arrows drawn must give back the candidate's roll.
     compass = page.evaluate("async (R) => (await import('/js/sky.js')).northEast(R)", best["rotation_matrix"])
     north, east = compass["north"], compass["east"]

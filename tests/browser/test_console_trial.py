@@ -121,7 +121,7 @@ def test_a_confirmation_lost_to_another_operator_says_whose_it_is(server, api, n
 
 
 def test_the_3d_views_confirm_of_another_rank_opens_the_consoles_second_step(server, api, new_page, tmp_path):
-    """README: the 3D view's Confirm takes the credible best only; any other rank is sent to the console,
+    """docs/console.md: the 3D view's Confirm takes the credible best only; any other rank is sent to the console,
     whose second step asks for the reason.  3D view -> Next (rank 2, not credible) -> Confirm: the console
     (on its 3D tab) turns to its Sequence tab at rank 2 with the second step open, asking for the reason;
     a confirmation replacing the verdict (rank 1 afterwards) takes the console's second step too."""
