@@ -111,6 +111,7 @@ import numpy as np
 
 from app.attitude.rotations import rotation_from_rotvec
 from app.camera import Camera
+from app.compiled import njit, warm_up_with
 
 #: The optical parameters that can be fitted, in the order used in vectors
 #: and covariances (names as in the telemetry camera object).
@@ -415,13 +416,6 @@ class _Normal:
     def g_c(self) -> np.ndarray:  # (p,) camera gradient, priors included
         return self.gradients[:, 3:].sum(axis=0) + self.prior_gradient
 
-    def whole(self) -> tuple[np.ndarray, np.ndarray]:
-        """One observation's normal equations as one (3 + p) system: matrix and gradient, priors included."""
-        matrix, gradient = self.blocks[0].copy(), self.gradients[0].copy()
-        matrix[3:, 3:] += np.diag(self.prior_precision)
-        gradient[3:] += self.prior_gradient
-        return matrix, gradient
-
 
 def _normal_equations(stars, rotations, camera, weight, names, prior_mean, prior_precision) -> _Normal:
     xy, j_theta, j_cam = project_with_jacobians(_camera_frame(stars, rotations), camera, names)
@@ -474,22 +468,9 @@ def _reduced_camera_system(normal: _Normal, active: np.ndarray) -> tuple[np.ndar
     return S, rhs, v_inv
 
 
-def _solved_whole(normal: _Normal, active: np.ndarray) -> bool:
-    """One observation taking part (every candidate's optics fit): its (3 + p) system is solved whole."""
-    return len(normal.blocks) == 1 and bool(active[0])
-
-
 def _newton_step(normal: _Normal, active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The Gauss-Newton step (delta_c (p,), delta_theta (m, 3)): ``N delta = -g``.
-
-    Several observations: the attitudes eliminated (:func:`_reduced_camera_system`).
-    One (every candidate's optics fit): the (3 + p) system solved whole, the
-    same step at a third of the cost of the block machinery.
-    """
-    if _solved_whole(normal, active):
-        matrix, gradient = normal.whole()
-        delta, _ = _solve_spd(matrix, -gradient, "camera fit")
-        return delta[3:], delta[None, :3]
+    """The Gauss-Newton step (delta_c (p,), delta_theta (m, 3)): ``N delta = -g``, the attitudes eliminated
+    (:func:`_reduced_camera_system`).  (One snapshot's fit is the compiled :func:`_fit_one_kernel`.)"""
     S, rhs, v_inv = _reduced_camera_system(normal, active)
     delta_c, _ = _solve_spd(S, rhs, "camera fit")
     return delta_c, -np.einsum("mij,mj->mi", v_inv, normal.g_t + np.einsum("mpi,p->mi", normal.W, delta_c))
@@ -503,8 +484,6 @@ class _Solution:
     normal: _Normal
     chi2: float
     iterations: int
-    #: One observation: the covariance of (theta, camera) together.
-    whole_covariance: np.ndarray | None = None
 
 
 def _gauss_newton(stars: _Stars, rotations: np.ndarray, camera: Camera, names: tuple[str, ...],
@@ -539,10 +518,6 @@ def _gauss_newton(stars: _Stars, rotations: np.ndarray, camera: Camera, names: t
         if predicted < _CHI2_TOLERANCE:
             break
     normal = _normal_equations(stars, rotations, camera, weight, names, prior_mean, prior_precision)
-    if _solved_whole(normal, active):
-        # The whole covariance (theta, camera); the camera's is its corner block.
-        _, whole = _solve_spd(*normal.whole(), "attitude and camera fit")
-        return _Solution(camera, rotations, whole[3:, 3:], normal, chi2, iteration, whole)
     S, _, _ = _reduced_camera_system(normal, active)
     _, covariance = _solve_spd(S, np.zeros(len(names)), "camera fit")
     return _Solution(camera, rotations, covariance, normal, chi2, iteration)
@@ -555,6 +530,193 @@ def _residual_lengths_px(stars: _Stars, rotations: np.ndarray, camera: Camera) -
 
 def _rms(lengths: np.ndarray, mask: np.ndarray) -> float:
     return float(np.sqrt(np.mean(lengths[mask] ** 2))) if np.any(mask) else math.nan
+
+
+# --- one snapshot: the compiled Gauss-Newton ---------------------------------------
+
+#: Where each optical parameter sits in the kernel's optics vector (f, k1, k2, cx, cy) = PARAMETERS' order.
+_OPTICS_INDEX = {name: k for k, name in enumerate(PARAMETERS)}
+#: Why the kernel stopped (0: converged); the messages of the ValueErrors they become.
+_FIT_FAILURES = {
+    1: "a matched star is behind the camera (or 90 deg off the boresight) with the given attitude",
+    2: "{what}: a parameter has no influence on the residuals",
+    3: "{what}: the parameters are not separately determined by these stars (fit fewer parameters or add priors)",
+}
+
+
+@njit
+def _fit_chi2(xy, vectors, inv_sigma, R, optics, fitted, prior_mean, prior_precision):
+    """chi2 of one snapshot (data and priors), inf when a star is behind the camera (:func:`_chi2`)."""
+    f, k1, k2, cx, cy = optics[0], optics[1], optics[2], optics[3], optics[4]
+    total = 0.0
+    for i in range(xy.shape[0]):
+        vx = R[0, 0] * vectors[i, 0] + R[0, 1] * vectors[i, 1] + R[0, 2] * vectors[i, 2]
+        vy = R[1, 0] * vectors[i, 0] + R[1, 1] * vectors[i, 1] + R[1, 2] * vectors[i, 2]
+        vz = R[2, 0] * vectors[i, 0] + R[2, 1] * vectors[i, 1] + R[2, 2] * vectors[i, 2]
+        if vz <= 1e-6:
+            return np.inf
+        a, b = vx / vz, vy / vz
+        r2 = a * a + b * b
+        d = 1.0 + k1 * r2 + k2 * r2 * r2
+        ex = (cx + f * (a * d) - xy[i, 0]) * inv_sigma
+        ey = (cy + f * (b * d) - xy[i, 1]) * inv_sigma
+        total += ex * ex + ey * ey
+    for k in range(fitted.shape[0]):
+        off = optics[fitted[k]] - prior_mean[k]
+        total += prior_precision[k] * off * off
+    return total
+
+
+@njit
+def _fit_normal(xy, vectors, inv_sigma, R, optics, fitted, prior_mean, prior_precision):
+    """The (3 + p) normal equations of one snapshot, priors included: (N, g) of the module docstring."""
+    f, k1, k2, cx, cy = optics[0], optics[1], optics[2], optics[3], optics[4]
+    q = 3 + fitted.shape[0]
+    N = np.zeros((q, q))
+    g = np.zeros(q)
+    J = np.empty((2, q))
+    for i in range(xy.shape[0]):
+        vx = R[0, 0] * vectors[i, 0] + R[0, 1] * vectors[i, 1] + R[0, 2] * vectors[i, 2]
+        vy = R[1, 0] * vectors[i, 0] + R[1, 1] * vectors[i, 1] + R[1, 2] * vectors[i, 2]
+        vz = R[2, 0] * vectors[i, 0] + R[2, 1] * vectors[i, 1] + R[2, 2] * vectors[i, 2]
+        a, b = vx / vz, vy / vz
+        r2 = a * a + b * b
+        d = 1.0 + k1 * r2 + k2 * r2 * r2
+        dp = k1 + 2.0 * k2 * r2
+        e0 = (cx + f * a * d - xy[i, 0]) * inv_sigma
+        e1 = (cy + f * b * d - xy[i, 1]) * inv_sigma
+        h00, h01 = f * (d + 2 * a * a * dp), f * (2 * a * b * dp)
+        h10, h11 = f * (2 * a * b * dp), f * (d + 2 * b * b * dp)
+        t00, t01, t02 = -a * b, 1.0 + a * a, -b
+        t10, t11, t12 = -(1.0 + b * b), a * b, a
+        J[0, 0], J[0, 1], J[0, 2] = h00 * t00 + h01 * t10, h00 * t01 + h01 * t11, h00 * t02 + h01 * t12
+        J[1, 0], J[1, 1], J[1, 2] = h10 * t00 + h11 * t10, h10 * t01 + h11 * t11, h10 * t02 + h11 * t12
+        for k in range(fitted.shape[0]):
+            p = fitted[k]
+            if p == 0:
+                J[0, 3 + k], J[1, 3 + k] = a * d, b * d
+            elif p == 1:
+                J[0, 3 + k], J[1, 3 + k] = f * r2 * a, f * r2 * b
+            elif p == 2:
+                J[0, 3 + k], J[1, 3 + k] = f * r2 * r2 * a, f * r2 * r2 * b
+            elif p == 3:
+                J[0, 3 + k], J[1, 3 + k] = 1.0, 0.0
+            else:
+                J[0, 3 + k], J[1, 3 + k] = 0.0, 1.0
+        for r in range(q):
+            J[0, r] *= inv_sigma
+            J[1, r] *= inv_sigma
+        for r in range(q):
+            g[r] += J[0, r] * e0 + J[1, r] * e1
+            for c in range(q):
+                N[r, c] += J[0, r] * J[0, c] + J[1, r] * J[1, c]
+    for k in range(fitted.shape[0]):
+        N[3 + k, 3 + k] += prior_precision[k]
+        g[3 + k] += prior_precision[k] * (optics[fitted[k]] - prior_mean[k])
+    return N, g
+
+
+@njit
+def _fit_inverse(N):
+    """(status, N^-1) as :func:`_solve_spd`: equilibrated, refused beyond :data:`_MAX_CONDITION` (status 3) or
+    with a parameter of no influence (status 2)."""
+    q = N.shape[0]
+    scale = np.empty(q)
+    for r in range(q):
+        if not N[r, r] > 0:
+            return 2, N
+        scale[r] = np.sqrt(N[r, r])
+    unit = np.empty((q, q))
+    for r in range(q):
+        for c in range(q):
+            unit[r, c] = N[r, c] / (scale[r] * scale[c])
+    singular = np.linalg.svd(unit)[1]
+    if not singular[0] / singular[q - 1] <= _MAX_CONDITION:
+        return 3, N
+    inverse = np.linalg.inv(unit)
+    for r in range(q):
+        for c in range(q):
+            inverse[r, c] /= scale[r] * scale[c]
+    return 0, inverse
+
+
+@njit
+def _rotate_left_one(theta0, theta1, theta2, R):
+    """``exp([theta]x) R`` (:func:`app.attitude.rotations.rotation_from_rotvec`'s Rodrigues form)."""
+    t = np.sqrt(theta0 * theta0 + theta1 * theta1 + theta2 * theta2)
+    h = np.sin(t / 2) / (t / 2) if t > 0 else 1.0
+    a, b, c = h * np.cos(t / 2), 0.5 * h * h, np.cos(t)
+    x, y, z = theta0, theta1, theta2
+    E = np.array([[c + b * x * x, b * x * y - a * z, b * x * z + a * y],
+                  [b * x * y + a * z, c + b * y * y, b * y * z - a * x],
+                  [b * x * z - a * y, b * y * z + a * x, c + b * z * z]])
+    return E @ R
+
+
+@njit
+def _fit_one_kernel(xy, vectors, inv_sigma, R0, optics0, fitted, prior_mean, prior_precision):
+    """Gauss-Newton over one snapshot's attitude and the ``fitted`` optics (indices into (f, k1, k2, cx, cy)).
+
+    The steps of the module docstring with step halving, stopping when a
+    step would lower chi2 by less than :data:`_CHI2_TOLERANCE`.  Returns
+    (status (0 or a key of :data:`_FIT_FAILURES`), at which stage (0 the
+    start, 1 a step, 2 the covariance), rotation, optics, chi2, iterations,
+    covariance (3 + p) over (theta, fitted optics), rms of the residuals in
+    pixels).
+    """
+    R = R0.copy()
+    optics = optics0.copy()
+    p = fitted.shape[0]
+    empty = np.zeros((3 + p, 3 + p))
+    chi2 = _fit_chi2(xy, vectors, inv_sigma, R, optics, fitted, prior_mean, prior_precision)
+    if chi2 == np.inf:
+        return 1, 0, R, optics, chi2, 0, empty, np.nan
+    iteration = 0
+    for iteration in range(1, _MAX_ITERATIONS + 1):
+        N, g = _fit_normal(xy, vectors, inv_sigma, R, optics, fitted, prior_mean, prior_precision)
+        status, inverse = _fit_inverse(N)
+        if status:
+            return status, 1, R, optics, chi2, iteration, empty, np.nan
+        delta = np.zeros(3 + p)
+        predicted = 0.0
+        for r in range(3 + p):
+            for c in range(3 + p):
+                delta[r] -= inverse[r, c] * g[c]
+        for r in range(3 + p):
+            predicted -= g[r] * delta[r]
+        step = 1.0
+        accepted = False
+        trial_optics = optics.copy()
+        trial_R = R
+        trial_chi2 = chi2
+        for _halving in range(12):
+            for k in range(p):
+                trial_optics[fitted[k]] = optics[fitted[k]] + step * delta[3 + k]
+            trial_R = _rotate_left_one(step * delta[0], step * delta[1], step * delta[2], R)
+            trial_chi2 = _fit_chi2(xy, vectors, inv_sigma, trial_R, trial_optics, fitted, prior_mean,
+                                   prior_precision)
+            if trial_chi2 <= chi2 + 1e-12 * max(1.0, chi2):
+                accepted = True
+                break
+            step *= 0.5
+        if not accepted:
+            break  # no step lowers chi2: at the minimum to numerical precision
+        R, optics, chi2 = trial_R, trial_optics, trial_chi2
+        if predicted < _CHI2_TOLERANCE:
+            break
+    N, g = _fit_normal(xy, vectors, inv_sigma, R, optics, fitted, prior_mean, prior_precision)
+    status, covariance = _fit_inverse(N)
+    if status:
+        return status, 2, R, optics, chi2, iteration, empty, np.nan
+    total = 0.0
+    for i in range(xy.shape[0]):
+        v = R @ vectors[i]
+        a, b = v[0] / v[2], v[1] / v[2]
+        r2 = a * a + b * b
+        d = 1.0 + optics[1] * r2 + optics[2] * r2 * r2
+        dx, dy = optics[3] + optics[0] * (a * d) - xy[i, 0], optics[4] + optics[0] * (b * d) - xy[i, 1]
+        total += dx * dx + dy * dy
+    return 0, 0, R, optics, chi2, iteration, covariance, np.sqrt(total / xy.shape[0])
 
 
 # --- one snapshot: attitude and camera -------------------------------------------
@@ -618,17 +780,30 @@ def fit_attitude_and_camera(xy: np.ndarray, star_vectors: np.ndarray, rotation0:
     dof = 2 * n + n_priors - 3 - len(names)
     if 2 * n < 3 + len(names) - n_priors or n < 2:
         raise ValueError(f"{n} stars cannot fix the attitude and {len(names)} optical parameter(s)")
-    weight = np.ones(n)
-    solution = _gauss_newton(stars, rotations, camera, names, weight, np.ones(1, bool), priors)
-
-    covariance = solution.whole_covariance
+    prior_mean, prior_precision = _prior_arrays(priors, names)
+    optics = camera.optics()
+    status, stage, rotation, values, chi2, _, covariance, rms_px = _fit_one_kernel(
+        stars.xy, stars.vectors, 1.0 / float(sigma_px), rotations[0],
+        np.array([optics[name] for name in PARAMETERS]), np.array([_OPTICS_INDEX[name] for name in names]),
+        prior_mean, prior_precision)
+    if status:
+        raise ValueError(_FIT_FAILURES[status].format(what="attitude and camera fit" if stage == 2 else "camera fit"))
     sig = np.sqrt(np.diag(covariance))
-    lengths = _residual_lengths_px(stars, solution.rotations, solution.camera)
     return CameraAttitudeFit(
-        rotation=solution.rotations[0], camera=solution.camera, parameters=names,
-        sigma={name: float(s) for name, s in zip(names, sig[3:])}, rotation_sigma_rad=sig[:3],
+        rotation=rotation, camera=camera.with_optics(**{name: values[_OPTICS_INDEX[name]] for name in names}),
+        parameters=names, sigma={name: float(s) for name, s in zip(names, sig[3:])}, rotation_sigma_rad=sig[:3],
         covariance=covariance, covariance_names=ROTATION_NAMES + names,
-        rms_px=_rms(lengths, weight > 0), chi2=solution.chi2, dof=dof, n_stars=n, priors=priors)
+        rms_px=float(rms_px), chi2=float(chi2), dof=dof, n_stars=n, priors=priors)
+
+
+@warm_up_with
+def _warm_up_fit() -> None:
+    """Compile :func:`_fit_one_kernel` for the types every optics fit passes."""
+    camera = Camera(width=100, height=100, focal_length_px=500.0, cx=49.5, cy=49.5)
+    vectors = np.array([[0.01, 0.02, 1.0], [-0.03, 0.01, 1.0], [0.02, -0.04, 1.0], [-0.01, -0.02, 1.0]])
+    vectors /= np.linalg.norm(vectors, axis=1, keepdims=True)
+    xy, _ = camera.with_optics(focal_length_px=505.0).vectors_to_pixels(vectors)
+    fit_attitude_and_camera(xy, vectors, np.eye(3), camera, 0.3, fit=("f",))
 
 
 # --- many observations: calibration ----------------------------------------------

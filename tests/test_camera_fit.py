@@ -240,29 +240,34 @@ def test_single_snapshot_fit_without_distortion_term_sees_the_focal_error(sky):
     assert fit.to_dict().keys() == {"focal_length_px", "sigma", "rms_px"}
 
 
-def test_one_snapshot_step_solved_whole_is_the_step_with_the_attitude_eliminated(sky):
-    """Two routes to one Gauss-Newton step: the (3 + p) system of one snapshot solved whole (the fast path
-    of every candidate's optics fit), and the Schur complement a calibration uses (module docstring)."""
-    from app.camera_fit import _newton_step, _normal_equations, _prior_arrays, _reduced_camera_system, _stars_from
+def test_the_compiled_one_snapshot_fit_is_the_numpy_fit_with_the_attitude_eliminated(sky):
+    """Two routes to one snapshot's fit: the compiled Gauss-Newton over its (3 + p) system
+    (:func:`app.camera_fit._fit_one_kernel`, every candidate's optics fit) and the numpy Gauss-Newton with the
+    attitude eliminated by the Schur complement (a calibration's, module docstring), on the same stars: the
+    same optics, attitude and covariance to rounding, for every set of fitted parameters."""
+    from app.camera_fit import _gauss_newton, _stars_from
 
     rng = np.random.default_rng(13)
-    got = None
-    while got is None or len(got[0]) < 8:
-        got = snapshot_stars(rng, sky, TRUE, random_rotation(rng), 10)
-    xy, vectors, _ = got
-    names = ("focal_length_px", "k1")
-    stars, rotations, _ = _stars_from([Observation(xy, vectors, wahba(DECLARED, xy, vectors), SIGMA_PX)])
-    mean, precision = _prior_arrays(default_priors(DECLARED, names), names)
-    normal = _normal_equations(stars, rotations, DECLARED, np.ones(len(xy)), names, mean, precision)
-    active = np.ones(1, dtype=bool)
-    delta_c, delta_t = _newton_step(normal, active)
-
-    S, rhs, v_inv = _reduced_camera_system(normal, active)
-    schur_c = np.linalg.solve(S, rhs)
-    schur_t = -v_inv[0] @ (normal.g_t[0] + normal.W[0].T @ schur_c)
-    assert abs(delta_c[0]) > 1.0  # the declared focal length is 3 % off: a real step, not a zero
-    np.testing.assert_allclose(delta_c, schur_c, rtol=1e-9)
-    np.testing.assert_allclose(delta_t[0], schur_t, rtol=1e-9, atol=1e-15)
+    cases = 0
+    for names in [("focal_length_px",), ("focal_length_px", "k1"), ("focal_length_px", "k1", "cx", "cy")]:
+        for _ in range(6):
+            got = None
+            while got is None or len(got[0]) < 8:
+                got = snapshot_stars(rng, sky, TRUE, random_rotation(rng), 10)
+            xy, vectors, _ = got
+            R0 = wahba(DECLARED, xy, vectors)
+            priors = default_priors(DECLARED, names)
+            fit = fit_attitude_and_camera(xy, vectors, R0, DECLARED, SIGMA_PX, fit=names, priors=priors)
+            stars, rotations, _ = _stars_from([Observation(xy, vectors, R0, SIGMA_PX)])
+            reference = _gauss_newton(stars, rotations, DECLARED, names, np.ones(len(xy)), np.ones(1, bool), priors)
+            assert abs(fit.camera.focal_length_px - DECLARED.focal_length_px) > 1.0  # 3 % off: a real fit
+            for name in names:
+                assert fit.camera.optics()[name] == pytest.approx(reference.camera.optics()[name], rel=1e-9, abs=1e-12)
+            np.testing.assert_allclose(fit.rotation, reference.rotations[0], atol=1e-12)
+            np.testing.assert_allclose(fit.covariance[3:, 3:], reference.camera_covariance, rtol=1e-6)
+            assert fit.chi2 == pytest.approx(reference.chi2, rel=1e-9)
+            cases += 1
+    assert cases == 18
 
 
 def test_a_strong_prior_holds_and_too_few_stars_are_refused(sky):

@@ -1,0 +1,89 @@
+"""Compiled kernels (issue 27): numba's ``njit`` with its on-disk cache, and the one warm-up that compiles them.
+
+Why numba.  The identification's inner steps (an optics fit's Gauss-Newton,
+the nearest star of every point of every hypothesis, a refinement's
+re-matching) are loops over a dozen points where each numpy call costs
+microseconds of overhead whatever the data (issue 16's floor).  numba
+compiles them to machine code from the Python source: wheels for every
+platform we support, no compiler on the user's machine.
+
+Where the compiled code is kept.  ``njit(cache=True)`` keeps each kernel's
+machine code on disk, so only the first run after an install compiles.
+The cache goes to ``$NUMBA_CACHE_DIR`` when set, else to the project's cache
+directory (``settings().cache_dir / "numba"``): an installed package's
+directory may be read-only, and the project's other derived data (the
+bright-pair index, the cell maps) live there too.  The variable is set here,
+before numba is first imported.
+
+Compiling.  Each kernel module registers a warm-up (:func:`warm_up_with`: a
+call of each kernel on tiny inputs of the types the program uses).
+:func:`warm_up` runs them all once per process and says in ONE log line
+whether it compiled (the first run: a few seconds) or loaded the cache; the
+server calls it in a background thread at start, so that it answers meanwhile
+(a request that needs a kernel before then compiles it itself, numba's own
+lock making the two wait for one compilation).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from typing import Callable
+
+from app.config import settings
+
+log = logging.getLogger(__name__)
+
+if not os.environ.get("NUMBA_CACHE_DIR"):
+    os.environ["NUMBA_CACHE_DIR"] = str(settings().cache_dir / "numba")
+
+import numba  # noqa: E402  (after NUMBA_CACHE_DIR: numba reads it when imported)
+
+_warm_ups: list[Callable[[], None]] = []
+_kernels: list = []
+_warm_lock = threading.Lock()
+_warmed = False
+
+
+def njit(function):
+    """``numba.njit(cache=True)`` of ``function``, registered for :func:`warm_up`'s report.
+
+    ``error_model="numpy"``: a float division by zero gives inf or nan as numpy's does (the kernels replace
+    numpy code), not Python's ZeroDivisionError.
+    """
+    kernel = numba.njit(cache=True, error_model="numpy")(function)
+    _kernels.append(kernel)
+    return kernel
+
+
+def warm_up_with(function: Callable[[], None]) -> Callable[[], None]:
+    """Register ``function`` (no arguments: calls of a module's kernels on tiny inputs) for :func:`warm_up`."""
+    _warm_ups.append(function)
+    return function
+
+
+def warm_up() -> dict:
+    """Compile (or load from the cache) every registered kernel, once per process; one log line says which.
+
+    Returns ``{"seconds": ..., "compiled": n kernels compiled now, "loaded": n loaded from the cache}``.
+    """
+    global _warmed
+    with _warm_lock:
+        t0 = time.perf_counter()
+        if not _warmed:
+            for function in list(_warm_ups):
+                function()
+            _warmed = True
+        seconds = time.perf_counter() - t0
+        compiled = sum(sum(k.stats.cache_misses.values()) for k in _kernels)
+        loaded = sum(sum(k.stats.cache_hits.values()) for k in _kernels)
+        if seconds > 0.001:
+            if compiled:
+                log.warning("compiled %d numba kernels in %.1f s (first run after an install; kept in %s)",
+                            compiled, seconds, os.environ["NUMBA_CACHE_DIR"])
+            else:
+                log.info("loaded %d compiled kernels from %s in %.2f s", loaded, os.environ["NUMBA_CACHE_DIR"],
+                         seconds)
+        return {"seconds": seconds, "compiled": compiled, "loaded": loaded}
