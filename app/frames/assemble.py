@@ -33,7 +33,7 @@ from datetime import datetime
 import numpy as np
 
 from app.camera import CAMERAS
-from app.frames.detect import DetectionError, DetectionOptions, Detections, detect
+from app.frames.detect import REJECTING_FLAGS, DetectionError, DetectionOptions, Detections, detect
 from app.frames.hotpixels import HotPixelMap, near_hot_pixel, stationary_candidates
 from app.frames.images import Frame, FrameLimits, file_sha256, read_frames
 from app.frames.times import assumed_times, mixed_times_error
@@ -321,7 +321,7 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
                                        "brightness": round(float(d.flux[k]), 2)} for k in kept]})
         rejected = []
         for k in range(len(d)):
-            reasons = [f for f in d.flags[k] if f in ("hot_pixel", "elongated", "extended")]
+            reasons = [f for f in d.flags[k] if f in REJECTING_FLAGS]
             if on_hot[k] and "hot_pixel" not in reasons:
                 reasons.append("mapped_hot_pixel")
             if reasons and len(rejected) < MAX_REJECTED_LISTED:

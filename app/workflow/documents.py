@@ -806,8 +806,9 @@ class FrameRejected(Document):
 
     x: float
     y: float
-    reason: str = Field(description="hot_pixel, mapped_hot_pixel, elongated (a trail), extended, not_brightest "
-                                    "(a star beyond the brightest reported), joined by '+' with other flags")
+    reason: str = Field(description="hot_pixel, mapped_hot_pixel, elongated (a trail), extended, border (cut by "
+                                    "the frame's edge and no whole point source), not_brightest (a star beyond the "
+                                    "brightest reported), joined by '+' with other flags")
 
 
 class FrameOverlay(Document):

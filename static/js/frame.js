@@ -21,7 +21,7 @@ const COLOURS = { rejected: "#ff922b", fainter: "#8b97a8", hot: "#f06595", untra
 const REASONS = {
   hot_pixel: "hot pixel (one sharp pixel)", mapped_hot_pixel: "on a mapped hot pixel", elongated: "elongated (a trail)",
   extended: "extended (glare, Moon, limb)", not_brightest: "a star beyond the brightest reported", saturated: "saturated",
-  edge: "cut by the frame's edge",
+  edge: "cut by the frame's edge", border: "at the frame's border, no whole star",
 };
 const round1 = (v) => Math.round(v * 10) / 10;   // canvas positions as the page shows them to tests
 
