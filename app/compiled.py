@@ -45,6 +45,7 @@ _warm_ups: list[Callable[[], None]] = []
 _kernels: list = []
 _warm_lock = threading.Lock()
 _warmed = False
+_report: dict = {}
 
 
 def njit(function):
@@ -69,21 +70,23 @@ def warm_up() -> dict:
 
     Returns ``{"seconds": ..., "compiled": n kernels compiled now, "loaded": n loaded from the cache}``.
     """
-    global _warmed
+    global _warmed, _report
+    if _warmed:
+        return _report
     with _warm_lock:
+        if _warmed:  # another thread warmed them while this one waited
+            return _report
         t0 = time.perf_counter()
-        if not _warmed:
-            for function in list(_warm_ups):
-                function()
-            _warmed = True
+        for function in list(_warm_ups):
+            function()
         seconds = time.perf_counter() - t0
         compiled = sum(sum(k.stats.cache_misses.values()) for k in _kernels)
         loaded = sum(sum(k.stats.cache_hits.values()) for k in _kernels)
-        if seconds > 0.001:
-            if compiled:
-                log.warning("compiled %d numba kernels in %.1f s (first run after an install; kept in %s)",
-                            compiled, seconds, os.environ["NUMBA_CACHE_DIR"])
-            else:
-                log.info("loaded %d compiled kernels from %s in %.2f s", loaded, os.environ["NUMBA_CACHE_DIR"],
-                         seconds)
-        return {"seconds": seconds, "compiled": compiled, "loaded": loaded}
+        if compiled:
+            log.warning("compiled %d numba kernels in %.1f s (the first run after an install; kept in %s)",
+                        compiled, seconds, os.environ["NUMBA_CACHE_DIR"])
+        else:
+            log.info("loaded %d compiled kernels from %s in %.2f s", loaded, os.environ["NUMBA_CACHE_DIR"], seconds)
+        _report = {"seconds": seconds, "compiled": compiled, "loaded": loaded}
+        _warmed = True
+        return _report

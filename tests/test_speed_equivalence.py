@@ -191,12 +191,14 @@ def test_a_batch_of_refinements_is_each_refinement_alone(sky):
     assert max(matched) >= 6 and min(matched) <= 4  # true attitudes and chance fits both took part
 
 
-def test_checking_with_cells_and_edges_is_checking_every_point_with_the_tree(sky):
+def test_the_compiled_check_is_checking_every_point_with_the_tree(sky):
+    """check_hypotheses (the compiled loop over the cell map) against numpy and the KD-tree: every point of
+    every hypothesis mapped onto the sky, its nearest star within the largest tolerance, counted and capped."""
     from app.camera import CAMERAS
     from app.identification.candidates import prepare_pattern
     from app.identification.hypotheses import bright_pair_batches
     from app.identification.options import SearchOptions
-    from app.identification.verify import _nearest_angles, chord, chord_to_angle
+    from app.identification.verify import check_hypotheses, chord, chord_to_angle
     from app.simulate import simulate_sequence
     from app.extraction import extract
 
@@ -205,17 +207,18 @@ def test_checking_with_cells_and_edges_is_checking_every_point_with_the_tree(sky
         sequence, _ = simulate_sequence(np.random.default_rng(seed), camera, "single")
         extraction = extract(sequence)
         p = prepare_pattern(extraction.pattern, camera, sequence.snapshots[extraction.reference].time, sky)
-        assert p.field.cells is not None and p.field.alone_within is not None
+        assert p.field.cells is not None
         batches = bright_pair_batches(p, sky, SearchOptions())
         for _ in range(2):
             hyp, tol, _ = next(batches)
-            cap = float(np.max(tol))
-            fast = _nearest_angles(hyp.rotations, p.vectors, p.field, cap, hyp.pattern_edge, hyp.catalogue_pair)
+            n_match, dev = check_hypotheses(hyp.rotations, p.vectors, p.field, tol)
             sky_points = np.matmul(p.vectors[None], hyp.rotations).reshape(-1, 3)
-            d, _ = p.field.tree.query(sky_points, k=1, distance_upper_bound=float(chord(cap)))
-            plain = chord_to_angle(np.where(np.isfinite(d), d, 2.0)).reshape(len(hyp), -1)
-            assert np.array_equal(fast, plain)
+            d, _ = p.field.tree.query(sky_points, k=1, distance_upper_bound=float(chord(np.max(tol))))
+            ang = chord_to_angle(np.where(np.isfinite(d), d, 2.0)).reshape(len(hyp), -1)
+            assert np.array_equal(n_match, (ang <= tol[:, None]).sum(axis=1))
+            np.testing.assert_allclose(dev, np.minimum(ang, tol[:, None]).sum(axis=1), rtol=1e-12)
             assert np.isfinite(d).mean() > 0.15  # the edges' own stars, and chance neighbours
+            assert n_match.max() >= 5 and n_match.min() <= 2  # the true attitude and chance ones both checked
 
 
 @pytest.mark.parametrize("year", [1905, 2000, 2097])

@@ -35,6 +35,8 @@ import math
 
 import numpy as np
 
+from app.compiled import njit, warm_up_with
+
 #: The map holds for observation times within this many years of the stars' epoch ...
 MAX_YEARS = 100.0
 #: ... and spacecraft speeds up to this (escape velocity is 11.2 km/s).
@@ -210,24 +212,101 @@ class NearStarCells:
 
         ``star_vectors`` are the stars' places now (within their margins of the ones the map was made from).
         """
-        d = np.full(len(points), np.inf)
-        if len(points) == 0:
-            return d
-        cell = cells_of(points, self.cells_per_edge)
-        marked, word = self._marked(cell)
-        hit = np.flatnonzero(marked)
-        if len(hit) == 0:
-            return d
-        cell = cell[hit]
-        below = word[hit] & ((np.uint64(1) << (cell & 63).astype(np.uint64)) - np.uint64(1))
-        rank = self._word_rank[cell >> 6] + _popcount(below)
-        lo, count = self._first[rank], self._first[rank + 1] - self._first[rank]
-        # Each point against each star of its cell.
-        owner = np.repeat(np.arange(len(hit)), count)
-        start = np.cumsum(count) - count
-        star = self._stars[np.repeat(lo - start, count) + np.arange(len(owner))]
-        diff = points[hit][owner] - star_vectors[star]
-        d2 = (diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1]) + diff[:, 2] * diff[:, 2]  # a KD-tree's order
-        best = np.sqrt(np.minimum.reduceat(d2, start))
-        d[hit] = np.where(best <= bound_chord, best, np.inf)
-        return d
+        points = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
+        return _nearest_within_kernel(points, np.ascontiguousarray(star_vectors, dtype=float), float(bound_chord),
+                                      *self.kernel_arrays())
+
+    def kernel_arrays(self) -> tuple:
+        """The map as the compiled kernels take it: (cells per edge, words, word ranks, first, stars)."""
+        return (self.cells_per_edge, self._words, self._word_rank, self._first, self._stars)
+
+
+# --- compiled look-ups (issue 27): one point at a time, no temporaries ----------------------------------
+
+@njit
+def _popcount64(x):
+    """Set bits of a uint64 (the SWAR count)."""
+    x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
+    x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
+    x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+    return np.int64((x * np.uint64(0x0101010101010101)) >> np.uint64(56))
+
+
+@njit
+def _nearest_chord2(x, y, z, star_vectors, G, words, word_rank, first, stars):
+    """Squared chord from the unit vector (x, y, z) to the nearest star listed for its cell (inf: none):
+    :func:`cells_of`, the bitmap and the cell's list, as :meth:`NearStarCells.nearest_within` describes."""
+    ax, ay, az = abs(x), abs(y), abs(z)
+    if ax >= ay and ax >= az:
+        top, cu, cv, face = ax, y, z, 0 + (x < 0)
+    elif ay >= az:
+        top, cu, cv, face = ay, z, x, 2 + (y < 0)
+    else:
+        top, cu, cv, face = az, x, y, 4 + (z < 0)
+    inv = 1.0 / top
+    half = G / 2
+    iu = min(np.int64(np.int32((cu * inv + 1.0) * half)), G - 1)
+    iv = min(np.int64(np.int32((cv * inv + 1.0) * half)), G - 1)
+    cell = (face * G + iu) * G + iv
+    word = words[cell >> 6]
+    bit = np.uint64(cell & 63)
+    if (word >> bit) & np.uint64(1) == 0:
+        return np.inf
+    rank = word_rank[cell >> 6] + _popcount64(word & ((np.uint64(1) << bit) - np.uint64(1)))
+    best = np.inf
+    for k in range(first[rank], first[rank + 1]):
+        s = stars[k]
+        dx, dy, dz = x - star_vectors[s, 0], y - star_vectors[s, 1], z - star_vectors[s, 2]
+        d2 = (dx * dx + dy * dy) + dz * dz  # a KD-tree's order: the same sums, bit for bit
+        if d2 < best:
+            best = d2
+    return best
+
+
+@njit
+def _nearest_within_kernel(points, star_vectors, bound, G, words, word_rank, first, stars):
+    out = np.full(points.shape[0], np.inf)
+    for i in range(points.shape[0]):
+        d = np.sqrt(_nearest_chord2(points[i, 0], points[i, 1], points[i, 2], star_vectors, G, words, word_rank,
+                                    first, stars))
+        if d <= bound:
+            out[i] = d
+    return out
+
+
+@njit
+def check_kernel(rotations, pattern_vectors, tolerance, star_vectors, bound, G, words, word_rank, first, stars):
+    """(matches (H,), capped deviation (H,)) of hypotheses ``rotations`` (H, 3, 3): each pattern point mapped
+    onto the sky (``R^T p``), the angle to its nearest star within ``bound`` (a chord; pi beyond it), a match
+    within ``tolerance[h]``, the deviation the sum of min(angle, tolerance[h]).  See
+    :func:`app.identification.verify.check_hypotheses`."""
+    H, m = rotations.shape[0], pattern_vectors.shape[0]
+    n_match = np.zeros(H, dtype=np.int64)
+    deviation = np.zeros(H)
+    for h in range(H):
+        R = rotations[h]
+        tol = tolerance[h]
+        count, total = 0, 0.0
+        for i in range(m):
+            p0, p1, p2 = pattern_vectors[i, 0], pattern_vectors[i, 1], pattern_vectors[i, 2]
+            x = p0 * R[0, 0] + p1 * R[1, 0] + p2 * R[2, 0]
+            y = p0 * R[0, 1] + p1 * R[1, 1] + p2 * R[2, 1]
+            z = p0 * R[0, 2] + p1 * R[1, 2] + p2 * R[2, 2]
+            d = np.sqrt(_nearest_chord2(x, y, z, star_vectors, G, words, word_rank, first, stars))
+            angle = 2.0 * np.arcsin(min(d / 2, 1.0)) if d <= bound else np.pi
+            if angle <= tol:
+                count += 1
+                total += angle
+            else:
+                total += tol
+        n_match[h], deviation[h] = count, total
+    return n_match, deviation
+
+
+@warm_up_with
+def _warm_up_cells() -> None:
+    """Compile the look-ups for the types the searches pass (a map of two stars)."""
+    stars = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    cells = NearStarCells.build(stars, 0.01)
+    cells.nearest_within(stars, stars, 0.01)
+    check_kernel(np.eye(3)[None], stars, np.array([0.01]), stars, 0.01, *cells.kernel_arrays())

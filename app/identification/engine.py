@@ -19,6 +19,7 @@ import numpy as np
 
 from app.attitude import rotation_angles_between
 from app.camera import Camera
+from app.compiled import warm_up
 from app.identification.candidates import build_candidate, prepare_pattern
 from app.identification.focal_estimate import CHECK_RADIUS_PX, FocalEstimate, focal_estimate
 from app.identification.methods import METHODS
@@ -61,6 +62,7 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     (:mod:`.scale_free`).  ``hypotheses_before`` counts hypotheses a caller tried already for this pattern
     (a search over scales): they enter the false-match probability.
     """
+    warm_up()  # the compiled kernels, once a process: compiling (a first run) never counts against the search's time
     if camera.focal_length_unknown:
         return identify_unknown_scale(pattern, camera, t, sky, velocity_km_s=velocity_km_s, options=options,
                                       planets=planets, method=method, identify=identify)
@@ -332,8 +334,7 @@ class _Search:
         for hyp, tol, used in self.batches[id(p)]:
             self.used = max(self.used, used)
             if len(hyp):
-                n_match, dev = check_hypotheses(hyp.rotations, p.vectors, p.field, tol, hyp.pattern_edge,
-                                                hyp.catalogue_pair)
+                n_match, dev = check_hypotheses(hyp.rotations, p.vectors, p.field, tol)
                 offset = sum(len(part[0]) for part in parts)  # keys: positions among all of p's hypotheses
                 first = not parts
                 parts.append((hyp.rotations, hyp.pattern_edge, hyp.catalogue_pair, n_match, dev, tol))

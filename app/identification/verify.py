@@ -37,6 +37,7 @@ from scipy.spatial import cKDTree
 from scipy.special import bdtrc, chdtr  # binomial survival, chi-square CDF (scipy.stats' are 30x slower per call)
 
 from app.attitude import solve_wahba
+from app.identification.cells import check_kernel
 
 
 @dataclass(frozen=True, eq=False)
@@ -73,72 +74,32 @@ def chord_to_angle(c):
     return 2 * np.arcsin(np.minimum(np.asarray(c) / 2, 1.0))  # chords are >= 0
 
 
-def _nearest_angles(rotations: np.ndarray, vectors: np.ndarray, field: StarField, cap: float,
-                    edges: np.ndarray | None = None, pairs: np.ndarray | None = None) -> np.ndarray:
-    """(H, k) angle from each rotated point to its nearest star (2 rad beyond ``cap``).
-
-    The KD-tree's answer, with less asking: the points of each hypothesis's
-    generating edge (``edges`` (H, 2) pattern rows) lie on or next to its
-    catalogue pair (``pairs`` (H, 2) field rows), which is then their nearest
-    star whenever they are closer to it than half its distance to any other
-    (``field.alone_within``); and most other points have no star within
-    ``cap`` at all, which the field's cell map says
-    (:mod:`app.identification.cells`).  Only the rest ask the tree.
-    """
-    H, k = len(rotations), len(vectors)
-    sky = np.matmul(vectors[None], rotations)  # rows R^T p
-    bound = float(chord(cap))
-    cells = field.cells(cap) if field.cells is not None and H else None
-    if cells is None:
-        d, _ = field.tree.query(sky.reshape(-1, 3), k=1, distance_upper_bound=bound)
-        return chord_to_angle(np.where(np.isfinite(d), d, 2.0)).reshape(H, k)
-    points = sky.reshape(-1, 3)
-    d = np.full(H * k, np.inf)
-    ask = np.ones(H * k, dtype=bool)
-    if edges is not None and field.alone_within is not None:
-        for end in (0, 1):
-            flat = np.arange(0, H * k, k) + edges[:, end]
-            star = pairs[:, end]
-            diff = np.take(points, flat, axis=0) - np.take(field.vectors, star, axis=0)
-            # The tree's sum of squares, in its order.
-            dd = np.sqrt((diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1]) + diff[:, 2] * diff[:, 2])
-            sure = dd < field.alone_within[star]
-            d[flat[sure]] = np.where(dd[sure] <= bound, dd[sure], np.inf)
-            ask[flat[sure]] = False
-    ask = np.flatnonzero(ask)
-    d[ask] = cells.nearest_within(np.take(points, ask, axis=0), field.vectors, bound)
-    return chord_to_angle(np.where(np.isfinite(d), d, 2.0)).reshape(H, k)
-
-
-#: Hypotheses checked at once by :func:`check_hypotheses` (see there; 1,024 measured best of 256-2,048).
-CHECK_BLOCK = 1024
-
-
 def check_hypotheses(rotations: np.ndarray, pattern_vectors: np.ndarray, field: StarField,
-                     tolerance_rad: np.ndarray, edges: np.ndarray | None = None,
-                     pairs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     tolerance_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Matches and capped deviation of every hypothesis.
 
     Returns (n_matched (H,), deviation (H,) = sum over points of
     min(angle to nearest star, tolerance)).  Every point of every hypothesis
     is checked: the chance fits found this way are the alternatives an
     operator compares the best match with (the seed's "best wrong match").
-    ``edges`` and ``pairs``: each hypothesis's generating edge and catalogue
-    pair, which save looking up those points (see :func:`_nearest_angles`).
+    The nearest star within the largest tolerance is the field's cell map's
+    (:mod:`app.identification.cells`: a compiled loop over the points, the
+    KD-tree's answer bit for bit, no temporaries); where the field has no map
+    (an observer too fast or an epoch too far for one), the tree's.
     """
-    tol = np.asarray(tolerance_rad, dtype=float).reshape(-1)
-    cap = float(np.max(tol)) if len(rotations) else 0.0
-    if len(rotations) <= CHECK_BLOCK:
-        ang = _nearest_angles(rotations, pattern_vectors, field, cap, edges, pairs)
-    else:
-        # In blocks: every point is checked on its own (the same answer whatever the block), and the
-        # temporaries of a block (10,000 points) stay in the cache and in memory the allocator reuses,
-        # where those of a whole batch (30,000-50,000 points, each array fresh pages) cost a third more.
-        ang = np.concatenate([
-            _nearest_angles(rotations[k:k + CHECK_BLOCK], pattern_vectors, field, cap,
-                            None if edges is None else edges[k:k + CHECK_BLOCK],
-                            None if pairs is None else pairs[k:k + CHECK_BLOCK])
-            for k in range(0, len(rotations), CHECK_BLOCK)])
+    tol = np.ascontiguousarray(tolerance_rad, dtype=float).reshape(-1)
+    H = len(rotations)
+    if H == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0)
+    cap = float(np.max(tol))
+    bound = float(chord(cap))
+    cells = field.cells(cap) if field.cells is not None else None
+    if cells is not None:
+        return check_kernel(np.ascontiguousarray(rotations, dtype=float), np.ascontiguousarray(pattern_vectors),
+                            tol, field.vectors, bound, *cells.kernel_arrays())
+    sky = np.matmul(pattern_vectors[None], rotations).reshape(-1, 3)  # rows R^T p
+    d, _ = field.tree.query(sky, k=1, distance_upper_bound=bound)
+    ang = chord_to_angle(np.where(np.isfinite(d), d, 2.0)).reshape(H, -1)
     return (ang <= tol[:, None]).sum(axis=1), np.minimum(ang, tol[:, None]).sum(axis=1)
 
 
