@@ -275,8 +275,8 @@ def _classify(sep, objects, sub: np.ndarray, raw: np.ndarray, sky: _Sky, psf: Po
     saturated = (_max_around(raw, xpeak, ypeak) >= 0.995 * saturation) if saturation is not None \
         else np.zeros(len(objects), dtype=bool)
     elongated = _is_elongated(objects, options, psf)
-    extended = (objects["npix"] > options.max_area_px) | (
-        ~saturated & ~hot & (_too_large(objects, peak, noise, psf) | _on_structure(objects, sub, peak, noise, psf)))
+    not_point = _too_large(objects, peak, noise, psf) | _on_structure(objects, sub, peak, noise, psf)
+    extended = (objects["npix"] > options.max_area_px) | (~saturated & ~hot & not_point)
     cut = _touches_border(objects, shape)
     border = cut & (_peak_near_border(xpeak, ypeak, shape, psf) | elongated | extended)
     trunc = (objects["flag"] & sep.OBJ_TRUNC) != 0
@@ -288,7 +288,7 @@ def _classify(sep, objects, sub: np.ndarray, raw: np.ndarray, sky: _Sky, psf: Po
 def _peak_pixels(objects, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Integer (x, y) of each blob's brightest pixel, inside the frame."""
     height, width = shape
-    return (np.clip(objects["xpeak"].astype(int), 0, width - 1), np.clip(objects["ypeak"].astype(int), 0, height - 1))
+    return np.clip(objects["xpeak"].astype(int), 0, width - 1), np.clip(objects["ypeak"].astype(int), 0, height - 1)
 
 
 def _noise_floor(data: np.ndarray) -> float:
@@ -458,8 +458,8 @@ def _split_blends(sep, sub: np.ndarray, noise: float, objects, options: Detectio
     (trails, glare) are never split.  Nor is anything when the PSF's sigma is
     :data:`SPLIT_MAX_PSF_SIGMA` or more: the filter (variance 0.5 px^2 per axis) then widens stars
     by 6 % or less and merges no pair the unfiltered image separates, and the unfiltered look only
-    cuts the noisy tops of wide (defocused) stars into pieces.  Each unfiltered blob goes to the nearest filtered one (a
-    k-d tree: the work grows as n log n, whatever the frame holds).
+    cuts the noisy tops of wide (defocused) stars into pieces.  Each unfiltered blob goes to the
+    nearest filtered one (a k-d tree: the work grows as n log n, whatever the frame holds).
     """
     if not len(objects) or options.max_split_per_frame <= 0:
         return objects
@@ -522,8 +522,8 @@ def _merge_fragments(objects, sub: np.ndarray, sky: _Sky, options: DetectionOpti
     from scipy.spatial import cKDTree
 
     # An arc of a ring is elongated, and no trail while shorter than the PSF is wide.
-    long = _is_trail(objects, options, psf) & (objects["a"] > psf.radius_px)
-    eligible = np.flatnonzero(~_is_hot(objects, sub, sky, options) & ~long)
+    trails = _is_trail(objects, options, psf) & (objects["a"] > psf.radius_px)
+    eligible = np.flatnonzero(~_is_hot(objects, sub, sky, options) & ~trails)
     if len(eligible) < 2:
         return objects
     xy = np.column_stack([objects["x"][eligible], objects["y"][eligible]])
@@ -544,13 +544,13 @@ def _merge_fragments(objects, sub: np.ndarray, sky: _Sky, options: DetectionOpti
         members = eligible[group == g]
         first = members[np.argmax(objects["flux"][members])]
         weight = np.maximum(objects["flux"][members], 0.0) + 1e-12
-        x, y = np.average(objects["x"][members], weights=weight), np.average(objects["y"][members], weights=weight)
-        dx, dy = objects["x"][members] - x, objects["y"][members] - y
+        cx, cy = np.average(objects["x"][members], weights=weight), np.average(objects["y"][members], weights=weight)
+        dx, dy = objects["x"][members] - cx, objects["y"][members] - cy
         x2 = np.average(objects["x2"][members] + dx * dx, weights=weight)
         y2 = np.average(objects["y2"][members] + dy * dy, weights=weight)
         xy2 = np.average(objects["xy"][members] + dx * dy, weights=weight)
         spread = np.hypot((x2 - y2) / 2.0, xy2)
-        merged["x"][first], merged["y"][first] = x, y
+        merged["x"][first], merged["y"][first] = cx, cy
         merged["x2"][first], merged["y2"][first], merged["xy"][first] = x2, y2, xy2
         merged["a"][first] = np.sqrt((x2 + y2) / 2.0 + spread)
         merged["b"][first] = np.sqrt(max((x2 + y2) / 2.0 - spread, 0.0))
