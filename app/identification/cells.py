@@ -233,9 +233,8 @@ def _popcount64(x):
 
 
 @njit
-def _nearest_chord2(x, y, z, star_vectors, G, words, word_rank, first, stars):
-    """Squared chord from the unit vector (x, y, z) to the nearest star listed for its cell (inf: none):
-    :func:`cells_of`, the bitmap and the cell's list, as :meth:`NearStarCells.nearest_within` describes."""
+def _cell(x, y, z, G):
+    """:func:`cells_of` of one unit vector."""
     ax, ay, az = abs(x), abs(y), abs(z)
     if ax >= ay and ax >= az:
         top, cu, cv, face = ax, y, z, 0 + (x < 0)
@@ -247,31 +246,46 @@ def _nearest_chord2(x, y, z, star_vectors, G, words, word_rank, first, stars):
     half = G / 2
     iu = min(np.int64(np.int32((cu * inv + 1.0) * half)), G - 1)
     iv = min(np.int64(np.int32((cv * inv + 1.0) * half)), G - 1)
-    cell = (face * G + iu) * G + iv
-    word = words[cell >> 6]
-    bit = np.uint64(cell & 63)
-    if (word >> bit) & np.uint64(1) == 0:
-        return np.inf
-    rank = word_rank[cell >> 6] + _popcount64(word & ((np.uint64(1) << bit) - np.uint64(1)))
-    best = np.inf
-    for k in range(first[rank], first[rank + 1]):
-        s = stars[k]
-        dx, dy, dz = x - star_vectors[s, 0], y - star_vectors[s, 1], z - star_vectors[s, 2]
-        d2 = (dx * dx + dy * dy) + dz * dz  # a KD-tree's order: the same sums, bit for bit
-        if d2 < best:
-            best = d2
-    return best
+    return (face * G + iu) * G + iv
+
+
+@njit
+def _nearest_chords(points, star_vectors, bound, G, words, word_rank, first, stars):
+    """(N,) chord from each point (N, 3) to its nearest star if within ``bound``, else inf (see
+    :meth:`NearStarCells.nearest_within`).  Two passes: every point's cell and bit first (independent
+    loads, which the processor overlaps: the bitmap is larger than its cache), then the few marked cells'
+    star lists."""
+    n = points.shape[0]
+    out = np.full(n, np.inf)
+    cell = np.empty(n, dtype=np.int64)
+    marked = np.empty(n, dtype=np.bool_)
+    for i in range(n):
+        c = _cell(points[i, 0], points[i, 1], points[i, 2], G)
+        cell[i] = c
+        marked[i] = (words[c >> 6] >> np.uint64(c & 63)) & np.uint64(1) != 0
+    for i in range(n):
+        if not marked[i]:
+            continue
+        c = cell[i]
+        word = words[c >> 6]
+        rank = word_rank[c >> 6] + _popcount64(word & ((np.uint64(1) << np.uint64(c & 63)) - np.uint64(1)))
+        best = np.inf
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        for k in range(first[rank], first[rank + 1]):
+            s = stars[k]
+            dx, dy, dz = x - star_vectors[s, 0], y - star_vectors[s, 1], z - star_vectors[s, 2]
+            d2 = (dx * dx + dy * dy) + dz * dz  # a KD-tree's order: the same sums, bit for bit
+            if d2 < best:
+                best = d2
+        d = np.sqrt(best)
+        if d <= bound:
+            out[i] = d
+    return out
 
 
 @njit
 def _nearest_within_kernel(points, star_vectors, bound, G, words, word_rank, first, stars):
-    out = np.full(points.shape[0], np.inf)
-    for i in range(points.shape[0]):
-        d = np.sqrt(_nearest_chord2(points[i, 0], points[i, 1], points[i, 2], star_vectors, G, words, word_rank,
-                                    first, stars))
-        if d <= bound:
-            out[i] = d
-    return out
+    return _nearest_chords(points, star_vectors, bound, G, words, word_rank, first, stars)
 
 
 @njit
@@ -281,19 +295,23 @@ def check_kernel(rotations, pattern_vectors, tolerance, star_vectors, bound, G, 
     within ``tolerance[h]``, the deviation the sum of min(angle, tolerance[h]).  See
     :func:`app.identification.verify.check_hypotheses`."""
     H, m = rotations.shape[0], pattern_vectors.shape[0]
+    points = np.empty((H * m, 3))
+    for h in range(H):
+        R = rotations[h]
+        for i in range(m):
+            p0, p1, p2 = pattern_vectors[i, 0], pattern_vectors[i, 1], pattern_vectors[i, 2]
+            points[h * m + i, 0] = p0 * R[0, 0] + p1 * R[1, 0] + p2 * R[2, 0]
+            points[h * m + i, 1] = p0 * R[0, 1] + p1 * R[1, 1] + p2 * R[2, 1]
+            points[h * m + i, 2] = p0 * R[0, 2] + p1 * R[1, 2] + p2 * R[2, 2]
+    d = _nearest_chords(points, star_vectors, bound, G, words, word_rank, first, stars)
     n_match = np.zeros(H, dtype=np.int64)
     deviation = np.zeros(H)
     for h in range(H):
-        R = rotations[h]
         tol = tolerance[h]
         count, total = 0, 0.0
         for i in range(m):
-            p0, p1, p2 = pattern_vectors[i, 0], pattern_vectors[i, 1], pattern_vectors[i, 2]
-            x = p0 * R[0, 0] + p1 * R[1, 0] + p2 * R[2, 0]
-            y = p0 * R[0, 1] + p1 * R[1, 1] + p2 * R[2, 1]
-            z = p0 * R[0, 2] + p1 * R[1, 2] + p2 * R[2, 2]
-            d = np.sqrt(_nearest_chord2(x, y, z, star_vectors, G, words, word_rank, first, stars))
-            angle = 2.0 * np.arcsin(min(d / 2, 1.0)) if d <= bound else np.pi
+            chord = d[h * m + i]
+            angle = 2.0 * np.arcsin(min(chord / 2, 1.0)) if chord <= bound else np.pi
             if angle <= tol:
                 count += 1
                 total += angle
