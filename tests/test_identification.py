@@ -93,10 +93,10 @@ def test_false_match_probability_falls_with_matches_and_tightness():
     assert false_match_probability(n_matched=2, sum_sq_residual_rad2=0.0, **args) == 1.0
 
 
-def _candidate(n_matched: int, probability: float, rms_arcsec: float):
+def _candidate(n_matched: int, probability: float, rms_arcsec: float, first_hip: int = 1000):
     from app.identification import Candidate, StarMatch
 
-    matches = tuple(StarMatch(pattern_index=i, track=i, hip=1000 + i, name=None, residual_arcsec=rms_arcsec)
+    matches = tuple(StarMatch(pattern_index=i, track=i, hip=first_hip + i, name=None, residual_arcsec=rms_arcsec)
                     for i in range(n_matched))
     return Candidate(rank=0, rotation_matrix=np.eye(3), deviation_arcsec=0.0, deviation_px_per_point=0.0,
                      rms_arcsec=rms_arcsec, false_match_probability=probability, matches=matches)
@@ -107,12 +107,28 @@ def test_a_chance_fit_is_no_rival_to_an_overwhelming_match_but_is_to_a_weak_one(
 
     options = SearchOptions()
     strong, weak = _candidate(15, 1e-60, 8.0), _candidate(4, 1e-8, 8.0)
-    chance = _candidate(3, 1e-4, 6.0)  # fits its 3 points as tightly: only the odds tell them apart
+    chance = _candidate(3, 1e-4, 6.0, first_hip=5000)  # fits its 3 points as tightly: only the odds tell them apart
     assert classify([strong, chance], options) == IDENTIFIED
     assert classify([weak, chance], options) == AMBIGUOUS  # 1e4 to one is not enough
     assert classify([weak], options) == IDENTIFIED
-    assert classify([weak, _candidate(3, 1e-4, 40.0)], options) == IDENTIFIED  # fits 5x worse: no rival
+    assert classify([weak, _candidate(3, 1e-4, 40.0, first_hip=5000)], options) == IDENTIFIED  # 5x worse: no rival
     assert classify([_candidate(3, 0.5, 8.0)], options) == NO_MATCH
+
+
+def test_a_candidate_naming_the_same_stars_is_the_same_identification_not_a_rival():
+    """Found again with fewer points (at another focal length, on real frames): the points both match name the
+    same stars, so it is no other explanation; one point named otherwise makes it one."""
+    from dataclasses import replace
+
+    from app.identification import SearchOptions, StarMatch, classify
+
+    options = SearchOptions()
+    weak = _candidate(5, 1e-8, 8.0)
+    again = _candidate(4, 1e-5, 8.0)  # the same stars for points 0-3
+    assert classify([weak, again], options) == IDENTIFIED
+    other = replace(again, matches=again.matches[:3] + (StarMatch(pattern_index=3, track=3, hip=9999, name=None,
+                                                                  residual_arcsec=8.0),))
+    assert classify([weak, other], options) == AMBIGUOUS
 
 
 def _truth_rotation(truth, reference):

@@ -80,7 +80,7 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     focal_lengths = focal_lengths_to_try(camera, declared.xy) if options.search_focal_length \
         else [camera.focal_length_px]
     search = _Search(sky, options, generator, started, camera)
-    search.n_tried = hypotheses_before
+    search.n_tried = search.n_before = hypotheses_before
     # The declared camera's first feature; then a few features at the focal length the pattern's bright
     # triangles point to, when that is clearly another (when it is the declared one, their match is refined
     # as a bright-pair hypothesis of its own); the declared camera's next features; then the first feature
@@ -201,6 +201,9 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     features = f"{search.used} pattern feature{'s' * (search.used != 1)}"
     if no_feature:
         notes.append(no_feature)
+    if search.n_tried - search.n_before > options.max_hypotheses:
+        notes.append(f"the search stopped at its bound of {options.max_hypotheses:,} hypotheses "
+                     "(SearchOptions.max_hypotheses)")
     notes.insert(0, f"{search.n_tried} {method} hypotheses from {features}"
                  + (f" at {n_scales} focal lengths within {camera.focal_tolerance:.1%} of the declared one"
                     if n_scales > 1 else ""))
@@ -232,12 +235,16 @@ class _Search:
         self._version = 0  # counts the changes of ``found``
         self._stacks: dict[tuple, tuple] = {}
         self.n_tried = 0
+        self.n_before = 0  # hypotheses a caller tried before this search (counted, not bounded here)
         self.n_refined = 0
         self.n_scales = 0
         self.used = 0
 
     def timed_out(self) -> bool:
-        return _time.perf_counter() - self.started > self.options.timeout_s
+        """The search's bounds are spent: its wall-clock budget, or its count of hypotheses
+        (``options.max_hypotheses``, the same answer on a loaded machine)."""
+        return (_time.perf_counter() - self.started > self.options.timeout_s
+                or self.n_tried - self.n_before > self.options.max_hypotheses)
 
     def _rotations(self, key: str, p=None) -> tuple[list[dict], np.ndarray | None]:
         """The found candidates (refined with ``p``, when given) and their rotations ``key`` stacked

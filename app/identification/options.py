@@ -65,6 +65,10 @@ class SearchOptions:
     refine_per_batch: int = 3
     #: Wall-clock budget of one search, seconds.
     timeout_s: float = 5.0
+    #: ... and its count of hypotheses, which bounds it the same way on a loaded machine: a pattern that fits
+    #: nowhere tries 90,000-136,000 against the default index (10 random points, 20 deg camera), but a narrow
+    #: field against the Hp 8 index 600,000 and more (5 s) before the time-out stopped it.
+    max_hypotheses: int = 300_000
     #: Planets are labelled when an unmatched point lies within this many pixels.
     planet_tolerance_px: float = 3.0
     #: When the declared camera does not settle the answer, search focal lengths within the camera's
