@@ -264,23 +264,39 @@ def _nearest_chords(points, star_vectors, bound, G, words, word_rank, first, sta
         cell[i] = c
         marked[i] = (words[c >> 6] >> np.uint64(c & 63)) & np.uint64(1) != 0
     for i in range(n):
-        if not marked[i]:
-            continue
-        c = cell[i]
-        word = words[c >> 6]
-        rank = word_rank[c >> 6] + _popcount64(word & ((np.uint64(1) << np.uint64(c & 63)) - np.uint64(1)))
-        best = np.inf
-        x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        for k in range(first[rank], first[rank + 1]):
-            s = stars[k]
-            dx, dy, dz = x - star_vectors[s, 0], y - star_vectors[s, 1], z - star_vectors[s, 2]
-            d2 = (dx * dx + dy * dy) + dz * dz  # a KD-tree's order: the same sums, bit for bit
-            if d2 < best:
-                best = d2
-        d = np.sqrt(best)
-        if d <= bound:
-            out[i] = d
+        if marked[i]:
+            d2, _ = _nearest_listed(points[i, 0], points[i, 1], points[i, 2], cell[i], star_vectors, words,
+                                    word_rank, first, stars)
+            d = np.sqrt(d2)
+            if d <= bound:
+                out[i] = d
     return out
+
+
+@njit
+def _nearest_listed(x, y, z, c, star_vectors, words, word_rank, first, stars):
+    """(squared chord, star) of the nearest star listed for marked cell ``c`` of the unit vector (x, y, z)."""
+    word = words[c >> 6]
+    rank = word_rank[c >> 6] + _popcount64(word & ((np.uint64(1) << np.uint64(c & 63)) - np.uint64(1)))
+    best, star = np.inf, -1
+    for k in range(first[rank], first[rank + 1]):
+        s = np.int64(stars[k])
+        dx, dy, dz = x - star_vectors[s, 0], y - star_vectors[s, 1], z - star_vectors[s, 2]
+        d2 = (dx * dx + dy * dy) + dz * dz  # a KD-tree's order: the same sums, bit for bit
+        if d2 < best:
+            best, star = d2, s
+    return best, star
+
+
+@njit
+def nearest_star(x, y, z, star_vectors, G, words, word_rank, first, stars):
+    """(chord, star) from the unit vector (x, y, z) to its nearest star within the map's radius; (inf, -1)
+    when none is that close (one point: a refinement's look-up)."""
+    c = _cell(x, y, z, G)
+    if (words[c >> 6] >> np.uint64(c & 63)) & np.uint64(1) == 0:
+        return np.inf, -1
+    d2, star = _nearest_listed(x, y, z, c, star_vectors, words, word_rank, first, stars)
+    return np.sqrt(d2), star
 
 
 @njit

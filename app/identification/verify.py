@@ -27,7 +27,7 @@
 
 from __future__ import annotations
 
-import functools
+import weakref
 from dataclasses import dataclass
 from itertools import combinations
 from typing import Callable
@@ -36,8 +36,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import bdtrc, chdtr  # binomial survival, chi-square CDF (scipy.stats' are 30x slower per call)
 
-from app.attitude import solve_wahba
-from app.identification.cells import check_kernel
+from app.compiled import njit, warm_up_with
+from app.identification.cells import NearStarCells, check_kernel, nearest_star
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,62 +115,6 @@ class Refined:
         return int((self.star_of_point >= 0).sum())
 
 
-def match_points(rotation: np.ndarray, pattern_vectors: np.ndarray, field: StarField,
-                 tolerance_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One-to-one nearest-star matching under one rotation.
-
-    Returns (star_of_point, residual, nearest angle); a star claimed by two
-    points goes to the closer one.
-    """
-    star, resid, ang = match_points_many(np.asarray(rotation)[None], pattern_vectors, field, tolerance_rad)
-    return star[0], resid[0], ang[0]
-
-
-def match_points_many(rotations: np.ndarray, pattern_vectors: np.ndarray, field: StarField,
-                      tolerance_rad: np.ndarray, nearest: bool = True
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`match_points` for a stack of rotations (K, 3, 3): (K, m) arrays, one KD-tree query for all.
-
-    ``tolerance_rad`` is (m,) or (K, m).  A KD-tree query of a dozen points
-    costs ~50 microseconds of call overhead, more than the search itself:
-    one query for every hypothesis of a batch pays it once.  With
-    ``nearest=False`` the search stops at the largest tolerance (faster;
-    the nearest angle is then inf where no star lies within it).
-    """
-    K, m = len(rotations), len(pattern_vectors)
-    d, idx = _query(rotations, pattern_vectors, field, None if nearest else np.max(tolerance_rad))
-    ang = chord_to_angle(d).reshape(K, m)
-    return _assign(ang, idx.reshape(K, m), tolerance_rad) + (ang,)
-
-
-def _query(rotations: np.ndarray, pattern_vectors: np.ndarray, field: StarField, within_rad: float | None = None):
-    """Chord to the nearest star (and its field position) of every rotated point, flattened (K m,).
-
-    ``within_rad``: stop the search there (the tree answers inf, angle pi, beyond it): enough to match at
-    any tolerance up to it, and faster for the points far from every star.
-    """
-    sky = np.matmul(pattern_vectors[None], rotations).reshape(-1, 3)  # rows R^T p
-    if within_rad is None:
-        return field.tree.query(sky, k=1)
-    # Slightly beyond the bound, so that rounding never loses a star at exactly the tolerance.
-    return field.tree.query(sky, k=1, distance_upper_bound=float(chord(within_rad)) * (1 + 1e-9) + 1e-15)
-
-
-def _assign(ang: np.ndarray, idx: np.ndarray, tolerance_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(star_of_point, residual) (K, m) from each point's nearest star (field position ``idx``, angle ``ang``)."""
-    star = np.where(ang <= tolerance_rad, idx, -1)
-    # One point per star: among points of one hypothesis claiming the same star, the closest keeps it.
-    ordered = np.sort(star, axis=1)
-    if ((ordered[:, 1:] == ordered[:, :-1]) & (ordered[:, 1:] >= 0)).any():
-        k, i = np.nonzero(star >= 0)
-        claimed = star[k, i]
-        order = np.lexsort((ang[k, i], claimed, k))
-        repeat = (claimed[order][1:] == claimed[order][:-1]) & (k[order][1:] == k[order][:-1])
-        lose = order[1:][repeat]
-        star[k[lose], i[lose]] = -1
-    return star, np.where(star >= 0, ang, np.nan)
-
-
 #: After the fit, a matched point whose leave-one-out residual exceeds this
 #: many of its sigmas (or of the residuals' own robust scale, if larger) is
 #: let go: a displaced star or a blend inside the match tolerance would bias
@@ -183,207 +127,342 @@ RAYLEIGH_QUARTILE = 0.7585  # lower quartile of |r| for a 2-D Gaussian of unit s
 SMALL_SET = 7
 
 
-@functools.lru_cache(maxsize=None)
-def _subsets(n: int) -> np.ndarray:
-    """(S, n) masks of every subset of at least 3 of n points, smallest first."""
-    return np.array([[i in c for i in range(n)] for k in range(3, n + 1) for c in combinations(range(n), k)])
+def _subset_masks() -> tuple[np.ndarray, np.ndarray]:
+    """Every subset of at least 3 of n points, smallest first, for n = 4 .. :data:`SMALL_SET`: masks
+    (S, SMALL_SET) whose rows ``start[n]:start[n + 1]`` are those of n points (in their first n columns)."""
+    masks, start = [], np.zeros(SMALL_SET + 2, dtype=np.int64)
+    for n in range(SMALL_SET + 1):
+        start[n] = sum(len(x) for x in masks)
+        if n >= 4:
+            masks.append([[i in c for i in range(SMALL_SET)] for k in range(3, n + 1) for c in combinations(range(n), k)])
+    start[SMALL_SET + 1] = sum(len(x) for x in masks)
+    return np.array([row for x in masks for row in x], dtype=np.bool_), start
 
 
-def consensus_subset(body: np.ndarray, ref: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """(n,) mask of the points agreeing with the fit of the best subset of at least 3 of them.
-
-    Every subset of 3 or more points is fitted (all at once: a stack of
-    Wahba SVDs); a point agrees when its residual is within
-    :data:`FINAL_REJECT_SIGMAS` sigma.  The subset whose fit most points
-    agree with wins, ties going to the smallest chi-square.
-    """
-    return consensus_subsets(body[None], ref[None], weights[None])[0]
-
-
-def consensus_subsets(body: np.ndarray, ref: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """:func:`consensus_subset` for G sets of n points at once: (G, n, 3), (G, n, 3), (G, n) -> (G, n)."""
-    G, n = weights.shape
-    if n == 3:  # one subset: it wins whether or not all three agree
-        return np.ones((G, 3), dtype=bool)
-    agree, chi2 = _subset_fits(body, ref, weights, _subsets(n))
-    count = agree.sum(axis=-1)
-    # Most points agreeing, then the smallest chi-square; the first subset on a tie.
-    best = np.argmin(np.where(count == count.max(axis=1, keepdims=True), chi2, np.inf), axis=1)
-    out = agree[np.arange(G), best]
-    out[out.sum(axis=1) < 3] = True
-    return out
-
-
-def _subset_fits(body: np.ndarray, ref: np.ndarray, weights: np.ndarray,
-                 subsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Wahba's fit of each subset (S, n) of each set: which points agree with it (G, S, n), and its chi2 (G, S)."""
-    sigma = 1.0 / np.sqrt(weights)
-    w = subsets[None] * weights[:, None, :]  # (G, S, n)
-    B = np.einsum("gsn,gni,gnj->gsij", w, body, ref)
-    U, _, Vt = np.linalg.svd(B)
-    D = np.broadcast_to(np.eye(3), B.shape).copy()
-    D[..., 2, 2] = np.linalg.det(U) * np.linalg.det(Vt)
-    R = U @ D @ Vt
-    predicted = np.einsum("gsij,gnj->gsni", R, ref)
-    b = body[:, None]
-    resid = np.arctan2(np.linalg.norm(np.cross(b, predicted), axis=-1), np.sum(b * predicted, axis=-1))  # (G, S, n)
-    agree = resid <= FINAL_REJECT_SIGMAS * sigma[:, None, :]
-    chi2 = np.where(agree, (resid / sigma[:, None, :]) ** 2, 0.0).sum(axis=-1)
-    return agree, chi2
-
-
-def leave_one_out_residuals(body: np.ndarray, ref: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Angle between each ``body_i`` and ``R_(-i) ref_i``, with ``R_(-i)`` Wahba's fit without point i.
-
-    All fits at once: ``B_(-i) = B - w_i b_i r_i^T``, a stack of 3x3 SVDs.
-    """
-    outer = weights[:, None, None] * body[:, :, None] * ref[:, None, :]
-    B = outer.sum(axis=0)[None] - outer
-    U, _, Vt = np.linalg.svd(B)
-    d = np.linalg.det(U) * np.linalg.det(Vt)
-    D = np.zeros((len(body), 3, 3))
-    D[:, 0, 0] = 1.0
-    D[:, 1, 1] = 1.0
-    D[:, 2, 2] = d
-    R = U @ D @ Vt
-    predicted = np.einsum("nij,nj->ni", R, ref)
-    return np.arctan2(np.linalg.norm(np.cross(body, predicted), axis=1), np.sum(body * predicted, axis=1))
+SUBSET_MASKS, SUBSET_START = _subset_masks()
 
 
 def refine(rotation: np.ndarray, pattern_vectors: np.ndarray, weights: np.ndarray, field: StarField,
            final_tolerance_rad: np.ndarray, start_tolerance_rad: float, iterations: int = 4) -> Refined:
     """Iterated Wahba fit with a tolerance shrinking to ``final_tolerance_rad``, then outlier rejection.
 
-    ``weights`` are 1 / sigma^2 of each point.  The last step drops, one at a
-    time, the matched point whose leave-one-out residual exceeds
-    :data:`FINAL_REJECT_SIGMAS` times max(sigma_i, a robust scale of those
-    residuals, so that real data with larger errors than stated keeps its
-    stars) the most, and refits, while more than :data:`SMALL_SET` points
-    remain; smaller sets keep the largest subset that fits within the noise
-    instead (:func:`consensus_subset`).  One hypothesis of
-    :func:`refine_many` (the same arithmetic, so the same answer whatever
-    the batch).
+    ``weights`` are 1 / sigma^2 of each point.  Each iteration matches every
+    point to its nearest star within the tolerance (each star to one point,
+    the closest) and refits.  The last step drops, one at a time, the
+    matched point whose leave-one-out residual (the angle to its star under
+    Wahba's fit of the others) exceeds :data:`FINAL_REJECT_SIGMAS` times
+    max(sigma_i, a robust scale of those residuals, so that real data with
+    larger errors than stated keeps its stars) the most, and refits, while
+    more than :data:`SMALL_SET` points remain; smaller sets (of the points
+    within twice the tolerance of a star: a biased fit may have pushed a good
+    one out) keep the largest subset of at least 3 whose Wahba fit they
+    agree with within the noise, ties going to the smallest chi-square
+    (leave-one-out cannot unmask two outliers among five).  One hypothesis
+    of :func:`refine_many`.
     """
     return refine_many(np.asarray(rotation)[None], pattern_vectors, weights, field, final_tolerance_rad,
                        np.array([start_tolerance_rad], dtype=float), iterations)[0]
 
 
-def _wahba_masked(pattern_vectors: np.ndarray, star_vectors: np.ndarray, weights: np.ndarray,
-                  use: np.ndarray) -> np.ndarray:
-    """Wahba's rotation of each row's points where ``use`` (K, m): a zero weight leaves a point out."""
-    body = np.broadcast_to(pattern_vectors, star_vectors.shape)
-    return solve_wahba(body, star_vectors, np.where(use, weights, 0.0))
-
-
 def refine_many(rotations: np.ndarray, pattern_vectors: np.ndarray, weights: np.ndarray, field: StarField,
                 final_tolerance_rad: np.ndarray, start_tolerance_rad: np.ndarray,
                 iterations: int = 4) -> list[Refined]:
-    """:func:`refine` of K hypotheses (rotations (K, 3, 3), start tolerances (K,)) at once.
+    """:func:`refine` of K hypotheses (rotations (K, 3, 3), start tolerances (K,)).
 
-    Why a batch: a refinement is some 150 small numpy operations (KD-tree
-    queries, 3x3 SVDs) on a dozen points, where the call overhead is most of
-    the cost; the steps of all hypotheses run as one operation each.  Each
-    hypothesis follows exactly the steps :func:`refine` describes (its own
-    number of iterations, its own outlier rejection), so its result does not
-    depend on the others in the batch.
+    Each hypothesis is refined on its own by a compiled kernel
+    (:func:`_refine_kernel`: a refinement is some 150 small steps on a dozen
+    points, where numpy's call overhead was most of the cost); its stars
+    within the largest tolerance come from the field's cell map
+    (:mod:`app.identification.cells`), and the nearest star of the points
+    with none that close (their angle enters the deviation only) from the
+    KD-tree, once for the batch.
     """
-    R = np.array(rotations, dtype=float).reshape(-1, 3, 3)
+    R = np.ascontiguousarray(np.array(rotations, dtype=float).reshape(-1, 3, 3))
     K, m = len(R), len(pattern_vectors)
-    start = np.broadcast_to(np.asarray(start_tolerance_rad, dtype=float).reshape(-1), (K,))
-    final_tol = np.asarray(final_tolerance_rad, dtype=float)
-    stars_xyz = field.vectors
-    fitted = np.full((K, m), -1)
-    active = np.ones(K, dtype=bool)
-    have_final = np.zeros(K, dtype=bool)
-    star = np.full((K, m), -1)
-    resid = np.full((K, m), np.nan)
-    # Only the stars within the tolerances are looked for while iterating (a bounded query is faster); the
-    # nearest star of every point (the deviation) is asked for the rotations the iterations end at.
+    if K == 0:
+        return []
+    start = np.ascontiguousarray(np.broadcast_to(np.asarray(start_tolerance_rad, dtype=float).reshape(-1), (K,)))
+    final_tol = np.ascontiguousarray(np.broadcast_to(np.asarray(final_tolerance_rad, dtype=float), (m,)))
+    vectors = np.ascontiguousarray(pattern_vectors, dtype=float)
+    reach = max(float(np.max(start)), 2.0 * float(np.max(final_tol)))
+    # Slightly beyond, so that rounding never loses a star at exactly the tolerance.
+    bound = float(chord(reach)) * (1 + 1e-9) + 1e-15
+    cells = _cells_within(field, reach * (1 + 1e-6))
+    R, star, resid, nearest = _refine_batch_kernel(
+        R, vectors, np.ascontiguousarray(weights, dtype=float), field.vectors, final_tol, start, iterations, bound,
+        cells.kernel_arrays(), SUBSET_MASKS, SUBSET_START)
+    far = np.isnan(nearest)
+    if far.any():
+        k, i = np.nonzero(far)
+        d, _ = field.tree.query(np.einsum("kj,kji->ki", vectors[i], R[k]), k=1)
+        nearest[k, i] = chord_to_angle(d)
+    return [Refined(rotation=R[k], star_of_point=star[k], residual_rad=resid[k], nearest_rad=nearest[k])
+            for k in range(K)]
+
+
+#: Cell maps made here for fields that have none (an observer too fast or an epoch too far for the
+#: sky's own maps, or a radius beyond them), by field and radius.
+_own_cells: "weakref.WeakKeyDictionary[StarField, dict]" = weakref.WeakKeyDictionary()
+
+
+def _cells_within(field: StarField, radius_rad: float) -> NearStarCells:
+    """A cell map of the field's stars for at least ``radius_rad``: the sky's (kept on disk), else one made
+    from the field's own places (exact for them; 30-50 ms, kept with the field)."""
+    cells = field.cells(radius_rad) if field.cells is not None else None
+    if cells is not None:
+        return cells
+    own = _own_cells.setdefault(field, {})
+    fitting = [c for r, c in own.items() if radius_rad <= r <= 2 * radius_rad]
+    if fitting:
+        return fitting[0]
+    own[radius_rad * 1.2] = NearStarCells.build(field.vectors, radius_rad * 1.2)
+    return own[radius_rad * 1.2]
+
+
+# --- the compiled refinement (issue 27) ----------------------------------------------------------------
+
+@njit
+def _wahba_kernel(body, ref, w):
+    """Wahba's rotation of ``body`` (n, 3) onto ``ref`` with weights ``w`` (:func:`app.attitude.solve_wahba`)."""
+    B = np.zeros((3, 3))
+    for i in range(body.shape[0]):
+        for r in range(3):
+            for c in range(3):
+                B[r, c] += (body[i, r] * w[i]) * ref[i, c]
+    U, _, Vt = np.linalg.svd(B)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        for r in range(3):
+            for c in range(3):
+                R[r, c] -= 2.0 * U[r, 2] * Vt[2, c]
+    return R
+
+
+@njit
+def _residual_angle(body, R, ref):
+    """Angle between ``body`` and ``R ref`` (arctan2 of the cross and dot products: exact at small angles)."""
+    p0 = R[0, 0] * ref[0] + R[0, 1] * ref[1] + R[0, 2] * ref[2]
+    p1 = R[1, 0] * ref[0] + R[1, 1] * ref[1] + R[1, 2] * ref[2]
+    p2 = R[2, 0] * ref[0] + R[2, 1] * ref[1] + R[2, 2] * ref[2]
+    c0, c1, c2 = body[1] * p2 - body[2] * p1, body[2] * p0 - body[0] * p2, body[0] * p1 - body[1] * p0
+    return np.arctan2(np.sqrt(c0 * c0 + c1 * c1 + c2 * c2), body[0] * p0 + body[1] * p1 + body[2] * p2)
+
+
+@njit
+def _look_up(R, pattern_vectors, bound, star_vectors, cells):
+    """Angle to the nearest star (nan: none within chord ``bound``) and that star (-1) of every rotated point."""
+    G, words, word_rank, first, stars = cells
+    m = pattern_vectors.shape[0]
+    ang = np.full(m, np.nan)
+    idx = np.full(m, -1, dtype=np.int64)
+    for i in range(m):
+        p0, p1, p2 = pattern_vectors[i, 0], pattern_vectors[i, 1], pattern_vectors[i, 2]
+        d, s = nearest_star(p0 * R[0, 0] + p1 * R[1, 0] + p2 * R[2, 0], p0 * R[0, 1] + p1 * R[1, 1] + p2 * R[2, 1],
+                            p0 * R[0, 2] + p1 * R[1, 2] + p2 * R[2, 2], star_vectors, G, words, word_rank, first, stars)
+        if d <= bound:
+            ang[i] = 2.0 * np.arcsin(min(d / 2, 1.0))
+            idx[i] = s
+    return ang, idx
+
+
+@njit
+def _assign_kernel(ang, idx, tol):
+    """(star, residual) of :func:`_assign` for one hypothesis: a point matches its nearest star within its
+    tolerance, and a star claimed by several points goes to the closest (the first on a tie)."""
+    m = ang.shape[0]
+    star = np.full(m, -1, dtype=np.int64)
+    for i in range(m):
+        if idx[i] >= 0 and ang[i] <= tol[i]:
+            star[i] = idx[i]
+    for i in range(m):
+        if star[i] < 0:
+            continue
+        for j in range(i + 1, m):
+            if star[j] == star[i]:
+                if ang[j] < ang[i]:
+                    star[i] = -1
+                    break
+                star[j] = -1
+    resid = np.full(m, np.nan)
+    for i in range(m):
+        if star[i] >= 0:
+            resid[i] = ang[i]
+    return star, resid
+
+
+@njit
+def _consensus_kernel(body, ref, w, subsets):
+    """:func:`consensus_subset` of one set of n (4-7) points: the agreeing points of the best subset's fit."""
+    n = body.shape[0]
+    sigma = 1.0 / np.sqrt(w)
+    best_count, best_chi2, best = -1, np.inf, np.zeros(n, dtype=np.bool_)
+    agree = np.zeros(n, dtype=np.bool_)
+    for k in range(subsets.shape[0]):
+        B = np.zeros((3, 3))
+        for i in range(n):
+            if subsets[k, i]:
+                for r in range(3):
+                    for c in range(3):
+                        B[r, c] += (w[i] * body[i, r]) * ref[i, c]
+        U, _, Vt = np.linalg.svd(B)
+        D = np.eye(3)
+        D[2, 2] = np.linalg.det(U) * np.linalg.det(Vt)
+        R = U @ D @ Vt
+        count, chi2 = 0, 0.0
+        for i in range(n):
+            resid = _residual_angle(body[i], R, ref[i])
+            agree[i] = resid <= FINAL_REJECT_SIGMAS * sigma[i]
+            if agree[i]:
+                count += 1
+                chi2 += (resid / sigma[i]) ** 2
+        if count > best_count or (count == best_count and chi2 < best_chi2):
+            best_count, best_chi2, best = count, chi2, agree.copy()
+    if best_count < 3:
+        best[:] = True
+    return best
+
+
+@njit
+def _loo_kernel(body, ref, w):
+    """:func:`leave_one_out_residuals` of one set."""
+    n = body.shape[0]
+    B = np.zeros((3, 3))
+    for i in range(n):
+        for r in range(3):
+            for c in range(3):
+                B[r, c] += (w[i] * body[i, r]) * ref[i, c]
+    out = np.empty(n)
+    for i in range(n):
+        Bi = B.copy()
+        for r in range(3):
+            for c in range(3):
+                Bi[r, c] -= (w[i] * body[i, r]) * ref[i, c]
+        U, _, Vt = np.linalg.svd(Bi)
+        D = np.eye(3)
+        D[2, 2] = np.linalg.det(U) * np.linalg.det(Vt)
+        R = U @ D @ Vt
+        out[i] = _residual_angle(body[i], R, ref[i])
+    return out
+
+
+@njit
+def _refine_kernel(R0, pattern_vectors, weights, star_vectors, final_tol, start, iterations, bound, cells,
+                   subset_masks, subset_start):
+    """One hypothesis's :func:`refine` (see there), every look-up within chord ``bound`` (>= the largest
+    tolerance used, within the cell map's radius): (rotation, star_of_point, residual, nearest angle, nan
+    where no star lies within ``bound``)."""
+    m = pattern_vectors.shape[0]
+    R = R0.copy()
+    fitted = np.full(m, -1, dtype=np.int64)
+    star = np.full(m, -1, dtype=np.int64)
+    resid = np.full(m, np.nan)
+    have_final = False
+    tol = np.empty(m)
     for it in range(iterations):
-        a = np.flatnonzero(active)
-        if len(a) == 0:
-            break
         f = it / max(1, iterations - 1)
-        tol = np.maximum(final_tol, start[a, None] * (1 - f) + final_tol * f)
-        d, idx = _query(R[a], pattern_vectors, field, np.max(tol))
-        ang, idx = chord_to_angle(d).reshape(len(a), m), idx.reshape(len(a), m)
-        s, _ = _assign(ang, idx, tol)
-        go = (s >= 0).sum(axis=1) >= 2
-        if it > 0:
+        for i in range(m):
+            tol[i] = max(final_tol[i], start * (1 - f) + final_tol[i] * f)
+        ang, idx = _look_up(R, pattern_vectors, bound, star_vectors, cells)
+        s, _ = _assign_kernel(ang, idx, tol)
+        go = np.sum(s >= 0) >= 2
+        if it > 0 and go and np.all(s == fitted):
             # Converged: refitting gives the same R, and once the final tolerance keeps these matches
-            # too, so does every tolerance between.  (The final tolerance is the smallest: the same
-            # query answers it.)
-            same = go & (s == fitted[a]).all(axis=1)
-            if same.any():
-                f_star, f_resid = _assign(ang[same], idx[same], final_tol)
-                done = (f_star == s[same]).all(axis=1)
-                rows = a[same][done]
-                star[rows], resid[rows] = f_star[done], f_resid[done]
-                have_final[rows] = True
-                go[np.flatnonzero(same)[done]] = False
-        active[a[~go]] = False
-        rows = a[go]
-        if len(rows):
-            s = s[go]
-            R[rows] = _wahba_masked(pattern_vectors, stars_xyz[s], weights, s >= 0)
-            fitted[rows] = s
-    # The nearest star of every point under the rotations reached: the last match of the rows that
-    # converged, the final match of the others, and every point's nearest star (the deviation).
-    d, idx = _query(R, pattern_vectors, field)
-    nearest, idx = chord_to_angle(d).reshape(K, m), idx.reshape(K, m)
-    rest = np.flatnonzero(~have_final)
-    if len(rest):
-        star[rest], resid[rest] = _assign(nearest[rest], idx[rest], final_tol)
+            # too, so does every tolerance between.
+            f_star, f_resid = _assign_kernel(ang, idx, final_tol)
+            if np.all(f_star == s):
+                star, resid, have_final = f_star, f_resid, True
+                go = False
+        if not go:
+            break
+        use = s >= 0
+        ref = np.empty((m, 3))
+        w = np.zeros(m)
+        for i in range(m):
+            if use[i]:
+                ref[i] = star_vectors[s[i]]
+                w[i] = weights[i]
+            else:
+                ref[i] = star_vectors[star_vectors.shape[0] - 1]  # weight 0: left out, as numpy's s = -1
+        R = _wahba_kernel(pattern_vectors, ref, w)
+        fitted = s
+    nearest, idx = _look_up(R, pattern_vectors, bound, star_vectors, cells)
+    if not have_final:
+        star, resid = _assign_kernel(nearest, idx, final_tol)
     sigma = 1.0 / np.sqrt(weights)
-    if m >= 3:
-        # Few points: leave-one-out cannot unmask two outliers among five, so
-        # among the points near a star (twice the tolerance: a biased fit may
-        # have pushed a good one out) the largest subset that fits within the
-        # noise wins (ties: lowest chi-square).
-        small = np.flatnonzero((star >= 0).sum(axis=1) <= SMALL_SET)
-        near, _ = _assign(nearest[small], idx[small], 2 * final_tol)
-        count = (near >= 0).sum(axis=1)
-        fit = (count >= 3) & (count <= SMALL_SET)
-        rejected = np.zeros((len(small), m), dtype=bool)
-        for n in np.unique(count[fit]).tolist():
-            g = np.flatnonzero(count == n)
-            cols = np.nonzero(near[g] >= 0)[1].reshape(len(g), n)  # each row's points near a star, in order
+    if m >= 3 and np.sum(star >= 0) <= SMALL_SET:
+        # Few points: the largest subset that fits within the noise, among those near a star.
+        near, _ = _assign_kernel(nearest, idx, 2 * final_tol)
+        cols = np.flatnonzero(near >= 0)
+        n = cols.shape[0]
+        if 3 <= n <= SMALL_SET:
             body = pattern_vectors[cols]
-            ref = stars_xyz[near[g][np.arange(len(g))[:, None], cols]]
-            agree = consensus_subsets(body, ref, weights[cols])
-            R[small[g]] = solve_wahba(body, ref, np.where(agree, weights[cols], 0.0))
-            rejected[g[:, None], cols] = ~agree
-        rows = small[fit]
-        if len(rows):
-            d, idx = _query(R[rows], pattern_vectors, field)
-            nearest[rows] = chord_to_angle(d).reshape(len(rows), m)
-            fresh, f_resid = _assign(nearest[rows], idx.reshape(len(rows), m), final_tol)
-            star[rows] = np.where(~rejected[fit] & (fresh >= 0), fresh, -1)
-            resid[rows] = np.where(star[rows] >= 0, f_resid, np.nan)
-    for k in np.flatnonzero((star >= 0).sum(axis=1) > SMALL_SET):
-        # Judge each point by the fit of the others: an outlier cannot hide by pulling the fit.  (Large
-        # sets are the true matches, one or two per search: one at a time.)
-        s = star[k]
+            ref = star_vectors[near[cols]]
+            w = weights[cols]
+            if n == 3:
+                agree = np.ones(3, dtype=np.bool_)
+            else:
+                agree = _consensus_kernel(body, ref, w, subset_masks[subset_start[n]:subset_start[n + 1], :n])
+            R = _wahba_kernel(body, ref, np.where(agree, w, 0.0))
+            rejected = np.zeros(m, dtype=np.bool_)
+            for k in range(n):
+                rejected[cols[k]] = not agree[k]
+            nearest, idx = _look_up(R, pattern_vectors, bound, star_vectors, cells)
+            fresh, f_resid = _assign_kernel(nearest, idx, final_tol)
+            for i in range(m):
+                star[i] = fresh[i] if (not rejected[i] and fresh[i] >= 0) else -1
+                resid[i] = f_resid[i] if star[i] >= 0 else np.nan
+    if np.sum(star >= 0) > SMALL_SET:
+        # Judge each point by the fit of the others: an outlier cannot hide by pulling the fit.
+        s = star.copy()
         for _ in range(max(1, m // 3)):
             ok = np.flatnonzero(s >= 0)
-            if len(ok) <= SMALL_SET:  # small sets had their subset search; LOO needs redundancy
+            if ok.shape[0] <= SMALL_SET:
                 break
-            loo = leave_one_out_residuals(pattern_vectors[ok], stars_xyz[s[ok]], weights[ok])
+            loo = _loo_kernel(pattern_vectors[ok], star_vectors[s[ok]], weights[ok])
             # The lower quartile: outliers pull the fit, inflating the others' residuals and the median.
-            scale = np.maximum(sigma[ok], np.quantile(loo, 0.25) / RAYLEIGH_QUARTILE)
-            worst = int(np.argmax(loo / scale))
-            if loo[worst] <= FINAL_REJECT_SIGMAS * scale[worst]:
+            robust = np.quantile(loo, 0.25) / RAYLEIGH_QUARTILE
+            worst, worst_ratio = 0, -np.inf
+            for k in range(ok.shape[0]):
+                ratio = loo[k] / max(sigma[ok[k]], robust)
+                if ratio > worst_ratio:
+                    worst, worst_ratio = k, ratio
+            if loo[worst] <= FINAL_REJECT_SIGMAS * max(sigma[ok[worst]], robust):
                 break
             s = s.copy()
             s[ok[worst]] = -1
-            keep = s >= 0
-            R[k] = solve_wahba(pattern_vectors[keep], stars_xyz[s[keep]], weights[keep])
-            fresh, f_resid, nearest[k] = match_points(R[k], pattern_vectors, field, final_tol)
-            s = np.where(keep & (fresh >= 0), fresh, -1)  # a rejected point stays out
-            resid[k] = np.where(s >= 0, f_resid, np.nan)
-        star[k] = s
-    return [Refined(rotation=R[k], star_of_point=star[k], residual_rad=resid[k], nearest_rad=nearest[k])
-            for k in range(K)]
+            keep = np.flatnonzero(s >= 0)
+            R = _wahba_kernel(pattern_vectors[keep], star_vectors[s[keep]], weights[keep])
+            nearest, idx = _look_up(R, pattern_vectors, bound, star_vectors, cells)
+            fresh, f_resid = _assign_kernel(nearest, idx, final_tol)
+            for i in range(m):
+                s[i] = fresh[i] if (s[i] >= 0 and fresh[i] >= 0) else -1  # a rejected point stays out
+                resid[i] = f_resid[i] if s[i] >= 0 else np.nan
+        star = s
+    return R, star, resid, nearest
+
+
+@njit
+def _refine_batch_kernel(rotations, pattern_vectors, weights, star_vectors, final_tol, start, iterations, bound,
+                         cells, subset_masks, subset_start):
+    K, m = rotations.shape[0], pattern_vectors.shape[0]
+    R = np.empty((K, 3, 3))
+    star = np.empty((K, m), dtype=np.int64)
+    resid = np.empty((K, m))
+    nearest = np.empty((K, m))
+    for k in range(K):
+        R[k], star[k], resid[k], nearest[k] = _refine_kernel(rotations[k], pattern_vectors, weights, star_vectors,
+                                                             final_tol, start[k], iterations, bound, cells,
+                                                             subset_masks, subset_start)
+    return R, star, resid, nearest
+
+
+@warm_up_with
+def _warm_up_refine() -> None:
+    """Compile the refinement for the types the searches pass (three stars and three points)."""
+    stars = np.array([[1.0, 0.0, 0.0], [0.99, 0.1, 0.0], [0.99, 0.0, 0.1], [0.98, 0.1, 0.1]])
+    stars /= np.linalg.norm(stars, axis=1, keepdims=True)
+    field = StarField.from_vectors(stars, np.arange(4))
+    refine_many(np.eye(3)[None], stars, np.ones(4), field, np.full(4, 1e-3), np.array([2e-3]))
 
 
 def false_match_probability(n_points: int, n_matched: int, capture_tolerance_rad: float,
