@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import os
 import json
 import math
@@ -263,24 +262,26 @@ def test_pattern_features_rim_rule():
 
 
 def test_solve_cli_methods(sample_dir, capsys):
-    from app.cli import solve
+    from app.cli import build_parser, solve
+
+    def parsed(*argv):  # the command line's own parser, so every option has its default
+        return build_parser().parse_args(["solve", *argv])
 
     path = str(sample_dir / "01-clean.json")
-    args = argparse.Namespace(files=[path], json=True, candidates=None, method="both", prior=None, fov_deg=None)
+    args = parsed(path, "--json", "--method", "both")
     assert solve.run(args) == 0
     doc = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     for key in ("file", "sequence_id", "status", "error", "reference_snapshot", "sources", "candidates"):
         assert key in doc
     assert doc["methods_agree"] is True
     assert doc["tf_candidates"] and doc["candidates"]
-    args = argparse.Namespace(files=[path], json=True, candidates=None, method="tf", prior=None, fov_deg=None)
+    args = parsed(path, "--json", "--method", "tf")
     assert solve.run(args) == 0
     tf_doc = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert tf_doc["tf_candidates"] is None and tf_doc["methods_agree"] is None
     # The Earth: neither method finds a match, so they agree (the bright-pair method keeps a few chance fits
     # for the operator to see, which once read as a disagreement).
-    args = argparse.Namespace(files=[str(sample_dir / "05-earth.json")], json=True, candidates=None, method="both",
-                              prior=None, fov_deg=None)
+    args = parsed(str(sample_dir / "05-earth.json"), "--json", "--method", "both")
     assert solve.run(args) == 0
     earth = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert (earth["status"], earth["tf_status"], earth["methods_agree"]) == ("no_match", "no_match", True)
