@@ -650,7 +650,11 @@ def _rotate_left_one(theta0, theta1, theta2, R):
     E = np.array([[c + b * x * x, b * x * y - a * z, b * x * z + a * y],
                   [b * x * y + a * z, c + b * y * y, b * y * z - a * x],
                   [b * x * z - a * y, b * y * z + a * x, c + b * z * z]])
-    return E @ R
+    out = np.empty((3, 3))
+    for r in range(3):
+        for k in range(3):
+            out[r, k] = E[r, 0] * R[0, k] + E[r, 1] * R[1, k] + E[r, 2] * R[2, k]
+    return out
 
 
 @njit
@@ -710,8 +714,10 @@ def _fit_one_kernel(xy, vectors, inv_sigma, R0, optics0, fitted, prior_mean, pri
         return status, 2, R, optics, chi2, iteration, empty, np.nan
     total = 0.0
     for i in range(xy.shape[0]):
-        v = R @ vectors[i]
-        a, b = v[0] / v[2], v[1] / v[2]
+        v0 = R[0, 0] * vectors[i, 0] + R[0, 1] * vectors[i, 1] + R[0, 2] * vectors[i, 2]
+        v1 = R[1, 0] * vectors[i, 0] + R[1, 1] * vectors[i, 1] + R[1, 2] * vectors[i, 2]
+        v2 = R[2, 0] * vectors[i, 0] + R[2, 1] * vectors[i, 1] + R[2, 2] * vectors[i, 2]
+        a, b = v0 / v2, v1 / v2
         r2 = a * a + b * b
         d = 1.0 + optics[1] * r2 + optics[2] * r2 * r2
         dx, dy = optics[3] + optics[0] * (a * d) - xy[i, 0], optics[4] + optics[0] * (b * d) - xy[i, 1]

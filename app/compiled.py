@@ -90,3 +90,11 @@ def warm_up() -> dict:
         _report = {"seconds": seconds, "compiled": compiled, "loaded": loaded}
         _warmed = True
         return _report
+
+
+def warm_up_in_background() -> threading.Thread:
+    """:func:`warm_up` in a daemon thread, so that a server answers while it compiles (a search that needs
+    the kernels meanwhile waits for them in :func:`warm_up`)."""
+    thread = threading.Thread(target=warm_up, name="compile-kernels", daemon=True)
+    thread.start()
+    return thread

@@ -188,9 +188,12 @@ def refine_many(rotations: np.ndarray, pattern_vectors: np.ndarray, weights: np.
     # Slightly beyond, so that rounding never loses a star at exactly the tolerance.
     bound = float(chord(reach)) * (1 + 1e-9) + 1e-15
     cells = _cells_within(field, reach * (1 + 1e-6))
-    R, star, resid, nearest = _refine_batch_kernel(
-        R, vectors, np.ascontiguousarray(weights, dtype=float), field.vectors, final_tol, start, iterations, bound,
-        cells.kernel_arrays(), SUBSET_MASKS, SUBSET_START)
+    weights = np.ascontiguousarray(weights, dtype=float)
+    star, resid, nearest = np.empty((K, m), dtype=np.int64), np.empty((K, m)), np.empty((K, m))
+    arrays = cells.kernel_arrays()
+    for k in range(K):  # one call each: a batch kernel would double the first run's compilation
+        R[k], star[k], resid[k], nearest[k] = _refine_kernel(R[k], vectors, weights, field.vectors, final_tol, start[k],
+                                                             iterations, bound, arrays, SUBSET_MASKS, SUBSET_START)
     far = np.isnan(nearest)
     if far.any():
         k, i = np.nonzero(far)
@@ -222,6 +225,50 @@ def _cells_within(field: StarField, radius_rad: float) -> NearStarCells:
 # --- the compiled refinement (issue 27) ----------------------------------------------------------------
 
 @njit
+def _det3(A):
+    """Determinant of a 3x3 matrix (only its sign is used: a rotation's +-1)."""
+    return (A[0, 0] * (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1]) - A[0, 1] * (A[1, 0] * A[2, 2] - A[1, 2] * A[2, 0])
+            + A[0, 2] * (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]))
+
+
+@njit
+def _rotation_from_svd(B, sign_from_factors):
+    """Wahba's optimum ``U diag(1, 1, d) V^T`` from the SVD of B: ``d`` is det U det V when
+    ``sign_from_factors``, else the sign of det(U V^T) (:func:`app.attitude.solve_wahba`'s test); the same
+    number either way (both are +-1), two ways of writing it kept from the numpy code."""
+    U, _, Vt = np.linalg.svd(B)
+    R = np.zeros((3, 3))
+    for r in range(3):
+        for c in range(3):
+            R[r, c] = U[r, 0] * Vt[0, c] + U[r, 1] * Vt[1, c] + U[r, 2] * Vt[2, c]
+    d = _det3(U) * _det3(Vt) if sign_from_factors else (-1.0 if _det3(R) < 0 else 1.0)
+    if d < 0:
+        for r in range(3):
+            for c in range(3):
+                R[r, c] -= 2.0 * U[r, 2] * Vt[2, c]
+    return R
+
+
+@njit
+def _lower_quartile(x):
+    """``np.quantile(x, 0.25)`` (linear interpolation, numpy's formula) of a short array."""
+    v = x.copy()
+    for i in range(1, v.shape[0]):  # insertion sort: a dozen values
+        key, j = v[i], i - 1
+        while j >= 0 and v[j] > key:
+            v[j + 1] = v[j]
+            j -= 1
+        v[j + 1] = key
+    position = 0.25 * (v.shape[0] - 1)
+    lo = int(np.floor(position))
+    t = position - lo
+    if lo + 1 >= v.shape[0]:
+        return v[lo]
+    a, b = v[lo], v[lo + 1]
+    return b - (b - a) * (1 - t) if t >= 0.5 else a + (b - a) * t
+
+
+@njit
 def _wahba_kernel(body, ref, w):
     """Wahba's rotation of ``body`` (n, 3) onto ``ref`` with weights ``w`` (:func:`app.attitude.solve_wahba`)."""
     B = np.zeros((3, 3))
@@ -229,13 +276,7 @@ def _wahba_kernel(body, ref, w):
         for r in range(3):
             for c in range(3):
                 B[r, c] += (body[i, r] * w[i]) * ref[i, c]
-    U, _, Vt = np.linalg.svd(B)
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        for r in range(3):
-            for c in range(3):
-                R[r, c] -= 2.0 * U[r, 2] * Vt[2, c]
-    return R
+    return _rotation_from_svd(B, False)
 
 
 @njit
@@ -304,10 +345,7 @@ def _consensus_kernel(body, ref, w, subsets):
                 for r in range(3):
                     for c in range(3):
                         B[r, c] += (w[i] * body[i, r]) * ref[i, c]
-        U, _, Vt = np.linalg.svd(B)
-        D = np.eye(3)
-        D[2, 2] = np.linalg.det(U) * np.linalg.det(Vt)
-        R = U @ D @ Vt
+        R = _rotation_from_svd(B, True)
         count, chi2 = 0, 0.0
         for i in range(n):
             resid = _residual_angle(body[i], R, ref[i])
@@ -337,12 +375,35 @@ def _loo_kernel(body, ref, w):
         for r in range(3):
             for c in range(3):
                 Bi[r, c] -= (w[i] * body[i, r]) * ref[i, c]
-        U, _, Vt = np.linalg.svd(Bi)
-        D = np.eye(3)
-        D[2, 2] = np.linalg.det(U) * np.linalg.det(Vt)
-        R = U @ D @ Vt
-        out[i] = _residual_angle(body[i], R, ref[i])
+        out[i] = _residual_angle(body[i], _rotation_from_svd(Bi, True), ref[i])
     return out
+
+
+@njit
+def _count(star):
+    """How many points matched a star (star >= 0)."""
+    n = 0
+    for i in range(star.shape[0]):
+        n += star[i] >= 0
+    return n
+
+
+@njit
+def _gather(pattern_vectors, star_vectors, weights, star, use):
+    """(body, ref, w) of the points where ``use``: their directions, their stars' and their weights."""
+    n = 0
+    for i in range(use.shape[0]):
+        n += use[i]
+    body, ref, w = np.empty((n, 3)), np.empty((n, 3)), np.empty(n)
+    k = 0
+    for i in range(use.shape[0]):
+        if use[i]:
+            for c in range(3):
+                body[k, c] = pattern_vectors[i, c]
+                ref[k, c] = star_vectors[star[i], c]
+            w[k] = weights[i]
+            k += 1
+    return body, ref, w
 
 
 @njit
@@ -350,12 +411,13 @@ def _refine_kernel(R0, pattern_vectors, weights, star_vectors, final_tol, start,
                    subset_masks, subset_start):
     """One hypothesis's :func:`refine` (see there), every look-up within chord ``bound`` (>= the largest
     tolerance used, within the cell map's radius): (rotation, star_of_point, residual, nearest angle, nan
-    where no star lies within ``bound``)."""
+    where no star lies within ``bound``).  Plain loops: numba compiles them several times faster than array
+    expressions (the first run's compilation)."""
     m = pattern_vectors.shape[0]
     R = R0.copy()
-    fitted = np.full(m, -1, dtype=np.int64)
-    star = np.full(m, -1, dtype=np.int64)
-    resid = np.full(m, np.nan)
+    fitted = -np.ones(m, dtype=np.int64)
+    star = -np.ones(m, dtype=np.int64)
+    resid = np.nan * np.ones(m)
     have_final = False
     tol = np.empty(m)
     for it in range(iterations):
@@ -364,95 +426,81 @@ def _refine_kernel(R0, pattern_vectors, weights, star_vectors, final_tol, start,
             tol[i] = max(final_tol[i], start * (1 - f) + final_tol[i] * f)
         ang, idx = _look_up(R, pattern_vectors, bound, star_vectors, cells)
         s, _ = _assign_kernel(ang, idx, tol)
-        go = np.sum(s >= 0) >= 2
-        if it > 0 and go and np.all(s == fitted):
-            # Converged: refitting gives the same R, and once the final tolerance keeps these matches
-            # too, so does every tolerance between.
-            f_star, f_resid = _assign_kernel(ang, idx, final_tol)
-            if np.all(f_star == s):
-                star, resid, have_final = f_star, f_resid, True
-                go = False
+        go = _count(s) >= 2
+        if it > 0 and go:
+            same = True
+            for i in range(m):
+                same = same and s[i] == fitted[i]
+            if same:
+                # Converged: refitting gives the same R, and once the final tolerance keeps these matches
+                # too, so does every tolerance between.
+                f_star, f_resid = _assign_kernel(ang, idx, final_tol)
+                kept = True
+                for i in range(m):
+                    kept = kept and f_star[i] == s[i]
+                if kept:
+                    star, resid, have_final = f_star, f_resid, True
+                    go = False
         if not go:
             break
-        use = s >= 0
-        ref = np.empty((m, 3))
-        w = np.zeros(m)
-        for i in range(m):
-            if use[i]:
-                ref[i] = star_vectors[s[i]]
-                w[i] = weights[i]
-            else:
-                ref[i] = star_vectors[star_vectors.shape[0] - 1]  # weight 0: left out, as numpy's s = -1
-        R = _wahba_kernel(pattern_vectors, ref, w)
+        body, ref, w = _gather(pattern_vectors, star_vectors, weights, s, s >= 0)
+        R = _wahba_kernel(body, ref, w)
         fitted = s
     nearest, idx = _look_up(R, pattern_vectors, bound, star_vectors, cells)
     if not have_final:
         star, resid = _assign_kernel(nearest, idx, final_tol)
-    sigma = 1.0 / np.sqrt(weights)
-    if m >= 3 and np.sum(star >= 0) <= SMALL_SET:
+    if m >= 3 and _count(star) <= SMALL_SET:
         # Few points: the largest subset that fits within the noise, among those near a star.
         near, _ = _assign_kernel(nearest, idx, 2 * final_tol)
-        cols = np.flatnonzero(near >= 0)
-        n = cols.shape[0]
+        n = _count(near)
         if 3 <= n <= SMALL_SET:
-            body = pattern_vectors[cols]
-            ref = star_vectors[near[cols]]
-            w = weights[cols]
-            if n == 3:
-                agree = np.ones(3, dtype=np.bool_)
-            else:
-                agree = _consensus_kernel(body, ref, w, subset_masks[subset_start[n]:subset_start[n + 1], :n])
-            R = _wahba_kernel(body, ref, np.where(agree, w, 0.0))
-            rejected = np.zeros(m, dtype=np.bool_)
+            body, ref, w = _gather(pattern_vectors, star_vectors, weights, near, near >= 0)
+            agree = np.ones(n, dtype=np.bool_)
+            if n > 3:
+                agree = _consensus_kernel(body, ref, w, subset_masks[subset_start[n]:subset_start[n + 1]])
             for k in range(n):
-                rejected[cols[k]] = not agree[k]
+                if not agree[k]:
+                    w[k] = 0.0
+            R = _wahba_kernel(body, ref, w)
             nearest, idx = _look_up(R, pattern_vectors, bound, star_vectors, cells)
             fresh, f_resid = _assign_kernel(nearest, idx, final_tol)
+            k = 0
             for i in range(m):
-                star[i] = fresh[i] if (not rejected[i] and fresh[i] >= 0) else -1
+                keep = True
+                if near[i] >= 0:
+                    keep = agree[k]
+                    k += 1
+                star[i] = fresh[i] if (keep and fresh[i] >= 0) else -1
                 resid[i] = f_resid[i] if star[i] >= 0 else np.nan
-    if np.sum(star >= 0) > SMALL_SET:
+    if _count(star) > SMALL_SET:
         # Judge each point by the fit of the others: an outlier cannot hide by pulling the fit.
-        s = star.copy()
+        sigma = 1.0 / np.sqrt(weights)
         for _ in range(max(1, m // 3)):
-            ok = np.flatnonzero(s >= 0)
-            if ok.shape[0] <= SMALL_SET:
+            n = _count(star)
+            if n <= SMALL_SET:
                 break
-            loo = _loo_kernel(pattern_vectors[ok], star_vectors[s[ok]], weights[ok])
+            body, ref, w = _gather(pattern_vectors, star_vectors, weights, star, star >= 0)
+            loo = _loo_kernel(body, ref, w)
             # The lower quartile: outliers pull the fit, inflating the others' residuals and the median.
-            robust = np.quantile(loo, 0.25) / RAYLEIGH_QUARTILE
-            worst, worst_ratio = 0, -np.inf
-            for k in range(ok.shape[0]):
-                ratio = loo[k] / max(sigma[ok[k]], robust)
-                if ratio > worst_ratio:
-                    worst, worst_ratio = k, ratio
-            if loo[worst] <= FINAL_REJECT_SIGMAS * max(sigma[ok[worst]], robust):
+            robust = _lower_quartile(loo) / RAYLEIGH_QUARTILE
+            worst, worst_point, worst_ratio, k = 0, 0, -np.inf, 0
+            for i in range(m):
+                if star[i] >= 0:
+                    ratio = loo[k] / max(sigma[i], robust)
+                    if ratio > worst_ratio:
+                        worst, worst_point, worst_ratio = k, i, ratio
+                    k += 1
+            if loo[worst] <= FINAL_REJECT_SIGMAS * max(sigma[worst_point], robust):
                 break
-            s = s.copy()
-            s[ok[worst]] = -1
-            keep = np.flatnonzero(s >= 0)
-            R = _wahba_kernel(pattern_vectors[keep], star_vectors[s[keep]], weights[keep])
+            star = star.copy()
+            star[worst_point] = -1
+            body, ref, w = _gather(pattern_vectors, star_vectors, weights, star, star >= 0)
+            R = _wahba_kernel(body, ref, w)
             nearest, idx = _look_up(R, pattern_vectors, bound, star_vectors, cells)
             fresh, f_resid = _assign_kernel(nearest, idx, final_tol)
             for i in range(m):
-                s[i] = fresh[i] if (s[i] >= 0 and fresh[i] >= 0) else -1  # a rejected point stays out
-                resid[i] = f_resid[i] if s[i] >= 0 else np.nan
-        star = s
-    return R, star, resid, nearest
-
-
-@njit
-def _refine_batch_kernel(rotations, pattern_vectors, weights, star_vectors, final_tol, start, iterations, bound,
-                         cells, subset_masks, subset_start):
-    K, m = rotations.shape[0], pattern_vectors.shape[0]
-    R = np.empty((K, 3, 3))
-    star = np.empty((K, m), dtype=np.int64)
-    resid = np.empty((K, m))
-    nearest = np.empty((K, m))
-    for k in range(K):
-        R[k], star[k], resid[k], nearest[k] = _refine_kernel(rotations[k], pattern_vectors, weights, star_vectors,
-                                                             final_tol, start[k], iterations, bound, cells,
-                                                             subset_masks, subset_start)
+                star[i] = fresh[i] if (star[i] >= 0 and fresh[i] >= 0) else -1  # a rejected point stays out
+                resid[i] = f_resid[i] if star[i] >= 0 else np.nan
     return R, star, resid, nearest
 
 

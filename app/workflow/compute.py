@@ -179,7 +179,10 @@ def _worker_main(conn, server_pid: int, load_sky: bool, niceness: int) -> None:
     if load_sky:
         from app.identification import Sky
 
+        from app.compiled import warm_up_in_background
+
         sky = Sky()
+        warm_up_in_background()  # the identification's compiled kernels: loaded (or, a first run, compiled)
     worker_context = WorkerContext(sky=sky)
     conn.send(("ready",))
     while True:

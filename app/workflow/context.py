@@ -122,7 +122,11 @@ def build_context(*, database: str | None = None, host: str = "127.0.0.1",
             sky = Sky()
             log.info("catalogue ready: %d stars to Hp %.1f, %d bright pairs", sky.index.n_stars,
                      sky.index.mag_limit, sky.index.n_pairs)
-            if config.search_processes:
+            if not config.search_processes:
+                from app.compiled import warm_up_in_background
+
+                warm_up_in_background()  # the searches run here: their compiled kernels, while the server answers
+            else:
                 # After the Sky: on a first start it built the index cache the workers now load.
                 compute = ComputePool(config.search_workers, bulk_processes=config.bulk_workers,
                                       hard_limit_s=3 * config.search_timeout_s)
