@@ -336,3 +336,40 @@ def test_the_compiled_refinement_on_random_skies_and_patterns():
         _same(kernel, reference)
         compared += 5
     assert compared >= 200
+
+
+def numpy_rotation_from_pair(b1, b2, r1, r2):
+    """The numpy construction :func:`app.attitude.rotation_from_pair` compiled (before issue 27)."""
+    def triad(u, v):
+        n = np.cross(u, v)
+        n = n / np.linalg.norm(n, axis=-1, keepdims=True)
+        return np.stack([u, n, np.cross(n, u)], axis=-1)  # columns u, n, w
+
+    return triad(b1, b2) @ np.swapaxes(triad(r1, r2), -1, -2)
+
+
+def test_the_compiled_rotation_from_pair_is_the_numpy_triads():
+    """Random pairs (a pattern edge against thousands of catalogue pairs, as the hypotheses use it, and stacks
+    of both): the same rotations to rounding, proper, mapping r1 onto b1 and r2 into the plane of b1, b2."""
+    from app.attitude import rotation_from_pair
+
+    rng = np.random.default_rng(5)
+
+    def unit(*shape):
+        v = rng.normal(size=shape + (3,))
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+    b1, b2 = unit(), unit()
+    r1, r2 = unit(2000), unit(2000)
+    for args in ((b1, b2, r1, r2), (unit(300), unit(300), unit(300), unit(300)), (b1, b2, r1[0], r2[0])):
+        got = rotation_from_pair(*args)
+        want = numpy_rotation_from_pair(*(np.broadcast_to(a, np.broadcast_shapes(*(x.shape for x in args)))
+                                          for a in args))
+        assert got.shape == want.shape
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-14)
+    R = rotation_from_pair(b1, b2, r1, r2)
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", R, r1), np.broadcast_to(b1, r1.shape), atol=1e-14)
+    normal = np.cross(b1, b2)
+    assert np.abs(np.einsum("nij,nj->ni", R, np.cross(r1, r2)) @ normal
+                  - np.linalg.norm(np.cross(r1, r2), axis=1) * np.linalg.norm(normal)).max() < 1e-12
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-13)

@@ -102,6 +102,7 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
 
     settled_at = None
     tried_before_focal_search = None
+    focal_search_stopped = False
     contradiction = None  # the bright triangles fit a focal length outside the declared tolerance
     looked_wide = False
 
@@ -172,6 +173,7 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
             if tried_before_focal_search is None:
                 tried_before_focal_search = search.n_tried
             if search.n_tried - tried_before_focal_search > options.focal_search_max_hypotheses:
+                focal_search_stopped = True
                 continue
         p = at(f)
         if search.run(p, max_features):
@@ -201,6 +203,9 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     features = f"{search.used} pattern feature{'s' * (search.used != 1)}"
     if no_feature:
         notes.append(no_feature)
+    if focal_search_stopped:
+        notes.append(f"the search of other focal lengths stopped after {options.focal_search_max_hypotheses:,} "
+                     "hypotheses: a field of stars seen at a wrong focal length is found within them")
     if search.n_tried - search.n_before > options.max_hypotheses:
         notes.append(f"the search stopped at its bound of {options.max_hypotheses:,} hypotheses "
                      "(SearchOptions.max_hypotheses)")

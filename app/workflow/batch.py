@@ -121,9 +121,11 @@ def worker_sky():
     global _SKY
     with _LOCK:
         if _SKY is None:
+            from app.compiled import warm_up
             from app.identification import Sky
 
             _SKY = Sky()
+            warm_up()  # the identification's compiled kernels (loaded from their cache), before any task
         return _SKY
 
 
