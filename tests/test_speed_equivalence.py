@@ -43,10 +43,6 @@ import pytest
 FIXTURE = Path(__file__).parent / "data" / "identification_equivalence.json"
 SETTLED_SOONER_BY_THE_BRIGHT_TRIANGLES = {"optics/0", "optics/1",  # focal length 3 % off
                                           "liebe-576x604-30deg/single/1", "narrow-1024x1024-12deg/single/2"}
-#: Random points (issue 27): the search of other focal lengths stops after
-#: SearchOptions.focal_search_max_hypotheses (30,000, 200,000 before), so these try fewer hypotheses and say
-#: so in a note; the status stays no_match.
-STOPPED_SOONER_BY_THE_FOCAL_SEARCH_BOUND = {"random/0", "random/3"}
 
 
 def _pattern(case: dict) -> SimpleNamespace:
@@ -115,12 +111,6 @@ def test_identification_answers_as_before_the_speed_work(cases, sky):
         name = case["name"]
         if name in SETTLED_SOONER_BY_THE_BRIGHT_TRIANGLES:
             differences += _best_answer_differences(name, now, before)
-            continue
-        if name in STOPPED_SOONER_BY_THE_FOCAL_SEARCH_BOUND:
-            if not (now["status"] == before["status"] == "no_match"
-                    and _hypotheses_tried(now["notes"]) < _hypotheses_tried(before["notes"])
-                    and any("stopped after 30,000 hypotheses" in n for n in now["notes"])):
-                differences.append(f"{name}: {before['status']} {before['notes']} -> {now['status']} {now['notes']}")
             continue
         if now["status"] != before["status"] or now["notes"] != before["notes"]:
             differences.append(f"{name}: {before['status']} {before['notes']} -> {now['status']} {now['notes']}")

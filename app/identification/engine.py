@@ -205,7 +205,7 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
         notes.append(no_feature)
     if focal_search_stopped:
         notes.append(f"the search of other focal lengths stopped after {options.focal_search_max_hypotheses:,} "
-                     "hypotheses: a field of stars seen at a wrong focal length is found within them")
+                     "hypotheses: a field of stars seen at a wrong focal length is usually found long before")
     if search.n_tried - search.n_before > options.max_hypotheses:
         notes.append(f"the search stopped at its bound of {options.max_hypotheses:,} hypotheses "
                      "(SearchOptions.max_hypotheses)")
