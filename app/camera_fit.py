@@ -545,17 +545,24 @@ _FIT_FAILURES = {
 
 
 @njit
+def _star_in_camera(R, vectors, i):
+    """(a, b, v_z) of star ``i``: ``v = R s``, its gnomonic coordinates ``v_x / v_z``, ``v_y / v_z`` (module
+    docstring) and its depth (at most 0: behind the camera)."""
+    vx = R[0, 0] * vectors[i, 0] + R[0, 1] * vectors[i, 1] + R[0, 2] * vectors[i, 2]
+    vy = R[1, 0] * vectors[i, 0] + R[1, 1] * vectors[i, 1] + R[1, 2] * vectors[i, 2]
+    vz = R[2, 0] * vectors[i, 0] + R[2, 1] * vectors[i, 1] + R[2, 2] * vectors[i, 2]
+    return vx / vz, vy / vz, vz
+
+
+@njit
 def _fit_chi2(xy, vectors, inv_sigma, R, optics, fitted, prior_mean, prior_precision):
     """chi2 of one snapshot (data and priors), inf when a star is behind the camera (:func:`_chi2`)."""
     f, k1, k2, cx, cy = optics[0], optics[1], optics[2], optics[3], optics[4]
     total = 0.0
     for i in range(xy.shape[0]):
-        vx = R[0, 0] * vectors[i, 0] + R[0, 1] * vectors[i, 1] + R[0, 2] * vectors[i, 2]
-        vy = R[1, 0] * vectors[i, 0] + R[1, 1] * vectors[i, 1] + R[1, 2] * vectors[i, 2]
-        vz = R[2, 0] * vectors[i, 0] + R[2, 1] * vectors[i, 1] + R[2, 2] * vectors[i, 2]
+        a, b, vz = _star_in_camera(R, vectors, i)
         if vz <= 1e-6:
             return np.inf
-        a, b = vx / vz, vy / vz
         r2 = a * a + b * b
         d = 1.0 + k1 * r2 + k2 * r2 * r2
         ex = (cx + f * (a * d) - xy[i, 0]) * inv_sigma
@@ -576,10 +583,7 @@ def _fit_normal(xy, vectors, inv_sigma, R, optics, fitted, prior_mean, prior_pre
     g = np.zeros(q)
     J = np.empty((2, q))
     for i in range(xy.shape[0]):
-        vx = R[0, 0] * vectors[i, 0] + R[0, 1] * vectors[i, 1] + R[0, 2] * vectors[i, 2]
-        vy = R[1, 0] * vectors[i, 0] + R[1, 1] * vectors[i, 1] + R[1, 2] * vectors[i, 2]
-        vz = R[2, 0] * vectors[i, 0] + R[2, 1] * vectors[i, 1] + R[2, 2] * vectors[i, 2]
-        a, b = vx / vz, vy / vz
+        a, b, _ = _star_in_camera(R, vectors, i)
         r2 = a * a + b * b
         d = 1.0 + k1 * r2 + k2 * r2 * r2
         dp = k1 + 2.0 * k2 * r2
@@ -714,10 +718,7 @@ def _fit_one_kernel(xy, vectors, inv_sigma, R0, optics0, fitted, prior_mean, pri
         return status, 2, R, optics, chi2, iteration, empty, np.nan
     total = 0.0
     for i in range(xy.shape[0]):
-        v0 = R[0, 0] * vectors[i, 0] + R[0, 1] * vectors[i, 1] + R[0, 2] * vectors[i, 2]
-        v1 = R[1, 0] * vectors[i, 0] + R[1, 1] * vectors[i, 1] + R[1, 2] * vectors[i, 2]
-        v2 = R[2, 0] * vectors[i, 0] + R[2, 1] * vectors[i, 1] + R[2, 2] * vectors[i, 2]
-        a, b = v0 / v2, v1 / v2
+        a, b, _ = _star_in_camera(R, vectors, i)
         r2 = a * a + b * b
         d = 1.0 + optics[1] * r2 + optics[2] * r2 * r2
         dx, dy = optics[3] + optics[0] * (a * d) - xy[i, 0], optics[4] + optics[0] * (b * d) - xy[i, 1]
