@@ -36,4 +36,7 @@ if ! ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1; then
 fi
 
 mkdir -p test-artifacts
+# numba's kernels compiled once into their on-disk cache before the tests (app/compiled.py): every server and
+# worker process the tests start then loads them, instead of each compiling its own under a request's time-out.
+.venv/bin/python -c "import app.identification; from app.compiled import warm_up; warm_up()"
 exec .venv/bin/python -m pytest "$@"
