@@ -143,11 +143,11 @@ def test_no_optics_is_stored_with_the_field_of_view_unknown_and_not_multipart_is
 
 def test_work_is_bounded_in_pixels_and_time(api, rendered, monkeypatch):
     frames, times, _ = rendered
-    monkeypatch.setenv("STARID_FRAMES_MAX_PIXELS", "100000")
+    monkeypatch.setenv("STARID_FRAMES_MAX_DECODED_PIXELS", "100000")  # over the detection budget: binned
     r = api.post("/api/frames", **_fits_upload(frames, times, sequence_id="too-big"))
     assert r.status_code == 422 and r.json()["problems"][0]["location"] == "pass.fits[1]"
     assert "at most 100000" in r.json()["problems"][0]["message"]
-    monkeypatch.delenv("STARID_FRAMES_MAX_PIXELS")
+    monkeypatch.delenv("STARID_FRAMES_MAX_DECODED_PIXELS")
     monkeypatch.setenv("STARID_FRAMES_TIMEOUT_S", "0")
     r = api.post("/api/frames", **_fits_upload(frames, times, sequence_id="too-slow"))
     assert r.status_code == 503 and ("longer than 0 s" in r.json()["detail"] or "time-out" in r.json()["detail"])

@@ -7,7 +7,10 @@ brightest stars of each frame, orders the frames by time and writes the result a
 `tubsat-snapshots/1` document, which :func:`app.telemetry.parse_telemetry` validates like any
 upload.  The document carries a top-level ``frames`` block (kept by the format as an unknown
 top-level key): the frames' content hash, the detector and its options, and per frame its file,
-hash, size, noise, what was detected and what was rejected and why.
+hash, size, noise, what was detected and what was rejected and why.  A frame larger than the
+detection budget is searched as the means of ``binned`` x ``binned`` blocks (:mod:`app.frames.binning`,
+read so by :mod:`app.frames.images`); its detections are brought back to the image's own pixels at
+once, and the frames block records ``binned`` per frame and a note.
 
 Times, first found (:mod:`app.frames.times`): the caller's (one frame), the sidecar's
 (``tubsat-frames/1``, docs/formats.md), the FITS headers' (DATE-AVG, DATE-OBS + EXPTIME/2, MJD-OBS)
@@ -33,7 +36,8 @@ from datetime import datetime
 import numpy as np
 
 from app.camera import CAMERAS
-from app.frames.detect import REJECTING_FLAGS, DetectionError, DetectionOptions, Detections, detect
+from app.frames.binning import detect_on_blocks
+from app.frames.detect import REJECTING_FLAGS, DetectionError, DetectionOptions, Detections
 from app.frames.hotpixels import HotPixelMap, near_hot_pixel, stationary_candidates
 from app.frames.images import Frame, FrameLimits, file_sha256, read_frames
 from app.frames.times import assumed_times, mixed_times_error
@@ -200,6 +204,8 @@ class _Measured:
     bits: int
     detections: Detections
     sha256: str
+    #: The side of the blocks detection searched (1: the image's own pixels; app.frames.binning).
+    binned: int = 1
 
 
 def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | None = None,
@@ -277,12 +283,14 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
             listed = sidecar.times.get((short, frame.part), sidecar.times.get((short, None)))
             found_times = [(caller_time, "caller"), (listed, "sidecar"), (frame.time, "file")]
             when, time_from = next(((t, source) for t, source in found_times if t is not None), (None, "assumed"))
-            try:
-                found = detect(frame.pixels, options, saturation=frame.saturation, hot_pixels=prior_hot)
+            try:  # a frame over the detection budget is searched as block means; found in its own pixels
+                found = detect_on_blocks(frame.detection_pixels, frame.binned, options,
+                                         integer_values=frame.integer_values, saturation=frame.saturation,
+                                         hot_pixels=prior_hot)
             except DetectionError as exc:
                 raise TelemetryError.at(frame.location, str(exc)) from None
             measured.append(_Measured(frame.location, short, frame.part, when, time_from, frame.width,
-                                      frame.height, frame.bits, found, digest))
+                                      frame.height, frame.bits, found, digest, binned=frame.binned))
             if frame.meta.get("time_note") and time_from == "file":
                 zone_notes.append(frame.meta["time_note"])
     if deadline is not None and time.monotonic() > deadline:
@@ -327,12 +335,14 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
             if reasons and len(rejected) < MAX_REJECTED_LISTED:
                 rejected.append([round(float(d.xy[k, 0]), 2), round(float(d.xy[k, 1]), 2), "+".join(reasons)])
         reports.append({"file": m.file, "part": m.part, "sha256": m.sha256, "time_from": m.time_from,
-                        "width": m.width, "height": m.height,
+                        "width": m.width, "height": m.height, **({"binned": m.binned} if m.binned > 1 else {}),
                         "bits": m.bits, "background": round(d.background, 3), "noise": round(d.noise, 4),
                         "detected": len(d), "kept": len(kept),
                         "saturated_kept": int(sum("saturated" in d.flags[k] for k in kept)),
                         "rejected": rejected})
     frames_sha = frames_content_sha256(sorted({m.sha256 for m in measured}))
+    binned = [m for m in measured if m.binned > 1]  # one pass, one size: all frames or none
+    notes = ([binning_note(binned[0], len(binned), limits.max_pixels_per_frame)] if binned else []) + zone_notes
     import sep
 
     doc = {
@@ -346,7 +356,7 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
                    "options": options.to_dict(), "optics_from": optics_from,
                    "hot_pixel_map": {"version": start_map.version, "hot_pixels": len(hot),
                                      "frames_counted": updated.frames},
-                   "frames": reports, **({"notes": zone_notes} if zone_notes else {})},
+                   "frames": reports, **({"notes": notes} if notes else {})},
     }
     if doc["spacecraft"] is None:
         del doc["spacecraft"]
@@ -361,6 +371,21 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
         raise _relocated(exc, camera_from_sidecar=isinstance(sidecar.camera, (dict, str))) from None
     return FramePass(sequence=sequence, raw_text=dump_json(sequence), hot_map=updated,
                      detections=[m.detections for m in measured], frames_sha256=frames_sha, candidates=candidates)
+
+
+def binning_note(first: _Measured, count: int, budget: int) -> str:
+    """What the frames block says of a pass searched as block means: ``count`` frames of one size,
+    ``first`` of them."""
+    width, height, b = first.width, first.height, first.binned
+    where = first.frame_location + (f" and the {count - 1} other frame(s)" if count > 1 else "")
+    note = (f"{where}: {width} x {height} pixels, more than the {budget} searched per frame "
+            f"(STARID_FRAMES_MAX_PIXELS): searched as the means of {b} x {b} blocks ({width // b} x {height // b}); "
+            "positions are in the image's own pixels")
+    cols, rows = width % b, height % b
+    if cols or rows:
+        note += (f"; its last {cols} column(s) and {rows} row(s) on the right and at the bottom, less than a "
+                 "block, were not searched")
+    return note
 
 
 def _sequence_id(text: str) -> str:

@@ -26,6 +26,19 @@ formats, already installed with this project (viser -> imageio -> Pillow),
 reads 16-bit greyscale PNG and TIFF natively (modes ``I;16``), and gives the
 image size from the header before decoding, so oversized frames are refused
 before any pixel is decoded (its own decompression-bomb guard stays on).
+
+Large frames (photographs of 20-120 Mpx): a frame with more pixels than the
+detection budget (:attr:`FrameLimits.max_pixels_per_frame`, 16 Mpx) is read
+as the means of ``b`` x ``b`` blocks of its luminance, ``b`` the smallest
+integer that brings its full blocks within the budget
+(:mod:`app.frames.binning`); only a frame beyond
+:attr:`FrameLimits.max_decoded_pixels_per_frame` (120 Mpx) is refused, from its
+header.  The blocks are summed from the decoded 8- or 16-bit data a strip of
+rows at a time (:func:`_by_strips`), so the whole frame never exists as
+float32 (480 MB at 120 Mpx), nor as luminance beside its colour; a colour JPEG
+is decoded straight to its luminance (JPEG stores it: its Y channel, the same
+ITU-R 601 weights as Pillow's RGB -> L, equal to within 2 levels on sky
+photographs), so no 32-bit RGB image of it is made either.
 """
 
 from __future__ import annotations
@@ -44,10 +57,13 @@ import numpy as np
 
 from app.config import MAX_SNAPSHOTS
 from app.filenames import FITS_SUFFIXES, IMAGE_SUFFIXES
+from app.frames.binning import binning_factor, block_mean
 from app.frames.times import exif_time
 from app.telemetry.errors import TelemetryError
 
 _FITS_MAGIC = b"SIMPLE  ="
+#: Pixels of a PNG, JPEG or TIFF turned into greyscale values at a time (:func:`_by_strips`).
+STRIP_PIXELS = 2_000_000
 _GZIP_MAGIC = b"\x1f\x8b"
 
 
@@ -69,11 +85,21 @@ def _env_float(name: str, default: float) -> float:
 class FrameLimits:
     """Bounds on the work one pass of frames may cause (environment variables in brackets)."""
 
-    #: Pixels of one frame (STARID_FRAMES_MAX_PIXELS; 16 Mpx: a 4k x 4k sensor).
+    #: Pixels detection works on in one frame (STARID_FRAMES_MAX_PIXELS; 16 Mpx: a 4k x 4k sensor); a
+    #: larger frame is binned to fit (:mod:`app.frames.binning`).
     max_pixels_per_frame: int = field(default_factory=lambda: _env_int("STARID_FRAMES_MAX_PIXELS", 16_000_000))
+    #: Pixels of one frame that are decoded at all (STARID_FRAMES_MAX_DECODED_PIXELS; 120 Mpx): what
+    #: bounds the memory of reading a frame.  120 Mpx holds the largest photographs users have (108 Mpx
+    #: phones, 12000 x 9000; 102 Mpx medium format, 11648 x 8736).  Reading a 48 Mpx frame (8000 x 6000,
+    #: binned 2 x 2) took, over its file's bytes, 101 MB as a colour JPEG, 154 MB as a 16-bit greyscale PNG
+    #: and 245 MB as a colour PNG (Pillow holds RGB in 4 bytes a pixel): at 120 Mpx (binned 3 x 3) about
+    #: 0.2, 0.3 and 0.55 GB, against 0.48 GB for its float32 pixels alone.  A larger frame is refused from
+    #: its header, before any pixel is decoded (Pillow's own guard refuses 179 Mpx and more at opening).
+    max_decoded_pixels_per_frame: int = field(
+        default_factory=lambda: _env_int("STARID_FRAMES_MAX_DECODED_PIXELS", 120_000_000))
     #: Frames of one pass: a sequence holds at most as many snapshots.
     max_frames: int = MAX_SNAPSHOTS
-    #: Pixels of all frames of one pass (STARID_FRAMES_MAX_TOTAL_PIXELS).
+    #: Pixels of all frames of one pass, as stored (STARID_FRAMES_MAX_TOTAL_PIXELS): decoding is the work.
     max_total_pixels: int = field(
         default_factory=lambda: _env_int("STARID_FRAMES_MAX_TOTAL_PIXELS", 128_000_000))
     #: Bytes of all files of one upload (STARID_FRAMES_MAX_BYTES; 128 MiB).
@@ -84,7 +110,14 @@ class FrameLimits:
 
 @dataclass(frozen=True, eq=False)
 class Frame:
-    """One image: pixels (float32, row 0 on top) and what its file says about it."""
+    """One image: pixels (float32, row 0 on top) and what its file says about it.
+
+    ``pixels`` are the stored image's own (``binned`` 1) or, for a frame larger than the detection
+    budget, the means of its ``binned`` x ``binned`` blocks, ``ceil(height / binned)`` x
+    ``ceil(width / binned)`` (the last row and column of blocks over the pixels the image has there:
+    what a preview shows); :attr:`detection_pixels` are the full blocks only.  ``width`` and
+    ``height`` are always the stored image's.
+    """
 
     pixels: np.ndarray
     #: Where it came from, for messages: ``a.png``, ``pass.fits[2]``, ``scan.tiff[page 1]``.
@@ -101,14 +134,28 @@ class Frame:
     bits: int
     #: What the header says about the optics and the pass (focal_length_px, spacecraft, sequence_id...).
     meta: dict = field(default_factory=dict)
+    #: Side of the blocks ``pixels`` are the means of (1: the image's own pixels).
+    binned: int = 1
+    #: (width, height) of the stored image; None: the pixels' own (an unbinned frame).
+    stored_size: tuple[int, int] | None = None
+    #: The stored values are integers (8-, 16-, 32-bit images, FITS integers unscaled): the detection of
+    #: block means follows their quantisation (:func:`app.frames.binning.detect_on_blocks`).
+    integer_values: bool = False
 
     @property
     def width(self) -> int:
-        return int(self.pixels.shape[1])
+        return int(self.stored_size[0] if self.stored_size else self.pixels.shape[1])
 
     @property
     def height(self) -> int:
-        return int(self.pixels.shape[0])
+        return int(self.stored_size[1] if self.stored_size else self.pixels.shape[0])
+
+    @property
+    def detection_pixels(self) -> np.ndarray:
+        """What detection searches: the full blocks (the last ``width mod binned`` columns and ``height mod
+        binned`` rows, less than a block, are left out; all of ``pixels`` when unbinned)."""
+        b = self.binned
+        return self.pixels if b == 1 else self.pixels[: self.height // b, : self.width // b]
 
 
 def looks_like_image(name: str, head: bytes = b"") -> bool:
@@ -177,27 +224,29 @@ def _fits_frames(raw: bytes, name: str, limits: FrameLimits) -> Iterator[Frame]:
                     raise TelemetryError.at(location, f"{naxis}-D image (NAXIS = {naxis}, sizes {shape}); "
                                                       "a frame is 2-D")
                 width, height = shape[0], shape[1]
-                _check_size(width, height, location, limits)
+                binned = _binning(width, height, location, limits)
                 found += 1
                 if found > limits.max_frames:
                     raise TelemetryError.at(name, f"more than {limits.max_frames} frames in one file")
                 try:
                     with warnings.catch_warnings():
                         warnings.simplefilter("ignore")
-                        pixels = np.asarray(hdu.data, dtype=np.float32).reshape(height, width)
+                        values = np.asarray(hdu.data).reshape(height, width)
                 except Exception as exc:  # noqa: BLE001 - truncated data, bad BSCALE...
                     raise TelemetryError.at(location, f"the image data cannot be read ({_reason(exc)})") from None
                 merged = {**primary, **{key: header[key] for key in header if key}}
                 order = str(merged.get("ROWORDER", "TOP-DOWN")).strip().upper()
                 if order == "BOTTOM-UP":
-                    pixels = np.ascontiguousarray(pixels[::-1])
+                    values = values[::-1]
                 elif order != "TOP-DOWN":
                     raise TelemetryError.at(location, f"ROWORDER = {order!r}; expected 'TOP-DOWN' or 'BOTTOM-UP'")
-                pixels = _finite(pixels, location)
+                pixels, integer_values = _frame_pixels(values, binned, location), values.dtype.kind in "iub"
+                del values
                 bits = int(header.get("BITPIX", -32))
                 yield Frame(pixels=pixels, location=location, file=name, part=index,
                             time=_fits_time(merged, location), saturation=_fits_saturation(merged, bits),
-                            bits=bits, meta=_fits_meta(merged, location))
+                            bits=bits, meta=_fits_meta(merged, location), binned=binned,
+                            stored_size=(width, height), integer_values=integer_values)
                 hdu.data = None  # free the decoded pixels before the next HDU
             index += 1
     finally:
@@ -298,7 +347,11 @@ def _pillow_frames(raw: bytes, name: str, limits: FrameLimits) -> Iterator[Frame
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # DecompressionBombWarning: our own size check follows
             image = Image.open(io.BytesIO(raw))
-    except Exception as exc:  # noqa: BLE001 - UnidentifiedImageError, DecompressionBombError, OSError...
+    except Image.DecompressionBombError as exc:  # over twice Pillow's MAX_IMAGE_PIXELS: said as a size
+        raise TelemetryError.at(name, f"the image is too large to decode: at most "
+                                      f"{limits.max_decoded_pixels_per_frame} pixels per frame "
+                                      f"(STARID_FRAMES_MAX_DECODED_PIXELS; {_reason(exc)})") from None
+    except Exception as exc:  # noqa: BLE001 - UnidentifiedImageError, OSError...
         raise TelemetryError.at(name, f"not a readable image: FITS, PNG, JPEG or TIFF expected "
                                       f"({_reason(exc)})") from None
     with image:
@@ -316,61 +369,99 @@ def _pillow_frames(raw: bytes, name: str, limits: FrameLimits) -> Iterator[Frame
             except Exception as exc:  # noqa: BLE001
                 raise TelemetryError.at(location, f"cannot read this page ({_reason(exc)})") from None
             width, height = image.size
-            _check_size(width, height, location, limits)
-            pixels, bits, saturation = _pillow_pixels(image, location)
-            pixels = _finite(pixels, location)
+            binned = _binning(width, height, location, limits)
+            if image.format in ("JPEG", "MPO") and image.mode == "RGB":
+                image.draft("L", None)  # decode the stored luminance (Y) alone: see the module
+            pixels, integer_values, bits, saturation = _pillow_pixels(image, binned, location)
             when, zone_note = exif_time(image, location)
             yield Frame(pixels=pixels, location=location, file=name, part=page if pages > 1 else None,
                         time=when, saturation=saturation, bits=bits,
-                        meta={"time_note": zone_note} if zone_note else {})
+                        meta={"time_note": zone_note} if zone_note else {}, binned=binned,
+                        stored_size=(width, height), integer_values=integer_values)
 
 
-def _pillow_pixels(image, location: str) -> tuple[np.ndarray, int, float | None]:
-    """Greyscale float32 pixels, the stored bit depth and the saturation level."""
+def _pillow_pixels(image, binned: int, location: str) -> tuple[np.ndarray, bool, int, float | None]:
+    """The frame's float32 pixels (the means of ``binned`` x ``binned`` blocks when ``binned`` > 1), whether
+    its stored values are integers, their bit depth and the saturation level.
+
+    8- and 16-bit images, greyscale or colour, are turned into values a strip of rows at a time
+    (:func:`_by_strips`); 32-bit integer and float images (rare, and 4 bytes a pixel as stored) whole.
+    """
     mode = image.mode
+    values = None
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             image.load()
             if mode in ("I;16", "I;16L", "I;16B", "I;16N"):
-                return np.asarray(image, dtype=np.float32), 16, 65535.0
-            if mode == "I":
-                array = np.asarray(image, dtype=np.float64)
-                top = float(array.max()) if array.size else 0.0
-                return array.astype(np.float32), 32, 65535.0 if 0 <= top <= 65535 else None
-            if mode == "F":  # 32-bit float (TIFF SampleFormat 3): copied, see _float_pixels
-                return _float_pixels(image), -32, None
+                return _by_strips(image, np.asarray, binned), True, 16, 65535.0
             if mode in ("L", "1", "P", "LA", "PA", "RGB", "RGBA", "RGBX", "CMYK", "YCbCr", "LAB", "HSV"):
-                grey = image if mode == "L" else image.convert("L")  # luminance (ITU-R 601)
-                return np.asarray(grey, dtype=np.float32), 8, 255.0
+                def luminance(strip):  # ITU-R 601 luma, Pillow's RGB -> L
+                    return np.asarray(strip if mode == "L" else strip.convert("L"))
+                return _by_strips(image, luminance, binned), True, 8, 255.0
+            if mode in ("I", "F"):  # 32-bit integer, 32-bit float (TIFF SampleFormat 3)
+                values = np.asarray(image)
     except Exception as exc:  # noqa: BLE001 - truncated files, broken compression
         raise TelemetryError.at(location, f"the image data cannot be decoded ({_reason(exc)})") from None
-    raise TelemetryError.at(location, f"pixel mode {mode!r} is not supported: greyscale or RGB, 8 or 16 bit, "
-                                      "or greyscale 32-bit integer or float")
+    if values is None:
+        raise TelemetryError.at(location, f"pixel mode {mode!r} is not supported: greyscale or RGB, 8 or 16 bit, "
+                                          "or greyscale 32-bit integer or float")
+    if mode == "F":
+        return _frame_pixels(values, binned, location), False, -32, None
+    top = int(values.max()) if values.size else 0
+    return _frame_pixels(values, binned, location), True, 32, 65535.0 if 0 <= top <= 65535 else None
 
 
-def _float_pixels(image) -> np.ndarray:
-    """A float image's pixels as an array of their own.
+def _by_strips(image, values_of, binned: int) -> np.ndarray:
+    """:func:`app.frames.binning.block_mean` of ``values_of(image)``, a strip of whole blocks of rows (about
+    :data:`STRIP_PIXELS`) at a time: the luminance of a colour image and the arrays Pillow copies its data
+    into (twice: ``np.asarray`` goes through ``tobytes``) exist for one strip, never for the whole frame.
+    Reading a 48 Mpx colour JPEG took 185 MB over its file's bytes converted whole (3.9 bytes a pixel),
+    a colour PNG 321 MB (6.7); strip by strip, see :attr:`FrameLimits.max_decoded_pixels_per_frame`."""
+    width, height = image.size
+    rows = max(1, STRIP_PIXELS // (width * binned)) * binned
+    pixels = np.empty((-(-height // binned), -(-width // binned)), dtype=np.float32)
+    for top in range(0, height, rows):
+        strip = values_of(image.crop((0, top, width, min(height, top + rows))))
+        pixels[top // binned: top // binned + -(-strip.shape[0] // binned)] = block_mean(strip, binned)
+    return pixels
 
-    ``np.asarray`` of a Pillow image already in float32 is a read-only view of
-    Pillow's buffer (no conversion, so no copy), and the detector (sep) takes
-    the frame as a writable buffer: it failed with "buffer source array is
-    read-only".
+
+def _frame_pixels(values: np.ndarray, binned: int, location: str) -> np.ndarray:
+    """A frame's float32 pixels from its stored values: the values themselves (``binned`` 1) or the means of
+    their ``binned`` x ``binned`` blocks (:func:`app.frames.binning.block_mean`), NaN and infinite values
+    replaced first (and values beyond float32 after).
+
+    Always an array of its own: ``np.asarray`` of a Pillow image is a read-only view of Pillow's buffer,
+    and the detector (sep) takes the frame as a writable buffer (a float TIFF failed with "buffer source
+    array is read-only").
     """
-    return np.array(image, dtype=np.float32, copy=True)
+    if values.dtype.kind == "f":
+        values = _finite(values, location)
+    return _finite(block_mean(values, binned), location)
 
 
 # ---------------------------------------------------------------------------
 # shared checks
 # ---------------------------------------------------------------------------
 
-def _check_size(width: int, height: int, location: str, limits: FrameLimits) -> None:
+def _binning(width: int, height: int, location: str, limits: FrameLimits) -> int:
+    """The side of the blocks a frame of this size is read as (1: its own pixels; see the module), from its
+    header's size; TelemetryError for a frame too small, or too large to decode."""
     if width < 16 or height < 16:
         raise TelemetryError.at(location, f"{width} x {height} pixels is too small for a star camera frame "
                                           "(at least 16 x 16)")
-    if width * height > limits.max_pixels_per_frame:
+    if width * height > limits.max_decoded_pixels_per_frame:
         raise TelemetryError.at(location, f"{width} x {height} = {width * height} pixels; at most "
-                                          f"{limits.max_pixels_per_frame} per frame (STARID_FRAMES_MAX_PIXELS)")
+                                          f"{limits.max_decoded_pixels_per_frame} per frame "
+                                          "(STARID_FRAMES_MAX_DECODED_PIXELS)")
+    budget = max(1, limits.max_pixels_per_frame)
+    binned = binning_factor(width, height, budget)
+    if width // binned < 16 or height // binned < 16:
+        raise TelemetryError.at(location, f"{width} x {height} pixels binned {binned} x {binned} to fit {budget} "
+                                          f"pixels (STARID_FRAMES_MAX_PIXELS) leaves {width // binned} x "
+                                          f"{height // binned}, too small to search (at least 16 x 16)")
+    return binned
 
 
 def _finite(pixels: np.ndarray, location: str) -> np.ndarray:

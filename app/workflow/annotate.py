@@ -129,9 +129,10 @@ def frame_annotation(*, camera: Camera, status: str, candidate: CandidateDocumen
 # Command line: solve IMAGE --annotate OUT.png
 # ---------------------------------------------------------------------------
 
-def frame_pixels(path: str, sequence: Sequence, snapshot: int) -> np.ndarray | None:
+def frame_pixels(path: str, sequence: Sequence, snapshot: int) -> tuple[np.ndarray, int] | None:
     """The pixels of a snapshot of the pass read from ``path`` (an image file or a folder of frames),
-    read again from its file; None for a spot list (no image)."""
+    read again from its file, and the side of the blocks they are the means of (1: the frame's own;
+    more for a frame over the detection budget, :class:`app.frames.Frame`); None for a spot list."""
     if not is_frames_path(path):
         return None
     report = sequence.extra["frames"]["frames"][snapshot]
@@ -139,7 +140,7 @@ def frame_pixels(path: str, sequence: Sequence, snapshot: int) -> np.ndarray | N
     file = source / report["file"] if source.is_dir() else source
     for frame in read_frames(file.read_bytes(), report["file"], FrameLimits()):
         if frame.part == report.get("part"):
-            return frame.pixels
+            return frame.pixels, frame.binned
     raise ValueError(f"{file}: no frame {report.get('part')} in the file any more")
 
 
@@ -149,8 +150,9 @@ def annotate_solve(path: str, sequence: Sequence, doc: SolveDocument) -> bytes:
     grid drawn from one would tell a reader of the picture alone where the camera did not point)."""
     snapshot = doc.reference_snapshot if doc.reference_snapshot is not None else 0
     camera = sequence.camera
-    pixels = frame_pixels(path, sequence, snapshot)
-    grey = np.zeros((camera.height, camera.width), np.uint8) if pixels is None else stretch_to_8bit(pixels)
+    read = frame_pixels(path, sequence, snapshot)
+    grey = np.zeros((camera.height, camera.width), np.uint8) if read is None else stretch_to_8bit(read[0])
+    scale = 1 if read is None else read[1]
     candidate = doc.candidates[0] if doc.candidates and doc.status != "no_match" else None
     status = doc.status + (f" · candidate 1 of {len(doc.candidates)}" if candidate else "")
     shot = sequence.snapshots[snapshot]
@@ -158,7 +160,7 @@ def annotate_solve(path: str, sequence: Sequence, doc: SolveDocument) -> bytes:
                                   rotation=None if candidate is None else candidate.rotation, t=shot.time,
                                   velocity_km_s=sequence.observer, source_xy=shot.xy,
                                   source_tracks=doc.sources[snapshot] if doc.sources else [])
-    return encode_png(annotate(grey, 1, annotation))
+    return encode_png(annotate(grey, scale, annotation))
 
 
 # ---------------------------------------------------------------------------

@@ -40,6 +40,7 @@ from app.frames import (Detections, FrameLimits, FramePass, FramesTimeout, HotPi
                         near_hot_pixel, parse_sidecar, peek_frame, read_frames)
 from app.frames.detect import REJECTING_FLAGS, DetectionOptions
 from app.filenames import FOLDER_SIDECAR, IMAGE_SUFFIXES, SIDECAR_SUFFIX, image_sidecar
+from app.frames.binning import block_mean  # the frame averaged over blocks: what a preview shows
 from app.frames.images import file_sha256
 from app.storage import MAX_PREVIEW_PNG_BYTES, StaleHotPixelMap
 from app.telemetry import Sequence
@@ -302,23 +303,6 @@ def preview_scale(width: int) -> int:
     return max(1, math.ceil(width / PREVIEW_MAX_WIDTH))
 
 
-def block_mean(pixels: np.ndarray, scale: int) -> np.ndarray:
-    """The frame averaged over ``scale`` x ``scale`` blocks; the last row and column of blocks may be cut by
-    the frame's edge (their mean is over the pixels inside).  Block (i, j) covers pixels
-    ``i*scale .. i*scale + scale - 1``: its centre is at ``(j + 0.5) * scale - 0.5`` in full-resolution x."""
-    data = np.asarray(pixels, dtype=np.float64)
-    if scale == 1:
-        return data
-    height, width = data.shape
-    rows, cols = -(-height // scale), -(-width // scale)
-    padded = np.zeros((rows * scale, cols * scale))
-    padded[:height, :width] = data
-    count = np.zeros_like(padded)
-    count[:height, :width] = 1.0
-    sums = padded.reshape(rows, scale, cols, scale).sum(axis=(1, 3))
-    return sums / count.reshape(rows, scale, cols, scale).sum(axis=(1, 3))
-
-
 def stretch_to_8bit(image: np.ndarray) -> np.ndarray:
     """A frame as 8-bit grey an operator can read: the background (median) nearly black with its noise
     (MAD) just visible, stars a few sigma high clear of it, bright ones not all white: an asinh stretch
@@ -351,19 +335,29 @@ def encode_png(image: np.ndarray) -> bytes:
     return stream.getvalue()
 
 
-def render_preview(pixels: np.ndarray, snapshot: int, overlay: dict) -> FramePreview | None:
+def render_preview(pixels: np.ndarray, snapshot: int, overlay: dict, *, binned: int = 1,
+                   size: tuple[int, int] | None = None) -> FramePreview | None:
     """The preview of one frame; at twice the scale while its PNG exceeds ``MAX_PREVIEW_PNG_BYTES``
-    (None when even a 16-pixel-wide image would: not a frame to preview)."""
+    (None when even a 16-pixel-wide image would: not a frame to preview).
+
+    ``pixels`` may be the means of ``binned`` x ``binned`` blocks of a frame ``size`` (width, height)
+    pixels large (:class:`app.frames.Frame`, a frame over the detection budget), covering all of it:
+    averaged again over ``step`` x ``step`` of them, each preview pixel is the mean of ``binned * step``
+    square frame pixels (the last row and column of blocks weighted by block, a preview's difference),
+    so the preview's scale is ``binned * step`` and its size ``ceil(size / scale)``, as the overlay in
+    the frame's own pixels and the annotated frame (:mod:`app.workflow.annotate`) expect."""
     height, width = pixels.shape
-    scale = preview_scale(width)
+    frame_width, frame_height = size or (width, height)
+    step = preview_scale(width)
     while True:
-        png = encode_png(stretch_to_8bit(block_mean(pixels, scale)))
+        png = encode_png(stretch_to_8bit(block_mean(pixels, step)))
         if len(png) <= MAX_PREVIEW_PNG_BYTES:
-            return FramePreview(snapshot=snapshot, width=width, height=height, scale=scale,
-                                image_width=-(-width // scale), image_height=-(-height // scale), png=png,
-                                overlay=overlay)
-        scale *= 2
-        if -(-width // scale) < 16:
+            scale = binned * step
+            return FramePreview(snapshot=snapshot, width=frame_width, height=frame_height, scale=scale,
+                                image_width=-(-frame_width // scale), image_height=-(-frame_height // scale),
+                                png=png, overlay=overlay)
+        step *= 2
+        if -(-width // step) < 16:
             return None
 
 
@@ -432,7 +426,8 @@ def frame_previews(files: list[tuple[str, bytes]], frame_pass: FramePass, limits
             if (deadline is not None and time.monotonic() > deadline) or spent >= PREVIEW_PASS_BYTES:
                 return [previews[k] for k in sorted(previews)]
             overlay = frame_overlay(frame_pass.detections[i], frame_pass.sequence.snapshots[i], hot)
-            preview = render_preview(frame.pixels, i, overlay)
+            preview = render_preview(frame.pixels, i, overlay, binned=frame.binned,
+                                     size=(frame.width, frame.height))
             if preview is not None and spent + len(preview.png) <= PREVIEW_PASS_BYTES:
                 previews[i] = preview
                 spent += len(preview.png)
