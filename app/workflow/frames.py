@@ -340,12 +340,12 @@ def render_preview(pixels: np.ndarray, snapshot: int, overlay: dict, *, binned: 
     """The preview of one frame; at twice the scale while its PNG exceeds ``MAX_PREVIEW_PNG_BYTES``
     (None when even a 16-pixel-wide image would: not a frame to preview).
 
-    ``pixels`` may be the means of ``binned`` x ``binned`` blocks of a frame ``size`` (width, height)
-    pixels large (:class:`app.frames.Frame`, a frame over the detection budget), covering all of it:
-    averaged again over ``step`` x ``step`` of them, each preview pixel is the mean of ``binned * step``
-    square frame pixels (the last row and column of blocks weighted by block, a preview's difference),
-    so the preview's scale is ``binned * step`` and its size ``ceil(size / scale)``, as the overlay in
-    the frame's own pixels and the annotated frame (:mod:`app.workflow.annotate`) expect."""
+    ``pixels`` may be the means of ``binned`` x ``binned`` blocks covering a frame of ``size`` (width,
+    height) pixels (:class:`app.frames.Frame` over the detection budget).  Averaged again over ``step`` x
+    ``step`` of them, a preview pixel stands for ``binned * step`` square frame pixels (the cut blocks at
+    the right and bottom weighted as whole ones: a preview's liberty), so the preview's scale is
+    ``binned * step`` and its size ``ceil(size / scale)``, what the overlay (in the frame's own pixels) and
+    the annotated frame (:mod:`app.workflow.annotate`) expect."""
     height, width = pixels.shape
     frame_width, frame_height = size or (width, height)
     step = preview_scale(width)
