@@ -18,18 +18,24 @@ before numba is first imported.
 Compiling.  Each kernel module registers a warm-up (:func:`warm_up_with`: a
 call of each kernel on tiny inputs of the types the program uses).
 :func:`warm_up` runs them all once per process and says in ONE log line
-whether it compiled (the first run: a few seconds) or loaded the cache; the
-server calls it in a background thread at start, so that it answers meanwhile
-(a request that needs a kernel before then compiles it itself, numba's own
-lock making the two wait for one compilation).
+whether it compiled (the first run after an install: 15 s of CPU) or loaded
+the cache (0.2-0.3 s).  :func:`app.identification.identify` warms up before
+its search's clock starts; a server's search workers warm up before they
+say they are ready (no job waits on a compilation past its hard limit); a
+server whose searches run in its own threads warms up in a background
+thread and answers meanwhile.  Processes warming up at once take turns (a
+lock file in the cache directory): the first compiles, the others load what
+it wrote.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
 import time
+from pathlib import Path
 from typing import Callable
 
 from app.config import settings
@@ -77,8 +83,9 @@ def warm_up() -> dict:
         if _warmed:  # another thread warmed them while this one waited
             return _report
         t0 = time.perf_counter()
-        for function in list(_warm_ups):
-            function()
+        with _one_process_at_a_time():
+            for function in list(_warm_ups):
+                function()
         seconds = time.perf_counter() - t0
         compiled = sum(sum(k.stats.cache_misses.values()) for k in _kernels)
         loaded = sum(sum(k.stats.cache_hits.values()) for k in _kernels)
@@ -90,6 +97,31 @@ def warm_up() -> dict:
         _report = {"seconds": seconds, "compiled": compiled, "loaded": loaded}
         _warmed = True
         return _report
+
+
+@contextlib.contextmanager
+def _one_process_at_a_time():
+    """An exclusive lock on the cache directory while warming up: the processes starting together (a server's
+    workers, a batch's) compile one after the other, the first writing the cache the others then load,
+    instead of each compiling the same kernels at once (two workers on two cores: 57 s instead of 15)."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: each process compiles for itself
+        yield
+        return
+    directory = Path(os.environ["NUMBA_CACHE_DIR"])
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        lock = open(directory / "warm-up.lock", "a")
+    except OSError:  # a read-only cache: nothing to share
+        yield
+        return
+    with lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
 
 
 def warm_up_in_background() -> threading.Thread:

@@ -179,10 +179,13 @@ def _worker_main(conn, server_pid: int, load_sky: bool, niceness: int) -> None:
     if load_sky:
         from app.identification import Sky
 
-        from app.compiled import warm_up_in_background
+        from app.compiled import warm_up
 
         sky = Sky()
-        warm_up_in_background()  # the identification's compiled kernels: loaded (or, a first run, compiled)
+        # The identification's compiled kernels, before the worker says it is ready: loaded from their cache
+        # (0.2-0.3 s), or compiled on the first run after an install (15 s of CPU).  Compiling while a job
+        # waits would run it past its hard limit (a worker killed mid-compilation, measured).
+        warm_up()
     worker_context = WorkerContext(sky=sky)
     conn.send(("ready",))
     while True:
