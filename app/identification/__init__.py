@@ -152,8 +152,10 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
             c = replace(c, rotation_matrix=fit.rotation,
                         sigma_cross_boresight_arcsec=math.degrees(cross) * 3600,
                         sigma_roll_arcsec=math.degrees(roll) * 3600)
-        candidates.append(replace(c, centre_radec_deg=image_centre_radec(c, pattern, sequence.camera, t, sky,
-                                                                         velocity_km_s=sequence.observer)))
+        if credible:  # the image centre of an answer an operator weighs up (a chance fit's would be noise)
+            c = replace(c, centre_radec_deg=image_centre_radec(c, pattern, sequence.camera, t, sky,
+                                                               velocity_km_s=sequence.observer))
+        candidates.append(c)
     solution = replace(solution, candidates=tuple(candidates), status=status, notes=tuple(notes))
     return SolvedSequence(sequence=sequence, extraction=extraction, pattern=pattern, solution=solution,
                           sequence_fits=fits)

@@ -60,7 +60,8 @@ class Candidate:
     camera_fit: CameraAttitudeFit | Calibration | None = None
     #: RA, Dec (degrees) of the image's centre pixel, as astrometry.net reports a frame: the boresight's when
     #: the principal point is the centre, else through the optics (principal point free) fitted on the
-    #: candidate's stars (:func:`app.identification.image_centre_radec`).  None: not computed.
+    #: candidate's stars (:func:`app.identification.image_centre_radec`).  None: not computed (a candidate
+    #: that is not credible: chance would explain it).
     centre_radec_deg: tuple[float, float] | None = None
 
     @property
