@@ -177,8 +177,9 @@ def session_sky(monkeypatch, sky):
     return sky
 
 
+@pytest.mark.parametrize("optics", [["--fov-deg", "13.266"], []])  # given; none (the field of view searched)
 def test_solve_annotate_writes_the_real_frame_with_its_stars_where_astrometry_net_puts_them(tmp_path, session_sky,
-                                                                                            capsys):
+                                                                                            capsys, optics):
     from astropy.io import fits
     from astropy.wcs import WCS
 
@@ -187,7 +188,7 @@ def test_solve_annotate_writes_the_real_frame_with_its_stars_where_astrometry_ne
     (tmp_path / "feb16-2.frames.json").write_text(json.dumps(
         {"format": "tubsat-frames/1", "frames": [{"file": "feb16-2.png", "time": "2018-02-16T06:00:00Z"}]}))
     out = tmp_path / "annotated.png"
-    assert cli_main(["solve", "--json", "--fov-deg", "13.266", "--annotate", str(out), str(frame)]) == 0
+    assert cli_main(["solve", "--json", *optics, "--annotate", str(out), str(frame)]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["status"] == "identified"
     image = _png(out.read_bytes())

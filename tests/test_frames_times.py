@@ -426,3 +426,19 @@ def test_a_confirmed_attitude_of_an_assumed_time_says_so_first_in_every_ccsds_me
         comments = [line.split("COMMENT", 1)[1].strip() for line in text.splitlines() if line.startswith("COMMENT")]
         assert comments and comments[0] == TIME_ASSUMED_COMMENT, (url, comments[:2])
         assert "2000-01-01T12:00:00" in text
+
+
+def test_a_frame_with_no_optics_is_drawn_through_the_field_of_view_found(api):
+    """The candidate view of a frame uploaded with no time and no field of view: each matched star is drawn
+    where the found optics put it, beside its point (the nominal 20 deg camera put them 175 px away)."""
+    data = (REAL_FRAMES / "feb16-2.png").read_bytes()
+    r = api.post("/api/frames", files=[("files", ("feb16-2.png", data, "image/png"))])
+    assert r.status_code == 201, r.text
+    seq_id = r.json()["id"]
+    search = api.post(f"/api/sequences/{seq_id}/search", json={"method": "bright_pair"}).json()
+    assert search["status"] == "identified" and abs(search["candidates"][0]["fov_deg"] - 13.22) < 0.1
+    view = api.get(f"/api/sequences/{seq_id}/candidates/1").json()
+    matched = [p for p in view["sky"]["pattern_points"] if p["hip"] is not None]
+    assert len(matched) >= 8
+    for p in matched:
+        assert math.hypot(p["star_x"] - p["x"], p["star_y"] - p["y"]) < 5.0, p

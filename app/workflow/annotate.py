@@ -89,15 +89,6 @@ def constellation_figures(catalogue: Catalogue, t: datetime, velocity_km_s=None)
     return tuple(figures)
 
 
-def candidate_camera(camera: Camera, candidate: CandidateDocument) -> Camera:
-    """The camera a candidate's stars were matched with: the declared one, with the optics fitted with
-    the candidate where the candidate adopted them."""
-    fit = candidate.camera_fit
-    if fit is None or not fit.adopted:
-        return camera
-    return camera.with_optics(focal_length_px=fit.focal_length_px, cx=fit.cx, cy=fit.cy, k1=fit.k1, k2=fit.k2)
-
-
 def frame_annotation(*, camera: Camera, status: str, candidate: CandidateDocument | None,
                      rotation: np.ndarray | None, t: datetime, velocity_km_s, source_xy: np.ndarray,
                      source_tracks: list[int | None]) -> Annotation:
@@ -120,7 +111,7 @@ def frame_annotation(*, camera: Camera, status: str, candidate: CandidateDocumen
     explained = {m.track for m in candidate.matches} | {p.track for p in candidate.planets}
     explained.discard(None)
     unmatched = [j for j, track in enumerate(source_tracks) if track is None or track not in explained]
-    return Annotation(camera=candidate_camera(camera, candidate), status=status, rotation=rotation,
+    return Annotation(camera=candidate.matched_camera(camera), status=status, rotation=rotation,
                       stars=tuple(labels), unmatched_xy=np.asarray(source_xy, float).reshape(-1, 2)[unmatched],
                       figures=constellation_figures(catalogue, t, velocity_km_s))
 

@@ -278,6 +278,18 @@ class CandidateDocument(Document):
                                         "boresight's, the principal point's: the same for a centred lens)")
     centre_dec_deg: float | None = Field(None, description="Dec of the image's centre pixel")
 
+    def matched_camera(self, declared):
+        """The camera this candidate's stars were matched with (an :class:`app.camera.Camera`): the optics
+        fitted with it where it adopted them, else the focal length it was found at (a searched focal
+        length, or the field of view found when the optics were unknown), else ``declared``."""
+        fit = self.camera_fit
+        if fit is not None and fit.adopted:
+            return declared.with_optics(focal_length_px=fit.focal_length_px, cx=fit.cx, cy=fit.cy, k1=fit.k1,
+                                        k2=fit.k2)
+        if self.focal_length_px is not None:
+            return declared.with_optics(focal_length_px=self.focal_length_px)
+        return declared
+
     @classmethod
     def of(cls, candidate, fit=None) -> "CandidateDocument":
         """The document of an :class:`app.identification.Candidate` and its sequence fit (if any)."""

@@ -242,7 +242,7 @@ def prepare_candidate_view(ctx: AppContext, seq_id: int, rank: int, mag: float) 
     candidate = candidate_of(search, result, rank)
     sequence = loaded(ctx, row).sequence
     return CandidateViewJob(seq_id=seq_id, search_id=search.id, rank=rank, mag=mag, result=result,
-                            candidate=candidate, camera=sequence.camera,
+                            candidate=candidate, camera=candidate.matched_camera(sequence.camera),
                             time=sequence.snapshots[result.reference_snapshot].time,
                             velocity_km_s=sequence.observer, time_assumed=sequence.time_assumed)
 
