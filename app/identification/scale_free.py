@@ -114,16 +114,19 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
     ``identify`` is the engine's own function (passed in: the engine calls this one), run at the focal length
     a band's triangles fit.
     """
+    searched_bands = bands(camera.width)
+    nominals = [replace(camera.known_at(band.middle_px, band.tolerance), mag_limit=None) for band in searched_bands]
+    # Each band's catalogue depth, loaded (or, the first time ever, built: the Hp 8 index takes 15-25 s)
+    # before the clock starts: a first narrow field must not lose its search to the building.
+    band_skies = [sky.for_camera(nominal) for nominal in nominals]
     started = _time.perf_counter()
     tried = 0
     searched: list[str] = []
     best: Solution | None = None
-    for band in bands(camera.width):
+    for band, nominal, band_sky in zip(searched_bands, nominals, band_skies):
         if _time.perf_counter() - started > options.timeout_s:
             searched.append("time-out")
             break
-        nominal = replace(camera.known_at(band.middle_px, band.tolerance), mag_limit=None)
-        band_sky = sky.for_camera(nominal)
         seen = replace(pattern, vectors=nominal.pixels_to_vectors(pattern.xy))
         prepared = prepare_pattern(seen, nominal, t, band_sky, velocity_km_s, options)
         checked: list[int] = []

@@ -181,7 +181,7 @@ def _worker_main(conn, server_pid: int, load_sky: bool, niceness: int) -> None:
 
         from app.compiled import warm_up
 
-        sky = Sky()
+        sky = Sky().with_every_depth()  # loaded from the cache the server made (narrow fields need Hp 8)
         # The identification's compiled kernels, before the worker says it is ready: loaded from their cache
         # (0.2-0.3 s), or compiled on the first run after an install (15 s of CPU).  Compiling while a job
         # waits would run it past its hard limit (a worker killed mid-compilation, measured).

@@ -119,7 +119,7 @@ def build_context(*, database: str | None = None, host: str = "127.0.0.1",
             from app.identification import Sky
 
             log.info("loading the star catalogue and the bright-pair index...")
-            sky = Sky()
+            sky = Sky().with_every_depth()  # a first start builds the deeper index the workers then load
             log.info("catalogue ready: %d stars to Hp %.1f, %d bright pairs", sky.index.n_stars,
                      sky.index.mag_limit, sky.index.n_pairs)
             if not config.search_processes:
