@@ -122,9 +122,12 @@ def print_summary(doc) -> None:
     print(f"  {'rank':>4} {'RA deg':>10} {'Dec deg':>9} {'roll deg':>9} {'matched':>7} {'rms as':>7} "
           f"{'dev px/pt':>9} {'P(false)':>9}  stars")
     _print_candidates(doc.candidates)
-    if doc.candidates and doc.candidates[0].fov_deg is not None:
-        print(f"  field of view: {doc.candidates[0].fov_deg:.3f} deg (focal length "
-              f"{doc.candidates[0].focal_length_px:.1f} px), found from the stars")
+    best = doc.candidates[0] if doc.candidates else None
+    if best is not None and best.fov_deg is not None:
+        print(f"  field of view: {best.fov_deg:.3f} deg (focal length {best.focal_length_px:.1f} px), "
+              "found from the stars")
+    if best is not None and best.centre_ra_deg is not None:
+        print(f"  image centre: RA {best.centre_ra_deg:.4f} deg, Dec {best.centre_dec_deg:+.4f} deg")
     for note in doc.notes:  # how the search went
         print(f"  note: {note}")
     if doc.focal_length_contradiction is not None:  # a focal length declared wrong beyond its tolerance

@@ -63,19 +63,19 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     (a search over scales): they enter the false-match probability.
     """
     warm_up()  # the compiled kernels, once a process: compiling (a first run) never counts against the search's time
-    if camera.focal_length_unknown:
-        return identify_unknown_scale(pattern, camera, t, sky, velocity_km_s=velocity_km_s, options=options,
-                                      planets=planets, method=method, identify=identify)
-    sky = sky.for_camera(camera)  # a narrow field needs fainter stars
-    started = _time.perf_counter()
     generator = METHODS[method].hypotheses if method in METHODS else None
     if generator is None:
         lost_in_space = [name for name, m in METHODS.items() if m.hypotheses is not None]
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(lost_in_space)}")
     m_all = len(pattern.vectors)
     if m_all < 3:
-        return Solution(status=NO_MATCH, candidates=(), elapsed_s=_time.perf_counter() - started,
+        return Solution(status=NO_MATCH, candidates=(), elapsed_s=0.0,
                         notes=(f"the pattern has {m_all} point(s); at least 3 are needed",))
+    if camera.focal_length_unknown:
+        return identify_unknown_scale(pattern, camera, t, sky, velocity_km_s=velocity_km_s, options=options,
+                                      planets=planets, method=method, identify=identify)
+    sky = sky.for_camera(camera)  # a narrow field needs fainter stars
+    started = _time.perf_counter()
     declared = prepare_pattern(pattern, camera, t, sky, velocity_km_s, options)
     focal_lengths = focal_lengths_to_try(camera, declared.xy) if options.search_focal_length \
         else [camera.focal_length_px]
