@@ -421,7 +421,7 @@ function drawCandidate() {
   if (c.centre_ra_deg !== null && c.centre_ra_deg !== undefined) facts.push(["image centre",
     `${c.centre_ra_deg.toFixed(4)}°, ${c.centre_dec_deg.toFixed(4)}°`,
     "RA, Dec of the image's centre pixel (astrometry.net's reference point); RA, Dec above are the boresight's"]);
-  if (c.camera_fit) facts.push(["optics", opticsText(c.camera_fit),
+  if (c.camera_fit) facts.push(["optics", opticsText(c.camera_fit, c.fov_deg !== null && c.fov_deg !== undefined),
     "optics fitted with this attitude (focal length from 3 stars, k1 from 6); 'used': the declared camera was " +
     "rejected by the stars, or the pattern was found at another focal length"]);
   $("cand-facts").replaceChildren(...facts.flatMap(([k, v, why]) => [el("dt", { title: why }, k), el("dd", { title: why }, v)]));
@@ -432,11 +432,11 @@ function drawCandidate() {
   $("cand-matches").textContent = matches.join(" · ");
 }
 
-function opticsText(fit) {
+function opticsText(fit, foundFocalLength = false) {
   const parts = [];
   if (fit.focal_length_px !== null) parts.push(`f ${fmt(fit.focal_length_px, 1)} ± ${fmt(fit.sigma.focal_length_px, 1)} px`);
   if (fit.k1 !== null) parts.push(`k1 ${fmt(fit.k1, 4)} ± ${fmt(fit.sigma.k1, 4)}`);
-  return `${parts.join(", ")}; rms ${fmt(fit.rms_px, 2)} px over the ${fit.over}; ${fit.adopted ? "used" : "declared camera kept"}`;
+  return `${parts.join(", ")}; rms ${fmt(fit.rms_px, 2)} px over the ${fit.over}; ${fit.adopted ? "used" : foundFocalLength ? "not used: the field of view above is kept" : "declared camera kept"}`;
 }
 
 async function goToRank(rank) {

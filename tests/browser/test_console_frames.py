@@ -269,6 +269,7 @@ def test_a_frame_with_no_time_and_no_optics_is_stored_and_a_bad_field_of_view_is
     shown = float(re.search(r"field of view\s*(\d+\.\d+)°", facts.inner_text()).group(1))
     assert abs(shown / CAMERA.fov_deg[0] - 1) < 0.01, shown
     expect_text(facts, r"image centre")
+    assert "declared camera kept" not in facts.inner_text()  # no camera was declared: the optics are found ones
     watched.screenshot("frames-07-fov-found")
     # The only console error allowed is Chromium's own report of the refused (422) request.
     assert [e for e in watched.errors if "status of 422" not in e] == []
