@@ -182,8 +182,7 @@ def image_centre_radec(candidate: Candidate, pattern: Pattern, declared, t, sky:
     rotation = candidate.rotation_matrix
     centre = np.array([[(camera.width - 1) / 2.0, (camera.height - 1) / 2.0]])
     depth = sky.for_camera(camera)
-    field = depth.field(t, min(camera.limiting_magnitude + SearchOptions().mag_margin, depth.index.mag_limit),
-                        velocity_km_s)
+    field = depth.field(t, depth.depth_for(camera, SearchOptions().mag_margin), velocity_km_s)
     rms_px = (candidate.rms_arcsec or 0.0) / camera.pixel_scale_arcsec
     tolerance_px = max(CENTRE_MATCH_PX, 3.0 * rms_px)
     xy = np.asarray(pattern.xy, dtype=float)

@@ -56,7 +56,7 @@ def prepare_pattern(pattern, camera: Camera, t: datetime, sky: Sky, velocity_km_
     keep = np.argsort(-np.nan_to_num(pattern.brightness, nan=0.0), kind="stable")[:options.max_points]
     sigma_px = np.maximum(np.nan_to_num(np.asarray(pattern.sigma_px, float)[keep], nan=DEFAULT_SIGHTING_SIGMA_PX), 0.05)
     scale = camera.pixel_scale_rad
-    mag_limit = min(camera.limiting_magnitude + options.mag_margin, sky.index.mag_limit)
+    mag_limit = sky.depth_for(camera, options.mag_margin)
     return PreparedPattern(
         keep=keep, track_ids=np.asarray(pattern.track_ids)[keep], vectors=pattern.vectors[keep], xy=pattern.xy[keep], sigma_px=sigma_px,
         match_tol=np.maximum(options.match_tolerance_px, 5 * sigma_px) * scale,

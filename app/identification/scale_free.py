@@ -46,7 +46,7 @@ from app.camera import Camera
 from app.identification.candidates import prepare_pattern
 from app.identification.focal_estimate import focal_estimate
 from app.identification.options import SearchOptions
-from app.identification.result import IDENTIFIED, NO_MATCH, Solution
+from app.identification.result import AMBIGUOUS, IDENTIFIED, NO_MATCH, Solution
 from app.identification.sky import Sky
 
 #: Horizontal fields of view searched when the optics are unknown, degrees: from a long lens on a star
@@ -133,9 +133,10 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
         estimate = focal_estimate(prepared, band_sky.bright_triangles(), options, band.tolerance, checked,
                                   BAND_MAX_TRIED)
         tried += sum(checked)
-        fovs = f"{fov_for_focal_length(camera.width, band.high_px):.1f}-{fov_for_focal_length(camera.width, band.low_px):.1f}"
+        fovs = (f"{fov_for_focal_length(camera.width, band.high_px):.1f}-"
+                f"{fov_for_focal_length(camera.width, band.low_px):.1f}")
         if estimate is None:
-            searched.append(f"{fovs} deg (stars to Hp {prepared_depth(band_sky, nominal, options):.1f}): "
+            searched.append(f"{fovs} deg (stars to Hp {band_sky.depth_for(nominal, options.mag_margin):.1f}): "
                             f"no fit in {sum(checked)} triangles")
             continue
         found = camera.known_at(estimate.focal_length_px, FOUND_TOLERANCE)
@@ -160,15 +161,10 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
     return replace(best, elapsed_s=elapsed, notes=(note, *best.notes))
 
 
-def prepared_depth(sky: Sky, camera: Camera, options: SearchOptions) -> float:
-    """The catalogue depth a pattern seen by ``camera`` is matched against in ``sky``."""
-    return min(camera.limiting_magnitude + options.mag_margin, sky.index.mag_limit)
-
-
 def _better(a: Solution, b: Solution) -> bool:
     """Whether ``a`` is a better answer than ``b``: a lower status rank, then a smaller best false-match
     probability."""
-    rank = {IDENTIFIED: 0, "ambiguous": 1, NO_MATCH: 2}
+    rank = {IDENTIFIED: 0, AMBIGUOUS: 1, NO_MATCH: 2}
     pa = a.candidates[0].false_match_probability if a.candidates else 1.0
     pb = b.candidates[0].false_match_probability if b.candidates else 1.0
     return (rank.get(a.status, 3), pa) < (rank.get(b.status, 3), pb)

@@ -70,7 +70,7 @@ def source_match_tolerance_rad(camera, extraction) -> float:
 def sources_field(sky, sequence, t_ref, camera, mag_margin: float = SearchOptions().mag_margin) -> StarField:
     """The stars a reported source of ``sequence`` may be: those down to ``camera``'s limiting magnitude
     plus the search's margin, at their apparent places at ``t_ref`` (the reference snapshot's time)."""
-    return sky.field(t_ref, min(camera.limiting_magnitude + mag_margin, sky.index.mag_limit),
+    return sky.field(t_ref, sky.depth_for(camera, mag_margin),
                      sequence.observer)
 
 

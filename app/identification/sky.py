@@ -98,6 +98,11 @@ class Sky:
             self._depths[key] = deeper
         return self._depths[key]
 
+    def depth_for(self, camera, mag_margin: float) -> float:
+        """The faintest magnitude a source seen by ``camera`` may be matched to here: its limiting magnitude
+        plus ``mag_margin`` (brightness is unreliable, detection noisy), within this sky's index."""
+        return min(camera.limiting_magnitude + mag_margin, self.index.mag_limit)
+
     def star_mask(self, mag_limit: float) -> np.ndarray:
         return self.index.mag <= mag_limit
 
