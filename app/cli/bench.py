@@ -1,9 +1,10 @@
-"""`python -m app bench [--suite NAME] [--n N] [--seed S] [--think S] [--frames DIR] [--json]`: benchmark figures.
+"""`python -m app bench [--suite NAME] [--n N] [--seed S] [--think S] [--frames DIR] [--method M] [--json]`: benchmark figures.
 
 Suites: ``extraction`` (issue 2: tracked stars kept, ghosts and hot pixels
 rejected, time per sequence), ``identification`` (issue 3: top-1/top-5
 correct, wrong "identified" answers, attitude errors, time per sequence and
-the seed's deviation table), ``load`` (issue 4: the real server under 20
+the seed's deviation table; ``--method tf`` solves by Liebe's triangle features instead of the
+default bright pairs), ``load`` (issue 4: the real server under 20
 concurrent clients; here ``--n`` is the duration in seconds, default 30, and
 ``--think`` each client's pause between loops, default 1 s, 0 for saturation;
 ``--adversarial`` adds two clients sending worst-case files, issue 12).
@@ -37,6 +38,8 @@ import time
 
 SUITES = ("extraction", "identification", "sequence", "load", "seeds", "camera", "peer", "frames", "batch",
           "calibration", "real")
+#: The lost-in-space methods the identification suite can measure (app.identification.methods.METHODS).
+IDENTIFICATION_METHODS = ("bright_pair", "tf")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -61,6 +64,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "else ../shared/real-frames beside the repository)")
     p.add_argument("--time-from-reference", action="store_true",
                    help="real suite: a sidecar gives each frame its reference's time_approximate (default: no time)")
+    p.add_argument("--method", choices=IDENTIFICATION_METHODS, default="bright_pair",
+                   help="identification suite: the lost-in-space method that solves the sequences (default "
+                        "bright_pair; tf: Liebe's triangle features)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
 
 
@@ -93,6 +99,8 @@ def run(args: argparse.Namespace) -> int:
             kwargs["adversarial"] = module.ADVERSARIAL_CLIENTS
         if name == "load":
             kwargs.update(servers=args.servers, database=args.database)
+        if name == "identification":
+            kwargs["method"] = args.method
         if name == "real":
             kwargs.update(frames_dir=args.frames, time_from_reference=args.time_from_reference)
         results[name] = module.run(**kwargs)
