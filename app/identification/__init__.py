@@ -41,7 +41,7 @@ from app.identification.sky import Sky
 from app.telemetry import Sequence
 
 __all__ = ["AMBIGUOUS", "IDENTIFIED", "METHODS", "NO_MATCH", "Candidate", "FocalLengthContradiction", "Method",
-           "PlanetMatch", "Prior",
+           "PlanetMatch", "Prior", "SourceNames",
            "SearchOptions", "Sky", "Solution", "SolvedSequence", "StarMatch", "classify", "fit_sequence",
            "identify", "identify_near_prior", "solve_sequence", "source_stars"]
 
@@ -57,6 +57,10 @@ PRINCIPAL_POINT_PRIOR_FRACTION = 0.1
 #: A pattern point is taken for the star it sees within this many pixels (or 3 times the candidate's RMS
 #: residual, when larger) for the image centre's fit: real centroids err by 1-2 px (trailed, saturated stars).
 CENTRE_MATCH_PX = 3.0
+#: A sighting no matched track vouches for is named only when a source scattered at random would fall that
+#: near a star that bright less often than this: the sequences' ghosts and hot pixels (a few per snapshot)
+#: then name a star at a rate of about 1 in 10,000 labels, and stars seen alone, brighter and nearer, keep it.
+CHANCE_NAME_PROBABILITY = 1e-4
 
 
 #: A sequence fit turning faster than this is not trusted: stars streak across many pixels within one
@@ -229,14 +233,42 @@ def _principal_point_departs(fit, camera) -> bool:
     return distance > chdtri(2, HINT_PROBABILITY)
 
 
+@dataclass(frozen=True)
+class SourceNames:
+    """The HIP number (or None) of every reported source, per snapshot in input order, and how many sources
+    lie within the match distance of a star but were left unnamed, the name not being certain."""
+
+    names: list[list[int | None]]
+    uncertain: int
+
+    @property
+    def note(self) -> str | None:
+        if not self.uncertain:
+            return None
+        return (f"{self.uncertain} source(s) near a star left unnamed: the name is not certain (another "
+                f"source claims the star, the matched track names another, or a ghost would fall that near "
+                f"a star that bright by chance more often than 1 in {round(1 / CHANCE_NAME_PROBABILITY):,})")
+
+
 def source_stars(solved: SolvedSequence, sky: Sky, rank: int = 1,
-                 mag_margin: float = SearchOptions().mag_margin) -> list[list[int | None]] | None:
+                 mag_margin: float = SearchOptions().mag_margin) -> SourceNames | None:
     """HIP number (or None) of every reported source, by the attitude of candidate ``rank``.
 
     Each snapshot's attitude comes from the sequence fit (or, without one,
     from extraction's motion), so sources that tracking had to call ghosts,
     stars the sensor reported only once, are recognised too.  None unless the
     candidate's false-match probability reaches the "identified" threshold.
+
+    A name is given only where it is certain (a wrong name is worse than
+    none): the source's brightest star within the match distance
+    (:func:`stars_at`), named by no other source of its snapshot; a sighting
+    of a track the candidate matched must name the track's star; and the
+    sightings no matched track vouches for (a ghost, a hot pixel and a star
+    seen alone look alike) are named only where sources scattered at random
+    would fall that near a star that bright less often than
+    :data:`CHANCE_NAME_PROBABILITY` (:func:`chance_of_falling_near`): the
+    product over the sightings of one track that name that star, as each
+    snapshot is a new draw.
     """
     candidate = next((c for c in solved.solution.candidates if c.rank == rank), None)
     if candidate is None or candidate.false_match_probability > SearchOptions().identified_probability:
@@ -247,8 +279,14 @@ def source_stars(solved: SolvedSequence, sky: Sky, rank: int = 1,
     t_ref = solved.reference_time
     fit = solved.sequence_fits.get(rank)
     tolerance = source_match_tolerance_rad(camera, extraction)
+    noise_rad = sighting_noise_px(extraction) * camera.pixel_scale_rad
     field = sources_field(sky, sequence, t_ref, camera, mag_margin)
-    out: list[list[int | None]] = []
+    star_of_track = {m.track: m.hip for m in candidate.matches if m.track is not None}
+    track_of = {(position, source): track.id for track in extraction.tracks
+                for position, source in zip(track.snapshots.tolist(), track.source_indices.tolist())}
+    names: list[list[int | None]] = [[None] * snap.n_sources for snap in sequence.snapshots]
+    near_a_star = 0
+    unvouched: dict[tuple, list[tuple[int, int, float]]] = {}  # (track or sighting, HIP) -> (snapshot, source, chance)
     for pos, snap in enumerate(sequence.snapshots):
         dt = (snap.time - t_ref).total_seconds()
         if fit is not None:
@@ -256,10 +294,48 @@ def source_stars(solved: SolvedSequence, sky: Sky, rank: int = 1,
         elif np.all(np.isfinite(extraction.motion[pos])):
             R = extraction.motion[pos].T @ candidate.rotation_matrix
         else:
-            out.append([None] * snap.n_sources)
             continue
-        out.append([int(sky.index.hip[field.rows[k]]) if k >= 0 else None
-                    for k in stars_at(snap.xy, camera, R, field, tolerance).tolist()])
+        stars = stars_at(snap.xy, camera, R, field, tolerance)
+        hips = np.where(claimed_once(stars), sky.index.hip[field.rows[np.maximum(stars, 0)]], -1)
+        chance = chance_of_falling_near(snap.xy, camera, R, field, stars, noise_rad)
+        near_a_star += int(np.count_nonzero(stars >= 0))
+        for source in np.flatnonzero(hips >= 0).tolist():
+            hip, track = int(hips[source]), track_of.get((pos, source))
+            if track in star_of_track:
+                names[pos][source] = hip if hip == star_of_track[track] else None
+            else:
+                key = ("track", track) if track is not None else ("sighting", pos, source)
+                unvouched.setdefault((key, hip), []).append((pos, source, float(chance[source])))
+    for (_, hip), sightings in unvouched.items():
+        if math.prod(c for _, _, c in sightings) < CHANCE_NAME_PROBABILITY:
+            for pos, source, _ in sightings:
+                names[pos][source] = hip
+    named = sum(name is not None for snap in names for name in snap)
+    return SourceNames(names=names, uncertain=near_a_star - named)
+
+
+def chance_of_falling_near(xy: np.ndarray, camera, rotation: np.ndarray, field, stars: np.ndarray,
+                           noise_rad: float) -> np.ndarray:
+    """(n,) probability that a source scattered at random on the sky falls as near a star as bright as
+    ``stars`` (from :func:`stars_at`; inf where -1) as each of ``xy`` falls to its own.
+
+    With stars of magnitude <= m spread at ``N(<= m) / 4 pi`` per steradian
+    (their mean density over the sky), the chance of one within angle ``d``
+    is ``pi d^2 N(<= m) / 4 pi`` (small angles); ``d`` is at least one
+    sighting's noise (``noise_rad``), as no sighting fits closer than that.
+    """
+    out = np.full(len(xy), np.inf)
+    seen = stars >= 0
+    if not np.any(seen):
+        return out
+    body = camera.pixels_to_vectors(np.asarray(xy, dtype=float)[seen])
+    cosine = np.clip(np.einsum("ni,ni->n", body @ rotation, field.vectors[stars[seen]]), -1.0, 1.0)
+    distance = np.maximum(np.arccos(cosine), noise_rad)
+    if field.mag is None:
+        brighter = np.full(len(distance), len(field.vectors))
+    else:
+        brighter = np.searchsorted(np.sort(field.mag), field.mag[stars[seen]], side="right")
+    out[seen] = np.pi * distance ** 2 * brighter / (4 * np.pi)
     return out
 
 

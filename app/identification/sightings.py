@@ -26,6 +26,8 @@ from app.identification.verify import StarField, chord
 MIN_SIGHTINGS = 3
 #: A reported source is that star when it lies within max(this, 5 sigma) pixels of it.
 SOURCE_MATCH_PX = 2.0
+#: How many stars within that distance are compared (more than two stars within a few pixels is rare).
+NEIGHBOURS_LOOKED_AT = 4
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,17 +81,25 @@ def stars_at(xy: np.ndarray, camera, rotation: np.ndarray, field: StarField, tol
 
     The pixels go through ``camera`` into the camera frame and through
     ``rotation`` (ICRS to camera: (3, 3), or (n, 3, 3) one per pixel, e.g.
-    the attitudes of the snapshots they were seen in) back to the sky; each
-    takes its nearest star.  Two pixels may name the same star
-    (:func:`claimed_once` tells).
+    the attitudes of the snapshots they were seen in) back to the sky.  A
+    pixel sees the brightest star within the tolerance, not the nearest: a
+    fainter star beside a bright one is seldom seen at all, and where both
+    are, their blend is named by its brighter member.  Two pixels may name
+    the same star (:func:`claimed_once` tells).
     """
     if len(xy) == 0:
         return np.zeros(0, dtype=int)
     body = camera.pixels_to_vectors(np.asarray(xy, dtype=float))
     rotation = np.asarray(rotation, dtype=float)
     directions = body @ rotation if rotation.ndim == 2 else np.einsum("ni,nij->nj", body, rotation)  # R^T v
-    distance, nearest = field.tree.query(directions, k=1)
-    return np.where(distance <= chord(tolerance_rad), nearest, -1)
+    k = min(NEIGHBOURS_LOOKED_AT, len(field.vectors))
+    _, near = field.tree.query(directions, k=k, distance_upper_bound=chord(tolerance_rad))
+    near = near.reshape(len(directions), k)
+    within = near < len(field.vectors)  # the tree marks "none" with n, and lists the nearest first
+    brightness = field.mag if field.mag is not None else np.zeros(len(field.vectors))
+    mags = np.where(within, brightness[np.minimum(near, len(field.vectors) - 1)], np.inf)
+    pick = np.argmin(mags, axis=1)  # the first of equals: the nearest
+    return np.where(within[:, 0], near[np.arange(len(near)), pick], -1)
 
 
 def claimed_once(stars: np.ndarray, groups: np.ndarray | None = None) -> np.ndarray:

@@ -127,7 +127,8 @@ class Sky:
                            or float(np.linalg.norm(velocity_km_s)) <= MAX_SPACECRAFT_SPEED_KM_S))
             cells = (lambda radius: self.near_star_cells(n, radius)) if static else None
             self._fields[key] = StarField.from_vectors(vectors, np.arange(n), cells=cells,
-                                                       alone_within=self.alone_within()[:n] if static else None)
+                                                       alone_within=self.alone_within()[:n] if static else None,
+                                                       mag=self.index.mag[:n])
             while len(self._fields) > 32:
                 self._fields.popitem(last=False)
         return self._fields[key]

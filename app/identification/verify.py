@@ -53,13 +53,15 @@ class StarField:
     #: (n,) chord within which a point's nearest star is certainly that star (half its distance to the
     #: nearest other one, at any epoch), or None.
     alone_within: np.ndarray | None = None
+    #: (n,) the stars' magnitudes, or None (then every star counts as equally bright).
+    mag: np.ndarray | None = None
 
     @classmethod
     def from_vectors(cls, vectors: np.ndarray, rows: np.ndarray, cells=None,
-                     alone_within: np.ndarray | None = None) -> "StarField":
+                     alone_within: np.ndarray | None = None, mag: np.ndarray | None = None) -> "StarField":
         # An unbalanced tree builds twice as fast; queries are as quick on stars.
         return cls(vectors=vectors, rows=rows, tree=cKDTree(vectors, balanced_tree=False, compact_nodes=False),
-                   cells=cells, alone_within=alone_within)
+                   cells=cells, alone_within=alone_within, mag=mag)
 
     @property
     def density_per_sr(self) -> float:

@@ -405,7 +405,10 @@ class SolveDocument(Document):
                                   "batch --out solves a file again when this changed; null if it could not be read")
     reference_snapshot: int | None = None
     sources: list[list[int | None]] = Field(default_factory=list)
-    source_stars: list[list[int | None]] | None = None
+    source_stars: list[list[int | None]] | None = Field(
+        None, description="per snapshot and source in input order, the HIP number of the star the first "
+                          "candidate names it (null: no star there, or none certainly; a note counts those); "
+                          "null when that candidate is not credible")
     candidates: list[CandidateDocument] = Field(default_factory=list)
     elapsed_ms: float | None = None
     notes: list[str] = Field(default_factory=list)

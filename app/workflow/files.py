@@ -167,21 +167,24 @@ def solve_document(path: str, sequence: Sequence, sky: Sky, *, options: SearchOp
     """Identify one file's sequence; with ``compare_tf`` also by triangle features, and say whether they agree.
 
     ``source_stars`` gives, per snapshot and source in input order, the HIP
-    number the first candidate's attitude assigns it (null: no star there),
-    or is null when that candidate is not credible.  ``digest``: the input's
+    number the first candidate's attitude assigns it (null: no star there,
+    or none certainly: a note counts those), or is null when that candidate
+    is not credible.  ``digest``: the input's
     :func:`input_sha256` (taken here from ``path`` when not given).
     """
     solved = solve_sequence(sequence, sky, options=options, method=method, prior=prior)
     s = solved.solution
+    names = source_stars(solved, sky)
     doc = SolveDocument(
         file=path, sequence_id=sequence.sequence_id, status=s.status,
         input_sha256=digest if digest is not None else input_sha256(path),
         reference_snapshot=int(solved.extraction.reference),
         sources=[[int(t) if t >= 0 else None for t in per] for per in solved.extraction.track_of_source],
-        source_stars=source_stars(solved, sky),
+        source_stars=names.names if names else None,
         candidates=[CandidateDocument.of(c, solved.sequence_fits.get(c.rank)) for c in s.candidates],
         elapsed_ms=round(s.elapsed_s * 1000, 2),
-        notes=list(solved.extraction.notes) + list(s.notes) + time_notes(sequence),
+        notes=(list(solved.extraction.notes) + list(s.notes) + time_notes(sequence)
+               + ([names.note] if names and names.note else [])),
         focal_length_contradiction=FocalLengthContradictionDocument.of(s.focal_length_contradiction))
     if compare_tf and prior is None:
         tf = solve_sequence(sequence, sky, options=options, extraction=solved.extraction, pattern=solved.pattern,
