@@ -36,6 +36,21 @@ Database ("Including Uncertainty in the Database")
   swapped order ``(b, a)`` is entered too.
 * Neighbours closer than ``min_separation`` are ignored on both sides:
   the sensor may blend them with the star itself.
+* Detection thresholds (a departure): Liebe's sensor registers every star
+  above one brightness threshold (his 1100 brightest), so one band of
+  maybe-stars suffices.  A TUBSAT-class sensor reports only its brightest
+  sources (10 per snapshot, and the search keeps the 16 brightest points),
+  so the threshold is set by the field: in a rich one (Canis Major, Orion)
+  nothing fainter than mag 3 is reported by a 30 deg camera whose limit is
+  4.5, and every star has more than ``max_missing`` unreported "certain"
+  neighbours, so its feature is in no NBC of the camera's band (13 of 100
+  simulated sequences of that camera unidentified).  The database is
+  therefore Liebe's built for a ladder of thresholds: the camera's band,
+  then the same band half its width brighter, and so on while an average
+  field of view holds at least :data:`MIN_FIELD_STARS` stars brighter than
+  the band's middle (:func:`detection_thresholds`); the NBCs of all bands
+  are entered once each.  This costs 1.4x the entries (4.8 MB for the 30 deg
+  camera); the rest of Liebe's rules apply within each band unchanged.
 
 The entries are a sorted int64 key array (one key per (d1, d2, angle)
 class triple) pointing at NBC rows (star, first, second); a lookup is a
@@ -44,7 +59,12 @@ binary search.  The database is cached on disk keyed by its parameters.
 Initial estimate ("Initial Estimate")
 -------------------------------------
 A pattern point is used only when its second neighbour is closer than the
-rim (plus the tolerance), so that no unseen star can be closer.  Its
+rim (plus the tolerance), so that no unseen star can be closer.  The rim is
+the sensor's, stretched to every pattern point (:func:`swept_bounds`, a
+departure): the pattern of a tracked sequence holds stars seen in other
+snapshots, off the reference snapshot's sensor, whose surroundings were seen
+with them; a rim of the reference sensor alone leaves many sparse fields
+without a usable point.  Its
 feature's class key gives candidate NBCs; those whose exact feature is
 within the uncertainty are kept; each (point -> star) assignment gets one
 vote from every other pattern point that has an assignment at the right
@@ -80,7 +100,7 @@ from app.index import BrightPairIndex
 
 log = logging.getLogger(__name__)
 
-TF_FORMAT_VERSION = 1
+TF_FORMAT_VERSION = 2
 ANGLE_CLASS_DEG = 5.0
 N_ANGLE_CLASSES = int(round(360.0 / ANGLE_CLASS_DEG))
 #: Defaults of :meth:`TFParameters.for_camera` (see there).
@@ -88,6 +108,9 @@ POSITION_ERROR_PX = 1.0
 CERTAIN_MARGIN_MAG = 0.5
 MAYBE_MARGIN_MAG = 0.5
 MIN_SEPARATION_PX = 3.0
+#: The database's ladder of detection thresholds goes down to where an average field of view holds this
+#: many stars brighter than the threshold: Liebe's feature needs three (see :func:`detection_thresholds`).
+MIN_FIELD_STARS = 3.0
 #: Differential aberration across a field (< 6") plus proper motion of
 #: nearly all stars over decades: added to every distance tolerance.
 DRIFT_MARGIN_ARCSEC = 10.0
@@ -104,6 +127,8 @@ class TFParameters:
     min_separation_rad: float  # closer neighbours are ignored (may blend with the star)
     max_missing: int = 4  # "maybe" neighbours that may be missing at once
     max_neighbours: int = 12  # nearest neighbours considered per star
+    #: The share of the whole sky the sensor sees (0: Liebe's single detection threshold).
+    field_fraction: float = 0.0
     margin_rad: float = float(np.radians(DRIFT_MARGIN_ARCSEC / 3600.0))
 
     @property
@@ -136,7 +161,8 @@ class TFParameters:
                       mag_faintest=round(min(limit + maybe_margin_mag, catalogue_mag_limit), 3),
                       position_error_rad=float(position_error_px * scale),
                       radius_rad=float(rim_distance(camera.pixels_to_vectors([[camera.cx, camera.cy]]), camera)[0]),
-                      min_separation_rad=float(MIN_SEPARATION_PX * scale))
+                      min_separation_rad=float(MIN_SEPARATION_PX * scale),
+                      field_fraction=round(field_solid_angle(camera) / (4 * np.pi), 6))
         params.update(overrides)
         return cls(**params)
 
@@ -202,25 +228,76 @@ def angle_tolerance(d1: np.ndarray, d2: np.ndarray, distance_tolerance: float) -
     return np.minimum(distance_tolerance / s1 + distance_tolerance / s2, np.pi)
 
 
-def rim_distance(vectors: np.ndarray, camera: Camera) -> np.ndarray:
-    """Angular distance of camera-frame unit vectors to the sensor's rim (a lower bound).
+def rim_distance(vectors: np.ndarray, camera: Camera, bounds: tuple[float, float, float, float] | None = None
+                 ) -> np.ndarray:
+    """Signed angular distance of camera-frame unit vectors to the rim of a rectangle of pixels: a lower
+    bound inside, negative outside.
 
-    The rim's four edges are arcs of great circles (a pinhole maps straight
-    lines to great circles); the distance to edge k is ``arcsin |v . n_k|``
-    with ``n_k`` the unit normal of its plane.  The nearest point of a great
-    circle may lie past the corner, so the minimum is never too large.
+    ``bounds`` (x0, y0, x1, y1), the outer sides of the rectangle, default to the sensor's
+    (-0.5, -0.5, width - 0.5, height - 0.5).  The rim's four edges are arcs of great circles (a pinhole
+    maps straight lines to great circles); the distance to edge k is ``arcsin(v . n_k)`` with ``n_k`` the
+    unit normal of its plane, pointing inwards.  The nearest point of a great circle may lie past the
+    corner, so the minimum is never too large.
     """
-    w, h = camera.width - 0.5, camera.height - 0.5
-    corners = camera.pixels_to_vectors(np.array([[-0.5, -0.5], [w, -0.5], [w, h], [-0.5, h]]))
+    x0, y0, x1, y1 = bounds if bounds is not None else (-0.5, -0.5, camera.width - 0.5, camera.height - 0.5)
+    corners = camera.pixels_to_vectors(np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=float))
     normals = np.cross(corners, np.roll(corners, -1, axis=0))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    normals *= np.sign(normals @ corners.mean(axis=0))[:, None]  # inwards
     v = np.atleast_2d(np.asarray(vectors, dtype=float))
-    return np.arcsin(np.clip(np.min(np.abs(v @ normals.T), axis=1), 0.0, 1.0))
+    return np.arcsin(np.clip(np.min(v @ normals.T, axis=1), -1.0, 1.0))
+
+
+def swept_bounds(vectors: np.ndarray, camera: Camera) -> tuple[float, float, float, float]:
+    """The rectangle of pixels (reference frame) the sensor swept over while it saw the pattern: its own,
+    stretched to every pattern point.
+
+    A tracked sequence's pattern holds stars seen in other snapshots than the reference, off its sensor;
+    the sensor covered them, and every star around them as bright, when it saw them.  The sensor moving
+    (nearly) in a straight line sweeps a hexagon, this rectangle less two corner triangles; a point by
+    those corners may take a star there for unseen and form a wrong feature, which costs a lookup but
+    never an answer (every hypothesis is checked against the whole pattern).
+    """
+    xy, front = camera.vectors_to_pixels(vectors)
+    xy = xy[front & np.all(np.isfinite(xy), axis=1)]
+    x0, y0, x1, y1 = -0.5, -0.5, camera.width - 0.5, camera.height - 0.5
+    if len(xy):
+        x0, y0 = min(x0, float(xy[:, 0].min())), min(y0, float(xy[:, 1].min()))
+        x1, y1 = max(x1, float(xy[:, 0].max())), max(y1, float(xy[:, 1].max()))
+    return x0, y0, x1, y1
+
+
+def field_solid_angle(camera: Camera) -> float:
+    """Solid angle (sr) of the sensor's rectangle through a pinhole: ``4 asin(sin a sin b)``, with ``a`` and
+    ``b`` the half-widths of the field (a pyramid of rectangular base)."""
+    a = np.arctan(camera.width / 2 / camera.focal_length_px)
+    b = np.arctan(camera.height / 2 / camera.focal_length_px)
+    return float(4 * np.arcsin(np.sin(a) * np.sin(b)))
 
 
 # --------------------------------------------------------------------------
 # Building the database
 # --------------------------------------------------------------------------
+def detection_thresholds(mag: np.ndarray, params: TFParameters) -> list[tuple[float, float]]:
+    """The (certain, faintest) magnitude bands the database is built for, deepest first.
+
+    The deepest is the camera's (``params.mag_certain``, ``params.mag_faintest``); each next one is half a
+    band brighter, so that every threshold lies within a quarter band of some band's middle; the ladder
+    stops where an average field of view (``params.field_fraction`` of the ``mag`` sky, sorted brightest
+    first) holds fewer than :data:`MIN_FIELD_STARS` stars brighter than the band's middle.
+    """
+    certain, faintest = params.mag_certain, params.mag_faintest
+    step = (faintest - certain) / 2
+    bands = [(certain, faintest)]
+    while step > 0:
+        certain, faintest = round(certain - step, 3), round(faintest - step, 3)
+        middle = (certain + faintest) / 2
+        if np.searchsorted(mag, middle, side="right") * params.field_fraction < MIN_FIELD_STARS:
+            break
+        bands.append((certain, faintest))
+    return bands
+
+
 def sorted_neighbours(vectors: np.ndarray, params: TFParameters) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each star's nearest neighbours within the radius, nearest first.
 
@@ -323,7 +400,12 @@ def build_tf_database(vectors: np.ndarray, mag: np.ndarray, params: TFParameters
     t0 = time.perf_counter()
     n = int(np.searchsorted(mag, params.mag_faintest, side="right"))
     v, m = vectors[:n], mag[:n]
-    star, first, second = neighbour_constellations(v, m, params)
+    found = []
+    for certain, faintest in detection_thresholds(m, params):
+        k = int(np.searchsorted(m, faintest, side="right"))
+        found.append(np.column_stack(neighbour_constellations(
+            v[:k], m[:k], replace(params, mag_certain=certain, mag_faintest=faintest))))
+    star, first, second = np.unique(np.concatenate(found), axis=0).T
     features = triangle_features(v[star], v[first], v[second])
     keys, nbc = quantised_entries(features, params)
     order = np.argsort(keys, kind="stable")
@@ -373,7 +455,7 @@ def load_tf_database(params: TFParameters, index: BrightPairIndex, cache_dir: Pa
     return db
 
 
-#: Databases kept on disk (3-7 MB each): one per camera model in use, so a few suffice; the bound
+#: Databases kept on disk (5-14 MB each): one per camera model in use, so a few suffice; the bound
 #: keeps uploads with ever new cameras from filling the disk.
 MAX_CACHED_DATABASES = 12
 
@@ -412,7 +494,8 @@ def pattern_features(vectors: np.ndarray, camera: Camera, params: TFParameters) 
     """Features of the points whose second neighbour is surely inside the field (Liebe's rim rule).
 
     A point is used when ``d2 + tol <= rim distance``: then every star
-    nearer than its true second neighbour lies on the sensor.
+    nearer than its true second neighbour lies where the sensor looked (its
+    rectangle stretched to every pattern point: :func:`swept_bounds`).
     """
     v = np.asarray(vectors, dtype=float)
     m = len(v)
@@ -424,7 +507,8 @@ def pattern_features(vectors: np.ndarray, camera: Camera, params: TFParameters) 
     order = np.argsort(ang, axis=1, kind="stable")
     first, second = order[:, 0], order[:, 1]
     d2 = ang[np.arange(m), second]
-    usable = np.isfinite(d2) & (d2 + params.distance_tolerance_rad <= rim_distance(v, camera))
+    rim = rim_distance(v, camera, swept_bounds(v, camera))
+    usable = np.isfinite(d2) & (d2 + params.distance_tolerance_rad <= rim)
     points = np.flatnonzero(usable)
     features = triangle_features(v[points], v[first[points]], v[second[points]])
     return PatternFeatures(points, first[points], second[points], features)
@@ -518,6 +602,9 @@ def tf_batches(p: "PreparedPattern", sky: "Sky", options: "SearchOptions"):
     visible = p.star_mask[asg.star] & p.star_mask[asg.star_first] & p.star_mask[asg.star_second]
     asg = vote(asg.take(visible), p.vectors, stars, params.distance_tolerance_rad)
     if len(asg.point) == 0:
+        # Features looked up, none in the sky: said as such (an empty batch counts them), not as a
+        # pattern too sparse to have any.
+        yield tf_hypotheses(asg, p.vectors, stars), np.zeros(0), len(pf.points)
         return
     asg = asg.take(np.lexsort((asg.point, -asg.votes)))
     hyp = tf_hypotheses(asg, p.vectors, stars)
