@@ -7,10 +7,16 @@ The steps of :func:`extract`:
    sitting on the same pixel in three or more snapshots are kept out of
    this while they are a minority: hot pixels would vote for "no
    rotation".  Where a snapshot has no rotation to its predecessor (too few
-   common stars, the Earth in view, a burst of ghosts) it is linked to up
-   to ``max_skip`` snapshots back instead.  Composing the links puts every
-   snapshot of a connected run ("component") into one common frame:
-   ``v_c = A[i] v_i``.
+   common stars, the Earth in view, a burst of ghosts), or one resting on
+   the fewest matches accepted (``min_inliers``: ghosts line up by chance
+   that well now and then), it is also linked to up to ``max_skip``
+   snapshots back, and the link with the most matches is used.  Composing
+   the links puts every snapshot of a connected run ("component") into one
+   common frame: ``v_c = A[i] v_i``.  A run cut off from the longest one
+   (a first snapshot sharing three stars with the second, among three
+   ghosts) is then registered against the longest run's provisional tracks
+   seen from its nearest snapshot, which hold more of its stars than any
+   single snapshot does (:func:`_rejoin_components`).
 2. **Refinement.**  The links' matched sources, joined transitively, give
    provisional tracks; each snapshot's rotation into the common frame is
    re-solved (Wahba) against their mean directions, which removes the drift
@@ -99,6 +105,27 @@ def _padded(sequence: Sequence) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return xy, brightness, valid
 
 
+def _link_settings(p: ExtractionParameters, chord_px: float, field_area_px: float) -> dict:
+    """The keyword arguments of :func:`estimate_pair_rotations`: the parameters' pixels as chords."""
+    return dict(pair_tol=p.pair_tol_px * chord_px, min_baseline=p.min_baseline_px * chord_px,
+                score_gate=p.score_gate_px * chord_px, fit_gate=p.fit_gate_px * chord_px,
+                min_inliers=p.min_inliers, min_radius=p.min_match_radius_px * chord_px,
+                max_false_alarms=p.max_false_alarms, field_area=field_area_px * chord_px**2,
+                max_work=p.max_link_work, min_hypotheses=p.min_link_hypotheses)
+
+
+def _brightest_sources(valid: np.ndarray, brightness: np.ndarray, k: int) -> np.ndarray:
+    """(S, K) indices of each row's K brightest valid sources, brightest first, -1 padded."""
+    order = np.argsort(np.where(valid, -brightness, np.inf), axis=1, kind="stable")[:, :k]
+    return np.where(np.take_along_axis(valid, order, axis=1), order, -1)
+
+
+def _accepted_links(links: np.ndarray, result) -> dict:
+    """{(a, b): (R, matches, number of matches)} of the links that got a rotation."""
+    return {(int(a), int(b)): (result.rotation[k], result.matches[k], int(result.n_inliers[k]))
+            for k, (a, b) in enumerate(links) if np.isfinite(result.rotation[k, 0, 0])}
+
+
 def _chain_motions(vectors: np.ndarray, brightness: np.ndarray, valid: np.ndarray, chord_px: float,
                    field_area_px: float, p: ExtractionParameters):
     """Rotations into a common frame per connected run of snapshots.
@@ -107,35 +134,33 @@ def _chain_motions(vectors: np.ndarray, brightness: np.ndarray, valid: np.ndarra
     as (a, b, matches (N,)) triples, squared chords of all link inliers).
     """
     n_snap = vectors.shape[0]
-    order = np.argsort(np.where(valid, -brightness, np.inf), axis=1, kind="stable")[:, :p.hypothesis_sources]
-    hyp = np.where(np.take_along_axis(valid, order, axis=1), order, -1)
-    kwargs = dict(pair_tol=p.pair_tol_px * chord_px, min_baseline=p.min_baseline_px * chord_px,
-                  score_gate=p.score_gate_px * chord_px, fit_gate=p.fit_gate_px * chord_px,
-                  min_inliers=p.min_inliers, min_radius=p.min_match_radius_px * chord_px,
-                  max_false_alarms=p.max_false_alarms, field_area=field_area_px * chord_px**2,
-                  max_work=p.max_link_work, min_hypotheses=p.min_link_hypotheses)
+    hyp = _brightest_sources(valid, brightness, p.hypothesis_sources)
+    kwargs = _link_settings(p, chord_px, field_area_px)
     links = np.column_stack([np.arange(n_snap - 1), np.arange(1, n_snap)])
     first = estimate_pair_rotations(vectors, hyp, links, **kwargs)
-    found = {(int(a), int(b)): (first.rotation[k], first.matches[k]) for k, (a, b) in enumerate(links)}
-    broken = [b for (a, b), (r, _) in found.items() if not np.isfinite(r[0, 0])]
-    skips = np.array([(b - d, b) for b in broken for d in range(2, p.max_skip + 1) if b - d >= 0],
+    found = _accepted_links(links, first)
+    # A snapshot with no link to its predecessor, or one resting on the fewest matches accepted
+    # (two fix the hypothesis, one more is the only evidence: a chance alignment of ghosts passes
+    # the false-alarm test now and then), is also linked to snapshots further back.
+    weak = [b for b in range(1, n_snap) if found.get((b - 1, b), (None, None, 0))[2] <= p.min_inliers]
+    skips = np.array([(b - d, b) for b in weak for d in range(2, p.max_skip + 1) if b - d >= 0],
                      dtype=int).reshape(-1, 2)
     second = estimate_pair_rotations(vectors, hyp, skips, **kwargs)
-    found.update({(int(a), int(b)): (second.rotation[k], second.matches[k]) for k, (a, b) in enumerate(skips)})
+    found.update(_accepted_links(skips, second))
 
     to_common = np.tile(np.eye(3), (n_snap, 1, 1))
     component = np.zeros(n_snap, dtype=int)
     used = []
     n_components = 1
     for b in range(1, n_snap):
-        for a in range(b - 1, max(-1, b - 1 - p.max_skip), -1):
-            r, matches = found.get((a, b), (None, None))
-            if r is not None and np.isfinite(r[0, 0]):
-                # v_b = R v_a and v_c = A_a v_a  =>  v_c = A_a R^T v_b
-                to_common[b] = to_common[a] @ r.T
-                component[b] = component[a]
-                used.append((a, b, matches))
-                break
+        # the link with the most matches wins, the nearest snapshot on ties
+        options = [(a, *found[(a, b)]) for a in range(b - 1, max(-1, b - 1 - p.max_skip), -1) if (a, b) in found]
+        if options:
+            a, r, matches, _ = max(options, key=lambda option: option[3])
+            # v_b = R v_a and v_c = A_a v_a  =>  v_c = A_a R^T v_b
+            to_common[b] = to_common[a] @ r.T
+            component[b] = component[a]
+            used.append((a, b, matches))
         else:
             component[b] = n_components
             n_components += 1
@@ -154,6 +179,118 @@ def _linked_groups(used_links, flat_of: np.ndarray, n_sources: int) -> np.ndarra
         k = np.flatnonzero(matches >= 0)
         label[flat_of[b, matches[k]]] = label[flat_of[a, k]]
     return label
+
+
+def _nearest_snapshots(component: np.ndarray, main: int) -> list[tuple[int, int, int]]:
+    """For every component other than ``main``: (component, its snapshot nearest in time to
+    ``main``, the snapshot of ``main`` nearest to that one); earlier snapshots win ties."""
+    in_main = np.flatnonzero(component == main)
+    out = []
+    for c in np.unique(component[component != main]):
+        mine = np.flatnonzero(component == c)
+        gap = np.abs(mine[:, None] - in_main[None, :])
+        i, j = np.unravel_index(np.argmin(gap), gap.shape)
+        out.append((int(c), int(mine[i]), int(in_main[j])))
+    return out
+
+
+def _virtual_snapshots(camera, common: np.ndarray, brightness: np.ndarray, snap: np.ndarray,
+                       component: np.ndarray, groups: np.ndarray, usable: np.ndarray,
+                       to_common: np.ndarray, views: list[tuple[int, int]]):
+    """The sky each component's provisional tracks show in one of its snapshots' frames.
+
+    For a view (component c, snapshot s of c) the points are every group of c
+    with two or more sightings, at its mean common-frame direction w carried
+    into s (``A_s^T w``) where that falls on the sensor, and s's own usable
+    sources in no such group.  A lone snapshot's view is its own sources; a
+    longer run's view holds the stars it saw anywhere near s, without the
+    ghosts (seen once) and dropouts of s.  Returns zero-padded vectors (V, N, 3),
+    brightness (V, N), validity (V, N) and each point's group label (V, N).
+    """
+    live = np.where(usable, groups, -1)
+    n_labels = len(groups)
+    label_size = np.bincount(live[live >= 0], minlength=n_labels)
+    label_comp = np.full(n_labels, -1)
+    label_comp[live[live >= 0]] = component[snap[live >= 0]]
+    sums = np.zeros((n_labels, 3))
+    np.add.at(sums, live[live >= 0], common[live >= 0])
+    mean_brightness = np.bincount(live[live >= 0], brightness[live >= 0], n_labels) / np.maximum(label_size, 1)
+    rows = []
+    for c, s in views:
+        multi = np.flatnonzero((label_size >= 2) & (label_comp == c))
+        local = _normalized(sums[multi]) @ to_common[s]  # rows w^T A_s
+        xy, front = camera.vectors_to_pixels(local)
+        seen = front & camera.on_sensor(xy)
+        single = np.flatnonzero(usable & (snap == s) & (label_size[groups] < 2))
+        rows.append((np.concatenate([local[seen], common[single] @ to_common[s]]),
+                     np.concatenate([mean_brightness[multi[seen]], brightness[single]]),
+                     np.concatenate([multi[seen], groups[single]])))
+    width = max(1, max(len(r[2]) for r in rows))
+    vectors = np.zeros((len(views), width, 3))
+    bright = np.zeros((len(views), width))
+    label = np.full((len(views), width), -1)
+    for v, (vec, b, lab) in enumerate(rows):
+        vectors[v, :len(lab)], bright[v, :len(lab)], label[v, :len(lab)] = vec, b, lab
+    return vectors, bright, label >= 0, label
+
+
+def _rejoin_components(camera, vectors: np.ndarray, brightness: np.ndarray, snap: np.ndarray,
+                       usable: np.ndarray, groups: np.ndarray, to_common: np.ndarray, component: np.ndarray,
+                       chord_px: float, p: ExtractionParameters):
+    """Runs of snapshots cut off from the longest run, joined to it through their tracks' sky.
+
+    With three ghosts and a hot pixel among ten sources two snapshots may
+    share only three stars, and three matches within a pixel are not
+    improbable enough by chance among hundreds of pair hypotheses
+    (:func:`app.extraction.motion.false_alarms`): the link is refused, rightly,
+    and a snapshot whose every link is refused (the first one, whose single
+    link is to the second, most often) is left alone, its stars lost.  But
+    the longest run knows more sky than any one snapshot: its provisional
+    tracks carried into its snapshot m nearest to the cut-off run, and the
+    cut-off run's own tracks (or a lone snapshot's sources) in its snapshot
+    x nearest to m, share every star either saw there, seen once or not
+    (:func:`_virtual_snapshots`), with no ghost of the long run but m's.  The same
+    robust estimator and false-alarm test find ``v_x = R v_m``; then every
+    snapshot y of the run gets ``A_y <- A_m R^T A_x^T A_y`` and the matched
+    groups are merged.  Rounds repeat while a run joins (a run next to a
+    newly joined one may now see enough), all runs of a round in one call.
+    The work is bounded: only runs within ``max_skip`` snapshots of the
+    longest are tried, and never twice from the same pair of snapshots.
+
+    Returns (to_common, component, groups), updated.
+    """
+    to_common, component, groups = to_common.copy(), component.copy(), groups.copy()
+    settings = _link_settings(p, chord_px, camera.width * camera.height)
+    tried = set()
+    while True:
+        main = int(np.argmax(np.bincount(component)))
+        if np.sum(component == main) < 2:
+            return to_common, component, groups
+        pairs = [(c, x, m) for c, x, m in _nearest_snapshots(component, main)
+                 if abs(x - m) <= p.max_skip and (x, m) not in tried]
+        if not pairs:
+            return to_common, component, groups
+        tried.update((x, m) for _, x, m in pairs)
+        views = [view for c, x, m in pairs for view in ((main, m), (c, x))]
+        common = _rotate(to_common[snap], vectors)
+        points, bright, valid, label = _virtual_snapshots(camera, common, brightness, snap, component, groups,
+                                                          usable, to_common, views)
+        links = np.arange(len(views)).reshape(-1, 2)
+        found = estimate_pair_rotations(points, _brightest_sources(valid, bright, p.hypothesis_sources), links,
+                                        **settings)
+        joined = np.flatnonzero(np.isfinite(found.rotation[:, 0, 0]))
+        if len(joined) == 0:
+            return to_common, component, groups
+        relabel = np.arange(len(groups))
+        for k in joined:
+            c, x, m = pairs[k]
+            run = component == c
+            # v_x = R v_m, v_c = A_m v_m  =>  v_c = A_m R^T v_x = A_m R^T A_x^T (A_y v_y)
+            to_common[run] = to_common[m] @ found.rotation[k].T @ to_common[x].T @ to_common[run]
+            component[run] = main
+            matched = np.flatnonzero(found.matches[k] >= 0)
+            relabel[label[2 * k + 1, found.matches[k, matched]]] = label[2 * k, matched]
+        groups = relabel[groups]
 
 
 def _refine_to_common(vectors: np.ndarray, snap: np.ndarray, label: np.ndarray,
@@ -461,10 +598,14 @@ def _extract(sequence: Sequence, p: ExtractionParameters, known_hot: tuple[np.nd
     motion_vectors = np.where(motion_valid[..., None], vectors_pad, 0.0)  # zero rows never match
     to_common, component, used, link_sq = _chain_motions(motion_vectors, bright_pad, motion_valid,
                                                          chord_px, camera.width * camera.height, p)
+    groups = _linked_groups(used, flat_of, len(snap))
+    to_common, component, groups = _rejoin_components(camera, vectors, bright_pad[snap, index],
+                                                      snap, motion_valid[snap, index], groups, to_common,
+                                                      component, chord_px, p)
     comp = component[snap]
 
     # 2. refinement against the provisional tracks of the links' matches
-    to_common = _refine_to_common(vectors, snap, _linked_groups(used, flat_of, len(snap)), to_common)
+    to_common = _refine_to_common(vectors, snap, groups, to_common)
     common = _rotate(to_common[snap], vectors)
 
     # 3. noise; link residuals are differences of two sightings: E|r|^2 = 2 sigma^2 * 2

@@ -12,7 +12,9 @@ import numpy as np
 #: refuses to re-extract old uploads silently: see app.workflow.archive).
 #: 2: the work per snapshot link is capped (ExtractionParameters.max_link_work); sequences of
 #: up to ~30 sources per snapshot extract as in version 1.
-EXTRACTION_VERSION = 2
+#: 3: a link with the fewest matches accepted gets skip links as rivals (the most matches wins),
+#: and runs of snapshots cut off from the longest run are registered against its tracks.
+EXTRACTION_VERSION = 3
 
 #: 1-sigma position noise of one sighting, pixels per axis, wherever it could not be measured
 #: (a single snapshot, too few tracks); the estimate's bounds are in ExtractionParameters.
