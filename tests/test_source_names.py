@@ -16,6 +16,7 @@ import pytest
 from app.camera import CAMERAS
 from app.identification import solve_sequence, source_stars
 from app.identification.__init__ import CHANCE_NAME_PROBABILITY, chance_of_falling_near
+from app.identification.candidates import named_by_brightest
 from app.identification.sightings import sources_field, stars_at
 from app.identification.verify import StarField
 from app.simulate import simulate_sequence
@@ -36,6 +37,24 @@ def test_a_source_between_a_bright_and_a_faint_star_is_the_bright_one():
     seen = stars_at(np.array([[300.7, 200.0], [500.2, 400.0], [100.0, 100.0]]), CAMERA, np.eye(3), field,
                     2 * CAMERA.pixel_scale_rad)
     assert seen.tolist() == [0, 2, -1]
+
+
+def test_a_candidates_point_matched_to_a_faint_neighbour_takes_the_bright_star_unless_another_point_has_it():
+    # Refinement matched point 0 to its nearest star, the faint one (row 1); the bright one (row 0) lies
+    # within the point's match tolerance.  Point 1 is matched to row 2 and has no brighter star near.
+    field = _field_at(CAMERA, [[300.0, 200.0], [301.0, 200.0], [500.0, 400.0]], [3.0, 6.0, 4.0])
+    directions = CAMERA.pixels_to_vectors(np.array([[300.7, 200.0], [500.2, 400.0]]))
+    tolerance = np.full(2, 2 * CAMERA.pixel_scale_rad)
+    near = np.array([0.3, 0.2]) * CAMERA.pixel_scale_rad
+    stars, residuals = named_by_brightest(np.array([1, 2]), near, directions, field, tolerance)
+    assert stars.tolist() == [0, 2]
+    assert residuals[0] == pytest.approx(np.arccos(directions[0] @ field.vectors[0]))
+    assert residuals[1] == near[1]
+    # When another point (a second source 0.5 px on the other side) names the bright star, the faint one
+    # stays: two points never name one star.
+    beside = CAMERA.pixels_to_vectors(np.array([[300.7, 200.0], [299.5, 200.0]]))
+    stars, _ = named_by_brightest(np.array([1, 0]), near, beside, field, tolerance)
+    assert stars.tolist() == [1, 0]
 
 
 def test_the_chance_of_falling_near_a_star_is_its_disc_times_the_density_of_as_bright_stars():

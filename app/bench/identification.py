@@ -80,6 +80,33 @@ def _source_labels(labels, truth) -> tuple[int, int, int, int]:
     return ok, total, false, wrong
 
 
+def wrong_star_matches(candidate, extraction, truth) -> int:
+    """How many of ``candidate``'s matches name a star its track is not (a track of several objects, a
+    ghost in it, counts as wrong for any star not among them)."""
+    tracks = {t.id: t for t in extraction.tracks}
+    wrong = 0
+    for m in candidate.matches:
+        track = tracks.get(m.track)
+        if track is None:
+            continue
+        labels = [truth["sources"][s][i] for s, i in zip(track.snapshots.tolist(), track.source_indices.tolist())]
+        wrong += not any(src["kind"] == "star" and (src["hip"] == m.hip or f"hip:{m.hip}" in src.get("blend_of", []))
+                         for src in labels)
+    return wrong
+
+
+#: The false-match probability is judged where the operator is told "identified": below this.
+CALIBRATION_PROBABILITY = 1e-3
+
+
+def probability_calibration(rows) -> dict:
+    """Of every candidate (every rank) whose false-match probability is below
+    :data:`CALIBRATION_PROBABILITY`, how many, and how many are wrong (an honest probability keeps the
+    wrong fraction below it); ``rows`` carry ``candidates``: (probability, correct) pairs."""
+    below = [ok for r in rows for p, ok in r.candidates if p < CALIBRATION_PROBABILITY]
+    return {"candidates_below": len(below), "wrong_below": sum(not ok for ok in below)}
+
+
 def _star_sources(sequence, truth) -> int:
     return len({src["object"] for snap in truth["sources"] for src in snap if src["kind"] == "star"})
 
@@ -106,6 +133,9 @@ def run_scenario(sky: Sky, camera_name: str, scenario: str, n: int, seed: int, m
             top1=bool(verdicts and verdicts[0][0]), top5=any(v[0] for v in verdicts[:5]),
             bore=verdicts[0][1] if verdicts and verdicts[0][0] else None,
             roll=verdicts[0][2] if verdicts and verdicts[0][0] else None,
+            wrong_stars=(wrong_star_matches(solved.solution.candidates[0], solved.extraction, truth)
+                         if solved.solution.status == IDENTIFIED else 0),
+            candidates=[(c.false_match_probability, v[0]) for c, v in zip(solved.solution.candidates, verdicts)],
             star_ok=star_ok, star_total=star_total, false_labels=false_labels, wrong_labels=wrong_labels,
             labelled=sum(hip is not None for snap in labels or [] for hip in snap)))
     earth = scenario == "earth"
@@ -123,6 +153,9 @@ def run_scenario(sky: Sky, camera_name: str, scenario: str, n: int, seed: int, m
         "top1_correct": None if earth else round(np.mean([r.top1 for r in eligible]), 4) if eligible else None,
         "top5_correct": None if earth else round(np.mean([r.top5 for r in eligible]), 4) if eligible else None,
         "wrong_identified": sum(r.status == IDENTIFIED and not r.top1 for r in rows),
+        # identified and right, but with a wrong star among the first candidate's matches
+        "wrong_star_identified": sum(r.status == IDENTIFIED and r.top1 and r.wrong_stars > 0 for r in rows),
+        **probability_calibration(rows),
         "status": dict(Counter(r.status for r in rows)),
         "boresight_err_arcsec_median": pct(bores, 50), "boresight_err_arcsec_p95": pct(bores, 95),
         "roll_err_arcsec_median": pct(rolls, 50), "roll_err_arcsec_p95": pct(rolls, 95),
@@ -202,6 +235,13 @@ def run(n_sequences: int = 100, seed: int = 1, scenarios=SCENARIOS, cameras=None
                                 if deviation_samples and method == "bright_pair" else [])}
 
 
+def calibration_line(rows: list[dict]) -> str:
+    """One line: the false-match probability's calibration over every candidate of ``rows``."""
+    n, wrong = sum(r["candidates_below"] for r in rows), sum(r["wrong_below"] for r in rows)
+    return (f"false-match probability < {CALIBRATION_PROBABILITY:g}: {n} candidates (every rank), {wrong} wrong"
+            + (f" ({wrong / n:.2g}; goal < {CALIBRATION_PROBABILITY:g})" if n else ""))
+
+
 def _percent(fraction: float | None) -> str:
     return "-" if fraction is None else f"{100 * fraction:.3f}%"
 
@@ -210,7 +250,7 @@ def format_table(result: dict) -> str:
     lines = [f"bright-pair index: {result['index_stars']} stars, {result['index_pairs']} pairs, "
              f"built in {result['index_build_s']:.2f} s, loaded from its cache in {result['index_load_ms']:.0f} ms",
              f"method: {result.get('method', 'bright_pair')}", ""]
-    head = (f"{'camera':<24} {'scenario':<8} {'n':>4} {'elig':>4} {'top1':>6} {'top5':>6} {'wrongID':>7} "
+    head = (f"{'camera':<24} {'scenario':<8} {'n':>4} {'elig':>4} {'top1':>6} {'top5':>6} {'wrongID':>7} {'wrongStar':>9} "
             f"{'bore50':>7} {'bore95':>7} {'roll50':>7} {'roll95':>7} {'ms50':>6} {'ms95':>6} {'srcID':>7} "
             f"{'falseID':>7} {'wrongLbl':>8}  status")
     lines.append(head)
@@ -221,7 +261,7 @@ def format_table(result: dict) -> str:
     for r in result["rows"]:
         lines.append(f"{r['camera']:<24} {r['scenario']:<8} {r['sequences']:>4} {r['eligible']:>4} "
                      f"{f(r['top1_correct'], '.3f'):>6} {f(r['top5_correct'], '.3f'):>6} {r['wrong_identified']:>7} "
-                     f"{f(r['boresight_err_arcsec_median'], '.1f'):>7} {f(r['boresight_err_arcsec_p95'], '.1f'):>7} "
+                     f"{r['wrong_star_identified']:>9} {f(r['boresight_err_arcsec_median'], '.1f'):>7} {f(r['boresight_err_arcsec_p95'], '.1f'):>7} "
                      f"{f(r['roll_err_arcsec_median'], '.1f'):>7} {f(r['roll_err_arcsec_p95'], '.1f'):>7} "
                      f"{f(r['time_ms_median'], '.1f'):>6} {f(r['time_ms_p95'], '.1f'):>6} "
                      f"{f(r['star_sources_identified'], '.4f'):>7} {r['false_star_labels']:>7} "
@@ -229,7 +269,9 @@ def format_table(result: dict) -> str:
                      + " ".join(f"{k}={v}" for k, v in sorted(r["status"].items())))
     lines.append("(errors in arcsec over correct top-1 answers; times per sequence incl. extraction; srcID: star "
                  "sources labelled with their star by the first candidate's attitude, falseID: other sources "
-                 "labelled as a star, wrongLbl: labelled sources named with a star they are not; goal <= 0.1 %)")
+                 "labelled as a star, wrongLbl: labelled sources named with a star they are not; goal <= 0.1 %; "
+                 "wrongStar: identified and right, but a wrong star among the first candidate's matches)")
+    lines.append(calibration_line(result["rows"]))
     if result.get("deviation_table"):
         lines += ["", "Seed's table: mean deviation per pattern point (pixels), 752x582 20 deg camera",
                   f"{'points':>6} {'true':>8} {'best wrong':>10} {'random':>8} {'n':>4}"]

@@ -24,7 +24,8 @@ from app.extraction import DEFAULT_SIGHTING_SIGMA_PX
 from app.identification.options import SearchOptions
 from app.identification.result import Candidate, PlanetMatch, StarMatch
 from app.identification.sky import Sky
-from app.identification.verify import Refined, StarField, false_match_probability
+from app.identification.verify import (Refined, StarField, brightest_within, false_match_probability,
+                                       local_density_per_sr)
 
 
 @dataclass(frozen=True, eq=False)
@@ -81,22 +82,25 @@ def build_candidate(r: Refined, p: PreparedPattern, sky: Sky, *, tol: float, n_h
     """
     vectors, keep, field, scale, m = p.vectors, p.keep, p.field, p.scale, p.m
     R = r.rotation
-    matched = np.flatnonzero(r.star_of_point >= 0)
+    star_of_point, residual_rad = named_by_brightest(r.star_of_point, r.residual_rad, vectors @ R, field,
+                                                     p.match_tol)
+    matched = np.flatnonzero(star_of_point >= 0)
 
     def track_of(i):
         t = int(p.track_ids[i])
         return t if t >= 0 else None
 
     matches = tuple(
-        StarMatch(pattern_index=int(keep[i]), track=track_of(i), hip=int(sky.index.hip[field.rows[r.star_of_point[i]]]),
-                  name=sky.name(int(field.rows[r.star_of_point[i]])),
-                  residual_arcsec=float(np.degrees(r.residual_rad[i]) * 3600))
+        StarMatch(pattern_index=int(keep[i]), track=track_of(i), hip=int(sky.index.hip[field.rows[star_of_point[i]]]),
+                  name=sky.name(int(field.rows[star_of_point[i]])),
+                  residual_arcsec=float(np.degrees(residual_rad[i]) * 3600))
         for i in matched)
-    resid = r.residual_rad[matched]
-    fmp = false_match_probability(m, len(matched), tol, field.density_per_sr, n_hypotheses,
-                                  float(np.sum(resid ** 2)), n_fitted=n_fitted)
+    resid = residual_rad[matched]
+    density = local_density_per_sr(field, R[2], p.camera.corner_radius * scale)  # R[2]: the boresight in ICRS
+    fmp = false_match_probability(m, len(matched), tol, density, n_hypotheses, float(np.sum(resid ** 2)),
+                                  n_fitted=n_fitted)
     planet_matches = []
-    unmatched = np.flatnonzero(r.star_of_point < 0)
+    unmatched = np.flatnonzero(star_of_point < 0)
     if planets is not None and len(unmatched) and fmp <= options.rival_probability:
         sky_dirs = vectors[unmatched] @ R
         for name, pv in planets().items():
@@ -122,6 +126,27 @@ def build_candidate(r: Refined, p: PreparedPattern, sky: Sky, *, tol: float, n_h
         n_hypotheses_merged=n_merged,
         sigma_cross_boresight_arcsec=float(np.degrees(sigma_cross) * 3600),
         sigma_roll_arcsec=float(np.degrees(sigma_roll) * 3600))
+
+
+def named_by_brightest(star_of_point: np.ndarray, residual_rad: np.ndarray, directions: np.ndarray,
+                       field: StarField, match_tol: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The refinement's star of each point (and its residual), or the brightest star within the point's
+    match tolerance where that is another one no other point names (:func:`brightest_within`: the
+    refinement takes the nearest, and a faint neighbour of the star seen took its name).  ``directions``:
+    the points' directions on the sky (ICRS unit vectors) at the refined attitude."""
+    stars, residuals = star_of_point.copy(), residual_rad.copy()
+    matched = np.flatnonzero(stars >= 0)
+    if not len(matched):
+        return stars, residuals
+    brightest = brightest_within(directions[matched], field, float(np.max(match_tol[matched])))
+    named = set(stars[matched].tolist())
+    for i, star in zip(matched.tolist(), brightest.tolist()):
+        cosine = float(directions[i] @ field.vectors[star]) if star >= 0 else -1.0
+        if star >= 0 and star not in named and np.arccos(min(cosine, 1.0)) <= match_tol[i]:
+            named.discard(int(stars[i]))
+            named.add(star)
+            stars[i], residuals[i] = star, np.arccos(min(cosine, 1.0))
+    return stars, residuals
 
 
 def reduced_chi2(residual_rad: np.ndarray, sigma_rad: np.ndarray, n_fitted: int = 0) -> float:

@@ -20,14 +20,12 @@ from app.attitude import propagate
 from app.camera_fit import Observation
 from app.extraction import DEFAULT_SIGHTING_SIGMA_PX
 from app.identification.options import SearchOptions
-from app.identification.verify import StarField, chord
+from app.identification.verify import StarField, brightest_within
 
 #: A snapshot needs this many identified sightings to fix its own attitude robustly.
 MIN_SIGHTINGS = 3
 #: A reported source is that star when it lies within max(this, 5 sigma) pixels of it.
 SOURCE_MATCH_PX = 2.0
-#: How many stars within that distance are compared (more than two stars within a few pixels is rare).
-NEIGHBOURS_LOOKED_AT = 4
 
 
 @dataclass(frozen=True, eq=False)
@@ -92,14 +90,7 @@ def stars_at(xy: np.ndarray, camera, rotation: np.ndarray, field: StarField, tol
     body = camera.pixels_to_vectors(np.asarray(xy, dtype=float))
     rotation = np.asarray(rotation, dtype=float)
     directions = body @ rotation if rotation.ndim == 2 else np.einsum("ni,nij->nj", body, rotation)  # R^T v
-    k = min(NEIGHBOURS_LOOKED_AT, len(field.vectors))
-    _, near = field.tree.query(directions, k=k, distance_upper_bound=chord(tolerance_rad))
-    near = near.reshape(len(directions), k)
-    within = near < len(field.vectors)  # the tree marks "none" with n, and lists the nearest first
-    brightness = field.mag if field.mag is not None else np.zeros(len(field.vectors))
-    mags = np.where(within, brightness[np.minimum(near, len(field.vectors) - 1)], np.inf)
-    pick = np.argmin(mags, axis=1)  # the first of equals: the nearest
-    return np.where(within[:, 0], near[np.arange(len(near)), pick], -1)
+    return brightest_within(directions, field, tolerance_rad)
 
 
 def claimed_once(stars: np.ndarray, groups: np.ndarray | None = None) -> np.ndarray:

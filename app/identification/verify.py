@@ -68,6 +68,31 @@ class StarField:
         return len(self.vectors) / (4 * np.pi)
 
 
+#: How many stars within a match distance are compared (more than two within a few pixels is rare).
+NEIGHBOURS_LOOKED_AT = 4
+
+
+def brightest_within(directions: np.ndarray, field: StarField, tolerance_rad: float) -> np.ndarray:
+    """(n,) position in ``field`` of the brightest star within ``tolerance_rad`` of each of ``directions``
+    ((n, 3) unit vectors, ICRS), else -1; of equals (or without magnitudes), the nearest.
+
+    Not simply the nearest: a faint star beside a bright one is seldom seen
+    at all, and where both are, their blend is named by its brighter member
+    (a 97" pixel sees alpha2 CVn and alpha1, 2.7 mag fainter and 20" away,
+    as one source, which lies nearer alpha1 as often as not).
+    """
+    k = min(NEIGHBOURS_LOOKED_AT, len(field.vectors))
+    if len(directions) == 0 or k == 0:
+        return np.full(len(directions), -1, dtype=int)
+    _, near = field.tree.query(directions, k=k, distance_upper_bound=float(chord(tolerance_rad)))
+    near = near.reshape(len(directions), k)
+    within = near < len(field.vectors)  # the tree marks "none" with n, and lists the nearest first
+    brightness = field.mag if field.mag is not None else np.zeros(len(field.vectors))
+    mags = np.where(within, brightness[np.minimum(near, len(field.vectors) - 1)], np.inf)
+    pick = np.argmin(mags, axis=1)  # the first of equals: the nearest
+    return np.where(within[:, 0], near[np.arange(len(near)), pick], -1)
+
+
 def chord(angle_rad):
     return 2 * np.sin(np.asarray(angle_rad) / 2)
 
@@ -513,6 +538,20 @@ def _warm_up_refine() -> None:
     stars /= np.linalg.norm(stars, axis=1, keepdims=True)
     field = StarField.from_vectors(stars, np.arange(4))
     refine_many(np.eye(3)[None], stars, np.ones(4), field, np.full(4, 1e-3), np.array([2e-3]))
+
+
+def local_density_per_sr(field: StarField, boresight: np.ndarray, radius_rad: float) -> float:
+    """Stars per steradian of ``field`` within ``radius_rad`` of ``boresight`` (a unit vector, ICRS), never
+    less than their mean over the sky.
+
+    Chance matches are as likely as the stars are dense where the camera
+    looks: the Milky Way holds two to three times the mean density, and a
+    probability from the mean there is too small by that factor to the power
+    of the chance points matched (a few hundredfold for five).
+    """
+    count = int(field.tree.query_ball_point(boresight, float(chord(radius_rad)), return_length=True))
+    cap_sr = 2 * np.pi * (1 - np.cos(radius_rad))
+    return max(field.density_per_sr, count / cap_sr)
 
 
 def false_match_probability(n_points: int, n_matched: int, capture_tolerance_rad: float,
