@@ -28,6 +28,7 @@ between the backends is behind five hooks:
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import os
 from datetime import datetime
@@ -274,6 +275,44 @@ class Storage:
             rows = conn.execute("SELECT spacecraft, COUNT(*) FROM sequences GROUP BY spacecraft "
                                 "ORDER BY spacecraft IS NULL, spacecraft").fetchall()
         return [(r[0], r[1]) for r in rows]
+
+    def timeline_rows(self, spacecraft: str, start: datetime | None, end: datetime | None, limit: int,
+                      ) -> tuple[list[tuple[SequenceRow, SearchRow | None, ConfirmationRow | RejectionRow | None]], int]:
+        """The newest ``limit`` uploads of ``spacecraft`` whose first snapshot's time lies in [start, end) (None:
+        open), oldest first, each with its raw text (its snapshots' times; ``extraction`` left out), newest
+        search and current verdict (as :meth:`current_verdict`); and how many uploads the range holds.
+
+        One snapshot of the archive and five statements whatever ``limit`` (at most :data:`MAX_PAGE`): what a
+        spacecraft's attitude timeline reads (:mod:`app.workflow.timeline`).  Uploads without a time
+        (``first_time`` null: frames that carried none) lie in no range.
+        """
+        _check_page(0, limit)
+        where, params = ["spacecraft = ?", "first_time IS NOT NULL"], [spacecraft]
+        for bound, op in ((start, ">="), (end, "<")):
+            if bound is not None:
+                where.append(f"first_time {op} ?")
+                params.append(_time_text(bound))
+        clause = " AND ".join(where)
+        with self._transaction(write=False, snapshot=True) as conn:
+            total = conn.execute(f"SELECT COUNT(*) FROM sequences WHERE {clause}", params).fetchone()[0]
+            found = conn.execute(f"SELECT {_SEQUENCE_LIGHT_COLUMNS}, raw_text FROM sequences WHERE {clause} "
+                                 "ORDER BY first_time DESC, id DESC LIMIT ?", [*params, limit]).fetchall()
+            ids = [r["id"] for r in found]
+            marks = ", ".join("?" * len(ids)) or "NULL"
+            searches = {s.seq_id: s for s in map(_search_row, conn.execute(
+                f"SELECT * FROM searches WHERE id IN (SELECT MAX(id) FROM searches WHERE seq_id IN ({marks}) "
+                "GROUP BY seq_id)", ids).fetchall())}
+            # Oldest first, so that the newest current one of a sequence is the one kept.
+            verdicts: dict[int, ConfirmationRow | RejectionRow] = {
+                r.seq_id: r for r in map(_rejection_row, conn.execute(
+                    f"SELECT * FROM ({_REJECTIONS}) AS rj WHERE seq_id IN ({marks}) AND replaced_by_confirmation "
+                    "IS NULL AND replaced_by_rejection IS NULL ORDER BY id", ids).fetchall())}
+            # A current confirmation is the verdict before any rejection (as _current_verdict reads them).
+            verdicts.update({c.seq_id: c for c in map(_confirmation_row, conn.execute(
+                f"{_CONFIRMATIONS} WHERE c.seq_id IN ({marks}) AND {_CURRENT_CONFIRMATION} ORDER BY c.id",
+                ids).fetchall())})
+        rows = [dataclasses.replace(_sequence_row(r, full=False), raw_text=r["raw_text"]) for r in reversed(found)]
+        return [(row, searches.get(row.id), verdicts.get(row.id)) for row in rows], total
 
     def set_status(self, seq_id: int, status: str) -> SequenceRow:
         if status not in STATUSES:

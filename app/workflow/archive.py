@@ -78,16 +78,20 @@ def loaded(ctx: AppContext, row: SequenceRow) -> LoadedSequence:
     """The stored upload parsed again, with its stored extraction (cached by id: uploads never change)."""
     item = ctx.cache.get(row.id)
     if item is None:
-        # Stored text passed validation once; the size limit and the camera's physical bounds may
-        # have tightened since, so neither applies here: what was accepted stays readable.
-        # A file without a camera block gets the camera it was given at upload (the default then, or
-        # the spacecraft's calibration then), whatever the defaults and calibrations are now.
-        sequence = parse_telemetry(row.raw_text, filename=row.filename,
-                                   default_camera=Camera(**row.camera) if row.camera else None,
-                                   max_bytes=len(row.raw_text.encode("utf-8")), physical_bounds=False)
+        sequence = stored_telemetry(row)
         item = LoadedSequence(sequence, stored_extraction(row, sequence))
         ctx.cache.put(row.id, item)
     return item
+
+
+def stored_telemetry(row: SequenceRow) -> Sequence:
+    """The stored upload's telemetry parsed again (``row.raw_text`` must be read)."""
+    # Stored text passed validation once; the size limit and the camera's physical bounds may
+    # have tightened since, so neither applies here: what was accepted stays readable.
+    # A file without a camera block gets the camera it was given at upload (the default then, or
+    # the spacecraft's calibration then), whatever the defaults and calibrations are now.
+    return parse_telemetry(row.raw_text, filename=row.filename, default_camera=Camera(**row.camera) if row.camera else None,
+                           max_bytes=len(row.raw_text.encode("utf-8")), physical_bounds=False)
 
 
 def stored_extraction(row: SequenceRow, sequence: Sequence):

@@ -866,3 +866,96 @@ class FramePreviewsDocument(Document):
     sequence: int
     max_png_bytes: int = Field(description="largest PNG kept of one frame; a larger one is made at twice the scale")
     frames: list[FramePreviewInfo]
+
+
+# ---------------------------------------------------------------------------
+# A spacecraft's attitude timeline (app.workflow.timeline)
+# ---------------------------------------------------------------------------
+
+class TimelinePoint(Document):
+    """One sequence on a spacecraft's timeline: its span, status, who gave it, and its attitude if it has one."""
+
+    sequence: int = Field(description="archive id")
+    sequence_id: str | None
+    filename: str | None
+    status: Literal["new", "identified", "ambiguous", "no_match", "confirmed", "rejected"]
+    by: str | None = Field(description="the operator of the verdict (confirmed, rejected); null for a search's status")
+    verdict_at: str | None = Field(description="when the verdict was given (UTC)")
+    reason: str | None = Field(description="why the operator found no valid attitude (rejected)")
+    search_id: int | None = Field(description="the newest search (null: never searched)")
+    method: str | None = Field(description="that search's method")
+    start: str = Field(description="time of the first snapshot (UTC)")
+    end: str = Field(description="time of the last snapshot (UTC)")
+    epoch: str = Field(description="time of the attitude: the reference snapshot's (the first snapshot's when the "
+                                   "sequence was never searched)")
+    n_snapshots: int
+    rank: int | None = Field(description="the candidate plotted: the confirmed one, else rank 1 of an identified or "
+                                         "ambiguous search; null: no attitude (no match, no valid attitude, not "
+                                         "searched)")
+    ra_deg: float | None
+    dec_deg: float | None
+    roll_deg: float | None
+    sigma_ra_deg: float | None = Field(description="1-sigma of RA: the cross-boresight sigma / cos(Dec)")
+    sigma_dec_deg: float | None
+    sigma_roll_deg: float | None = Field(description="1-sigma of the roll (position angle from north)")
+    rate_deg_s: float | None = Field(description="magnitude of the fitted body rate (null: no sequence fit)")
+    sigma_rate_deg_s: float | None
+
+    @classmethod
+    def of(cls, entry) -> "TimelinePoint":
+        """From an :class:`app.workflow.timeline.TimelineEntry`."""
+        a = entry.attitude
+        sigmas = (None, None, None) if a is None else a.radec_roll_sigma_deg()
+        rate = (None, None) if a is None else a.rate_norm_deg_s()
+        return cls(sequence=entry.seq_id, sequence_id=entry.sequence_id, filename=entry.filename,
+                   status=entry.status, by=entry.by, verdict_at=utc_text(entry.verdict_at), reason=entry.reason,
+                   search_id=entry.search_id, method=entry.method, start=utc_text(entry.start),
+                   end=utc_text(entry.end), epoch=utc_text(entry.epoch), n_snapshots=entry.n_snapshots,
+                   rank=None if a is None else a.rank, ra_deg=None if a is None else a.ra_deg,
+                   dec_deg=None if a is None else a.dec_deg, roll_deg=None if a is None else a.roll_deg,
+                   sigma_ra_deg=_rounded(sigmas[0], 9), sigma_dec_deg=_rounded(sigmas[1], 9),
+                   sigma_roll_deg=_rounded(sigmas[2], 9), rate_deg_s=_rounded(rate[0], 9),
+                   sigma_rate_deg_s=_rounded(rate[1], 9))
+
+
+class TimelineFlagDocument(Document):
+    """A gap, an overlap or a jump between two sequences of the timeline."""
+
+    kind: Literal["gap", "overlap", "jump"]
+    earlier: int = Field(description="archive id of the earlier sequence")
+    later: int = Field(description="archive id of the later sequence")
+    seconds: float = Field(description="the gap's or the overlap's length, or the time between a jump's epochs")
+    angle_deg: float | None = Field(None, description="jump: the rotation the body rate does not explain")
+    sigma_deg: float | None = Field(None, description="jump: the 1-sigma the attitudes' and the rate's "
+                                                      "uncertainties allow it")
+    chi2: float | None = Field(None, description="jump: chi-square of the rotation left over (3 degrees of freedom)")
+    text: str = Field(description="what it is, in a sentence")
+
+
+class TimelineDocument(Document):
+    """A spacecraft's attitude timeline (``GET /api/spacecraft/{name}/timeline``), oldest first."""
+
+    spacecraft: str
+    start: str | None = Field(description="the range asked (first snapshot times in [start, end)); null: open")
+    end: str | None
+    limit: int
+    total: int = Field(description="sequences of the spacecraft in the range (without a range: all with a time)")
+    gap_s: float = Field(description="seconds without any sequence that make a gap")
+    points: list[TimelinePoint]
+    flags: list[TimelineFlagDocument]
+
+    @classmethod
+    def of(cls, timeline, texts: list[str]) -> "TimelineDocument":
+        """From an :class:`app.workflow.timeline.Timeline` and its flags' sentences."""
+        ids = [e.seq_id for e in timeline.entries]
+        return cls(spacecraft=timeline.spacecraft, start=utc_text(timeline.start), end=utc_text(timeline.end),
+                   limit=timeline.limit, total=timeline.total, gap_s=timeline.gap_s,
+                   points=[TimelinePoint.of(e) for e in timeline.entries],
+                   flags=[TimelineFlagDocument(kind=f.kind, earlier=ids[f.earlier], later=ids[f.later],
+                                               seconds=round(f.seconds, 3),
+                                               angle_deg=None if f.angle_rad is None else _rounded(
+                                                   math.degrees(f.angle_rad), 9),
+                                               sigma_deg=None if f.sigma_rad is None else _rounded(
+                                                   math.degrees(f.sigma_rad), 9),
+                                               chi2=_rounded(f.chi2, 3), text=text)
+                          for f, text in zip(timeline.flags, texts)])

@@ -2,35 +2,18 @@
 
 from __future__ import annotations
 
-from datetime import datetime, timezone
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Path, Query
 from fastapi.responses import PlainTextResponse
 
-from app.api.errors import ApiError
-from app.api.routes.common import ID_LIMITS, attachment, get_context
+from app.api.routes.common import ID_LIMITS, attachment, get_context, query_utc
 from app.api.schemas import IsoTime, SpacecraftName
 from app.workflow import AppContext, confirm as confirming
 from app.workflow.documents import AttitudeDocument, AttitudePage
 
 router = APIRouter(prefix="/api/attitudes", tags=["attitudes"])
 AttitudeId = Path(description="id of the confirmed attitude", **ID_LIMITS)
-
-
-def _utc(t: datetime | None, name: str) -> datetime | None:
-    """A time from the query as UTC (a time without a zone is read as UTC, as everywhere in the archive).
-
-    A time whose conversion leaves the calendar (``0001-01-01T00:00+00:01``)
-    is refused at its parameter (found by the schema fuzz run of issue 12).
-    """
-    if t is None:
-        return None
-    try:
-        return t.replace(tzinfo=timezone.utc) if t.tzinfo is None or t.utcoffset() is None else t.astimezone(timezone.utc)
-    except (OverflowError, ValueError):
-        raise ApiError(422, f"invalid request: query.{name}: {t.isoformat()} is outside the years 1 to 9999 in UTC",
-                       problems=[{"location": f"query.{name}", "message": "outside the years 1 to 9999 in UTC"}]) from None
 
 
 @router.get("", response_model=AttitudePage,
@@ -48,7 +31,7 @@ def bulk_aem(spacecraft: Annotated[SpacecraftName, Query(description="the spacec
              start: Annotated[IsoTime | None, Query(description="first reference epoch included (UTC, ISO 8601)")] = None,
              end: Annotated[IsoTime | None, Query(description="reference epochs before this one (UTC, ISO 8601)")] = None,
              ctx: AppContext = Depends(get_context)):
-    return attachment(*confirming.bulk_aem(ctx, spacecraft, _utc(start, "start"), _utc(end, "end")))
+    return attachment(*confirming.bulk_aem(ctx, spacecraft, query_utc(start, "start"), query_utc(end, "end")))
 
 
 @router.get("/{attitude_id}", response_model=AttitudeDocument, summary="One confirmed attitude with its audit record")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import time
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from typing import Callable
 
 from fastapi import BackgroundTasks, Depends, Request
@@ -72,6 +73,21 @@ def writer(credentials: HTTPAuthorizationCredentials | None = Depends(_bearer),
     if operator is None:
         raise ApiError(401, "the bearer token is not valid", headers=challenge)
     return operator
+
+
+def query_utc(t: datetime | None, name: str) -> datetime | None:
+    """A time from the query as UTC (a time without a zone is read as UTC, as everywhere in the archive).
+
+    A time whose conversion leaves the calendar (``0001-01-01T00:00+00:01``)
+    is refused at its parameter (found by the schema fuzz run of issue 12).
+    """
+    if t is None:
+        return None
+    try:
+        return t.replace(tzinfo=timezone.utc) if t.tzinfo is None or t.utcoffset() is None else t.astimezone(timezone.utc)
+    except (OverflowError, ValueError):
+        raise ApiError(422, f"invalid request: query.{name}: {t.isoformat()} is outside the years 1 to 9999 in UTC",
+                       problems=[{"location": f"query.{name}", "message": "outside the years 1 to 9999 in UTC"}]) from None
 
 
 def operator_name(token_operator: str | None, body_operator: str | None) -> str | None:
