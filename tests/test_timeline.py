@@ -134,45 +134,54 @@ def test_find_flags_judges_consecutive_trusted_attitudes_within_coverage():
 SPACECRAFT = "TL-SAT"
 
 
-def _simulated(seed: int, start: datetime, pointing_R: np.ndarray | None, scenario: str = "nominal",
-               name: str = "") -> tuple:
-    """A sequence of SPACECRAFT; the same seed gives the same body rate and snapshot spacing (drawn first)."""
+def _simulated(seed: int, start: datetime, pointing_R: np.ndarray | None, spacecraft: str, name: str = "",
+               scenario: str = "nominal") -> tuple:
+    """A sequence of ``spacecraft``; the same seed gives the same body rate and snapshot spacing (drawn first)."""
     pointing = None if pointing_R is None else radec_roll_from_rotation(pointing_R)
     seq, truth = simulate_sequence(np.random.default_rng(seed), CAMERA, scenario, pointing=pointing,
                                    start_time=start, sequence_id=name)
-    return dataclasses.replace(seq, spacecraft=SPACECRAFT), truth
+    return dataclasses.replace(seq, spacecraft=spacecraft), truth
 
 
 def _mid_time(truth) -> datetime:
     return datetime.fromisoformat(truth["times"][len(truth["times"]) // 2].replace("Z", "+00:00"))
 
 
-@pytest.fixture(scope="module")
-def stored(tmp_path_factory, sky):
-    """Five sequences of TL-SAT through the API: one trajectory at one rate over three sequences (the third
-    turned 2 deg off it), the second uploaded again as CSV (the same span: an overlap), and the Earth filling
-    the view two hours later (no match, then rejected); the first confirmed."""
-    ctx = AppContext(storage=Storage.open(tmp_path_factory.mktemp("timeline") / "t.sqlite3"), sky=sky)
-    client = TestClient(create_app(ctx))
+def trajectory_uploads(spacecraft: str, prefix: str = "tl") -> list[tuple[str, str, str, dict]]:
+    """``(key, file name, text, truth)`` of five uploads of ``spacecraft``: one trajectory at one body rate over
+    three sequences 2 min apart (``s1``, ``s2``; ``s3`` turned 2 deg off it about the camera's x axis), ``s2``
+    again as CSV (``s2csv``: the same span, an overlap), and the Earth filling the view two hours later
+    (``earth``: no match).  Sequence ids ``{prefix}-1``, ``{prefix}-2``, ``{prefix}-3``, ``{prefix}-earth``."""
     R1 = rotation_from_radec_roll(150.0, 40.0, 20.0)
-    s1, t1 = _simulated(7, T0, R1, name="tl-1")
+    s1, t1 = _simulated(7, T0, R1, spacecraft, f"{prefix}-1")
     rate = np.asarray(t1["body_rate_rad_s"])
 
     def on_track(start):  # the attitude of the trajectory at the middle snapshot of a sequence from `start`
-        dt = (_mid_time(_simulated(7, start, R1)[1]) - _mid_time(t1)).total_seconds()
+        dt = (_mid_time(_simulated(7, start, R1, spacecraft)[1]) - _mid_time(t1)).total_seconds()
         return _rodrigues(rate, -np.linalg.norm(rate) * dt) @ R1  # exp(-[w]x dt) R1
 
-    s2, t2 = _simulated(7, T0 + timedelta(seconds=120), on_track(T0 + timedelta(seconds=120)), name="tl-2")
+    s2, t2 = _simulated(7, T0 + timedelta(seconds=120), on_track(T0 + timedelta(seconds=120)), spacecraft,
+                        f"{prefix}-2")
     turned = _rodrigues([1, 0, 0], math.radians(2.0)) @ on_track(T0 + timedelta(seconds=240))
-    s3, t3 = _simulated(7, T0 + timedelta(seconds=240), turned, name="tl-3")
-    s5, t5 = _simulated(8, T0 + timedelta(hours=2), None, scenario="earth", name="tl-earth")
+    s3, t3 = _simulated(7, T0 + timedelta(seconds=240), turned, spacecraft, f"{prefix}-3")
+    s5, t5 = _simulated(8, T0 + timedelta(hours=2), None, spacecraft, f"{prefix}-earth", scenario="earth")
     assert np.allclose(t2["body_rate_rad_s"], rate) and np.allclose(t3["body_rate_rad_s"], rate)
+    return [("s1", "s1.json", dump_json(s1), t1), ("s2", "s2.json", dump_json(s2), t2),
+            ("s2csv", "s2.csv", dump_csv(s2), t2), ("s3", "s3.json", dump_json(s3), t3),
+            ("earth", "earth.json", dump_json(s5), t5)]
+
+
+@pytest.fixture(scope="module")
+def stored(tmp_path_factory, sky):
+    """The five :func:`trajectory_uploads` of TL-SAT uploaded and searched through the API; ``s1`` confirmed by
+    ann, ``earth`` (no match) rejected by bob."""
+    ctx = AppContext(storage=Storage.open(tmp_path_factory.mktemp("timeline") / "t.sqlite3"), sky=sky)
+    client = TestClient(create_app(ctx))
     ids, truths = {}, {}
-    for key, text, truth, kind in (("s1", dump_json(s1), t1, "json"), ("s2", dump_json(s2), t2, "json"),
-                                   ("s2csv", dump_csv(s2), t2, "csv"), ("s3", dump_json(s3), t3, "json"),
-                                   ("earth", dump_json(s5), t5, "json")):
-        r = client.post(f"/api/sequences?filename={key}.{kind}", content=text.encode(),
-                        headers={"Content-Type": "text/csv" if kind == "csv" else "application/json"})
+    for key, filename, text, truth in trajectory_uploads(SPACECRAFT):
+        csv = filename.endswith(".csv")
+        r = client.post(f"/api/sequences?filename={filename}", content=text.encode(),
+                        headers={"Content-Type": "text/csv" if csv else "application/json"})
         assert r.status_code == 201, r.text
         ids[key], truths[key] = r.json()["id"], truth
         search = client.post(f"/api/sequences/{ids[key]}/search", json={"method": "bright_pair"})
