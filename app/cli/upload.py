@@ -1,4 +1,4 @@
-"""`python -m app upload DIR_OR_FILES --server URL [--token T] [--fov-deg DEG] [--time ISO8601]`: send telemetry.
+"""`python -m app upload DIR_OR_FILES --server URL [--token T] [--fov-deg DEG] [--time ISO8601] [--search]`: send telemetry.
 
 Directories are searched (not recursively) for ``*.json`` and ``*.csv``
 files, leaving out ``*.truth.json`` (the simulator's truth files; stderr
@@ -18,14 +18,19 @@ server's message, ``too large`` or ``error``; a stored file is followed by
 an indented ``note:`` line when other stored uploads have its spacecraft
 and sequence id (the same pass sent before in other bytes, e.g. CRLF line
 endings or a byte-order mark: uploads are told apart by their exact
-bytes).  The server is asked for its health first, which checks the URL
+bytes).  ``--search`` asks the server to search each upload right after answering (bright pairs, the
+``search=true`` of both endpoints, as the console's "search new uploads automatically" box does: a new
+sequence, or one stored before and never searched), waits for that search (up to ``--timeout``) and prints
+its outcome on an indented ``search:`` line, in the API's words (``identified``, ``ambiguous``,
+``no_match``); a file stored and searched before keeps its search, which the line names.  The server is asked
+for its health first, which checks the URL
 (``--server`` is the server's base URL, without ``/api``) and gives the size limit, so that files above it are
 reported without being sent (and none is read past it).  A device, FIFO or socket named as a file
 (``/dev/zero``, a pipe) is refused unsent, before the server is asked anything: it has no size to
 check, and reading it never ends or waits for a writer.  One file's failure never stops the folder;
 only a server that cannot be reached at all does.  Exit status 0 when every
-file was accepted, 2 when some were refused, 1 when the server could not
-be reached (or is not a starid server).
+file was accepted (and every search asked for finished), 2 when some were refused (or a search asked for
+did not finish within ``--timeout``), 1 when the server could not be reached (or is not a starid server).
 
 Only the standard library is used (urllib), so no client package is needed.
 """
@@ -59,6 +64,8 @@ FOV_MIN_DEG, FOV_MAX_DEG = 0.1, 120.0
 BUSY_RETRIES = 2
 BUSY_PAUSE_S = 1.0
 BAR_WIDTH = 30
+#: How often ``--search`` reads a sequence while its search runs (seconds).
+SEARCH_POLL_S = 0.25
 #: ``--time`` of ``upload``, ``extract`` and ``solve``.
 TIME_HELP = ("the time of an image pass of one frame, ISO 8601 (UTC unless it says its zone, e.g. "
              "2024-03-12T21:04:10Z); wins over a sidecar's, the FITS header's and the EXIF time. Without any "
@@ -77,7 +84,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "wins over a sidecar's camera and the FITS header's optics); a spot-list file given "
                         "with it is refused, unsent: it carries its own camera")
     p.add_argument("--time", type=utc_time, default=None, metavar="ISO8601", help=TIME_HELP)
-
+    p.add_argument("--search", action="store_true",
+                   help="search each upload right after it is stored (bright pairs, as the console's 'search new "
+                        "uploads automatically'), wait for it (up to --timeout) and print its outcome as the API "
+                        "names it (identified, ambiguous, no_match) under the file's line")
 
 
 def utc_time(text: str) -> datetime:
@@ -237,8 +247,42 @@ def server_health(server: str, token: str | None, timeout: float) -> dict:
     return doc
 
 
+def search_line(doc: dict | None, searched_now: bool, waited_s: float | None = None) -> str:
+    """The indented line under a stored file's line saying what its search found: ``doc`` is the sequence
+    as ``GET /api/sequences/{id}`` answers it (None: no answer), ``searched_now`` whether the upload queued
+    the search (else it was searched before), ``waited_s`` how long it was waited for when it had not
+    finished."""
+    search = (doc or {}).get("search")
+    if (doc or {}).get("status") == "new" or not isinstance(search, dict):
+        waited = f" within {waited_s:g} s" if waited_s is not None else ""
+        return (f"  search: not finished{waited} (the sequence is still new: search it from the console or "
+                "POST /api/sequences/{id}/search; the server's log says why an automatic search failed)")
+    n = len(search.get("candidates") or [])
+    said = f"  search: {search.get('status')} ({n} candidate{'s' * (n != 1)}, search #{search.get('search_id')})"
+    return said if searched_now else said + "; searched before, kept"
+
+
+def wait_for_search(server: str, seq_id: int, token: str | None, timeout: float, wait_s: float) -> dict | None:
+    """``GET /api/sequences/{seq_id}`` (each read given ``timeout`` seconds) once its status has left ``new``
+    (its queued search stored), or the last answer read when ``wait_s`` seconds have passed (None if none
+    came)."""
+    url = f"{server.rstrip('/')}/api/sequences/{seq_id}"
+    headers = {"Accept": "application/json", **({"Authorization": f"Bearer {token}"} if token else {})}
+    deadline = time.monotonic() + wait_s
+    doc = None
+    while True:
+        status, answer, _ = _send(server, urllib.request.Request(url, headers=headers), timeout)
+        if status == 200 and answer is not None:
+            doc = answer
+            if doc.get("status") != "new":
+                return doc
+        if time.monotonic() >= deadline:
+            return doc
+        time.sleep(SEARCH_POLL_S)  # the search runs on the server after its answer: read again shortly
+
+
 def upload_one(server: str, path: Path, token: str | None, timeout: float,
-               max_bytes: int | None = None) -> tuple[int | None, dict | None, str | None]:
+               max_bytes: int | None = None, search: bool = False) -> tuple[int | None, dict | None, str | None]:
     """POST the file as a raw body; (HTTP status, JSON answer, error text).
 
     A file above ``max_bytes`` (the server's limit) is not sent: it is
@@ -258,7 +302,8 @@ def upload_one(server: str, path: Path, token: str | None, timeout: float,
     except OSError as exc:
         return None, None, f"cannot read the file: {exc.strerror or exc}"
     media = "text/csv" if path.suffix.lower() == ".csv" else "application/json"
-    url = server.rstrip("/") + "/api/sequences?" + urllib.parse.urlencode({"filename": path.name})
+    query = {"filename": path.name, **({"search": "true"} if search else {})}
+    url = server.rstrip("/") + "/api/sequences?" + urllib.parse.urlencode(query)
     headers = {"Content-Type": media, "Accept": "application/json"}
     if token:
         headers["Authorization"] = f"Bearer {token}"
@@ -283,7 +328,8 @@ def multipart_body(fields: list[tuple[str, str | None, bytes]]) -> tuple[bytes, 
 
 
 def upload_pass(server: str, frame_pass: FramePass, token: str | None, timeout: float,
-                fov: float | None = None, when: datetime | None = None) -> tuple[int | None, dict | None, str | None]:
+                fov: float | None = None, when: datetime | None = None,
+                search: bool = False) -> tuple[int | None, dict | None, str | None]:
     """POST one pass of frames (and its sidecar, ``fov_deg`` and ``time``) to ``/api/frames``; as
     :func:`upload_one`."""
     try:
@@ -300,7 +346,8 @@ def upload_pass(server: str, frame_pass: FramePass, token: str | None, timeout: 
     headers = {"Content-Type": content_type, "Accept": "application/json"}
     if token:
         headers["Authorization"] = f"Bearer {token}"
-    request = urllib.request.Request(server.rstrip("/") + "/api/frames", data=body, headers=headers, method="POST")
+    url = server.rstrip("/") + "/api/frames" + ("?search=true" if search else "")
+    request = urllib.request.Request(url, data=body, headers=headers, method="POST")
     return _send(server, request, timeout)
 
 
@@ -340,6 +387,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     fov = getattr(args, "fov_deg", None)
     when = getattr(args, "time", None)
+    search = bool(getattr(args, "search", False))
     interactive = sys.stderr.isatty()
     end = "\r" if interactive else "\n"
     try:
@@ -347,7 +395,7 @@ def run(args: argparse.Namespace) -> int:
     except ServerUnreachable as exc:
         print(f"upload: {exc}", file=sys.stderr)
         return 1
-    counts = {"created": 0, "duplicate": 0, "refused": len(special)}
+    counts = {"created": 0, "duplicate": 0, "refused": len(special), "unsearched": 0}
     for k, item in enumerate(files):
         path = item.label if isinstance(item, FramePass) else item
         sys.stderr.write(progress_bar(k, len(files), path.name) + end)
@@ -363,24 +411,39 @@ def run(args: argparse.Namespace) -> int:
         try:
             for attempt in range(1 + BUSY_RETRIES):
                 if isinstance(item, FramePass):
-                    status, doc, error = upload_pass(args.server, item, args.token, args.timeout, fov, when)
+                    status, doc, error = upload_pass(args.server, item, args.token, args.timeout, fov, when, search)
                 else:
                     status, doc, error = upload_one(args.server, path, args.token, args.timeout,
-                                                    max_bytes if isinstance(max_bytes, int) else None)
+                                                    max_bytes if isinstance(max_bytes, int) else None, search)
                 if status != 503 or attempt == BUSY_RETRIES:
                     break
                 time.sleep(BUSY_PAUSE_S * (attempt + 1))  # the server said: busy, try again shortly
+            line = summary_line(str(path), status, doc, error)
+            if search and status in (200, 201) and doc and isinstance(doc.get("id"), int):
+                line += "\n" + searched(args, doc, status, counts)
         except ServerUnreachable as exc:
             sys.stderr.write("\n" if interactive else "")
             print(f"upload: {exc}", file=sys.stderr)
             return 1
-        line = summary_line(str(path), status, doc, error)
         if interactive:  # clear the bar before the line
             sys.stderr.write(" " * (BAR_WIDTH + 60) + "\r")
         print(line, flush=True)
         counts["created" if status == 201 else "duplicate" if status == 200 else "refused"] += 1
     sys.stderr.write(progress_bar(len(files), len(files), "done") + "\n")
     total = len(files) + len(special)
+    unsearched = f", {counts['unsearched']} not searched in time" if counts["unsearched"] else ""
     print(f"{total} file{'s' * (total != 1)}: {counts['created']} created, {counts['duplicate']} duplicate, "
-          f"{counts['refused']} refused", file=sys.stderr)
-    return 0 if counts["refused"] == 0 else 2
+          f"{counts['refused']} refused{unsearched}", file=sys.stderr)
+    return 0 if counts["refused"] == 0 and counts["unsearched"] == 0 else 2
+
+
+def searched(args: argparse.Namespace, doc: dict, status: int, counts: dict[str, int]) -> str:
+    """``--search``: the search line of a stored upload (answer ``doc``, HTTP ``status``), after waiting for the
+    search the server queued, if it queued one (a new sequence, or one never searched: the API's rule);
+    counts a search not finished in time."""
+    queued = status == 201 or (doc.get("sequence") or {}).get("status") == "new"
+    started = time.monotonic()
+    sequence = wait_for_search(args.server, doc["id"], args.token, args.timeout, args.timeout if queued else 0.0)
+    line = search_line(sequence, queued, round(time.monotonic() - started, 1))
+    counts["unsearched"] += line.startswith("  search: not finished")
+    return line
