@@ -27,6 +27,7 @@
 
 from __future__ import annotations
 
+import math
 import weakref
 from dataclasses import dataclass
 from itertools import combinations
@@ -562,19 +563,32 @@ def false_match_probability(n_points: int, n_matched: int, capture_tolerance_rad
     Two factors: enough points captured, ``N * P[Binomial(m - 2, p) >= k - 2]``,
     and, given that, a least-squares fit as tight as the one found.  A chance
     point captured within ``r`` sits uniformly in that disc (variance r^2/4
-    per axis); after the fit has absorbed 3 degrees of freedom, the sum of
-    squared residuals of ``k`` such points is at most ~ (r^2/4) chi^2(2k - 3),
-    so ``P[fit this tight] = chi2.cdf(4 S / r^2, 2k - 3)``.  (The Gaussian
-    has twice the uniform disc's density at zero, so this errs on the safe,
-    larger side.)  Optical parameters fitted with the attitude (``n_fitted``:
-    the focal length, k1) absorb one degree of freedom each, so a chance fit
-    with free optics is judged against ``chi2(2k - 3 - n_fitted)``.
+    per axis), so the sum of squared residuals of such points is at most
+    ~ (r^2/4) chi^2(d) and ``P[fit this tight] = chi2.cdf(4 S / r^2, d)``.
+    (The Gaussian has twice the uniform disc's density at zero, so this errs
+    on the safe, larger side.)  Of the 2k coordinates the attitude absorbs 3,
+    and the generating pair's separation, matched by the index lookup, is no
+    chance evidence: ``d = 2k - 4``.  Optical parameters fitted with the
+    attitude (``n_fitted``: the focal length, k1) absorb one more each:
+    ``d = 2k - 4 - n_fitted``.  Refinement keeps the best-fitting subset of
+    the points within its reach (:func:`refine`: leave-one-out rejection,
+    and the consensus of small sets), so the tightness is that of the best
+    of up to ``C(m - 2, k - 2)`` subsets, and its probability is multiplied
+    by that count (1 when every point matched).  ``m`` bounds the points in
+    reach from above: counting only those within reach at the end (the
+    rotation moves while refining) left 4-6 wrong candidates of 1,200 below
+    1e-3 in ``bench --suite camera``, against none.
+
+    Measured over 1,600 simulated cases (``bench --suite camera --n 100``):
+    without the last two terms, 35 of the 1,233 candidates put below 1e-3
+    were wrong, all of them 3-5 matched points of 10 or more.
     """
     if n_matched < 3 or n_points < 3:
         return 1.0
     r = float(capture_tolerance_rad)
     p = 1.0 - np.exp(-density_per_sr * np.pi * r * r)
     capture = float(bdtrc(n_matched - 3, n_points - 2, p))  # P[X >= k - 2] = P[X > k - 3]
-    dof = 2 * n_matched - 3 - n_fitted
-    tight = float(chdtr(dof, 4.0 * sum_sq_residual_rad2 / (r * r))) if dof > 0 else 1.0
+    dof = 2 * n_matched - 4 - n_fitted
+    subsets = math.comb(n_points - 2, n_matched - 2)
+    tight = min(1.0, subsets * float(chdtr(dof, 4.0 * sum_sq_residual_rad2 / (r * r)))) if dof > 0 else 1.0
     return float(min(1.0, max(1, n_hypotheses) * capture * tight))
