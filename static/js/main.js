@@ -392,11 +392,13 @@ function drawCandidate() {
     credible: !!verdict?.credible, highlight: player.highlight ?? undefined,
   });
   $("sky-canvas").dataset.credible = String(!!verdict?.credible);
+  $("sky-canvas").dataset.view = `${view.rank}/${view.sky.mag_limit}`;   // the rank and magnitude limit drawn
   $("residual-factor").textContent = `×${state.drawn.factor}`;
   // What was drawn where, for whoever inspects the page (the browser tests check labels never overlap).
-  $("sky-canvas").dataset.labels = JSON.stringify(state.drawn.labels.map(({ x, y, w, h, text, kind }) => ({ x, y, w, h, text, kind })));
+  $("sky-canvas").dataset.labels = JSON.stringify(state.drawn.labels.map(({ x, y, w, h, text, kind, owner }) =>
+    ({ x, y, w, h, text, kind, owner })));
   $("sky-canvas").dataset.points = JSON.stringify(state.drawn.hits.filter((h) => h.kind === "point")
-    .map(({ x, y, track }) => ({ x, y, track })));
+    .map(({ x, y, track, index, pinned }) => ({ x, y, track, index, pinned })));
   const c = view.candidate;
   const facts = [
     ["rank", `${view.rank} of ${view.n_candidates}`, "ranked by matched points, then false-match probability"],

@@ -1,14 +1,23 @@
 // Candidate view: the sky section of one candidate (GET .../candidates/{rank}) on a canvas.
 // Stars sized by magnitude, the pattern points over their matched stars with exaggerated
 // residual vectors and their track labels (T3, the player's names), the generating edge,
-// star, planet and constellation labels placed so that none overlaps another, and north and
-// east arrows. drawSky returns what it drew so the page can explain it (tooltips, clicks).
+// star, planet and constellation labels placed so that none overlaps another nor comes near a
+// point's circle, and north and east arrows. A point whose circle would be cut by the canvas edge
+// is drawn whole, pinned inside it, with an arrow to where it lies. drawSky returns what it drew so the page can explain it (tooltips, clicks).
 import { trackColour } from "./dom.js";
 
 // Residual vectors are drawn this many times longer than they are, chosen from 1-2-5 steps so
 // the longest one is about TARGET_RESIDUAL_CSS canvas pixels.
 const TARGET_RESIDUAL_CSS = 28;
-const POINT_RADIUS = 9;
+export const POINT_RADIUS = 9;
+// Every label but a point's own keeps this far (canvas pixels) from a pattern point's circle: the circle's
+// stroke (3.5 px wide when ringed) and a gap that reads as one. Box-to-box tests let a constellation's name sit
+// on the circle's rim ("Lyn" touching T3 in 05-earth).
+export const CIRCLE_CLEARANCE = 4;
+// A point whose circle would not fit whole on the canvas (off the sensor, past the section's margin: a track
+// seen only in other snapshots, carried to the reference one) is drawn pinned this far inside the canvas
+// edge, its rim leaving room for an arrow towards where it lies.
+export const PIN_ROOM = 10;
 export const COLOURS = {
   matched: "#3fb950", doubtful: "#e3b341", unmatched: "#ff6b6b", residual: "#63e6be", edge: "#cc5de8",
   planet: "#ff922b", star: "#e6ebf2", matchedStar: "#ffd43b", compass: "#9ec5fe",
@@ -45,18 +54,36 @@ export function northEast(R) {
   return { north: image(north), east: image(east) };
 }
 
+// Whether box b (x, y, w, h) overlaps obstacle o: a box like it, or a circle {cx, cy, r}, which a box
+// overlaps when its nearest point is closer than r to the centre.
+export function blocks(o, b) {
+  if (o.r === undefined) return o.x < b.x + b.w && b.x < o.x + o.w && o.y < b.y + b.h && b.y < o.y + o.h;
+  const dx = Math.max(b.x - o.cx, 0, o.cx - b.x - b.w), dy = Math.max(b.y - o.cy, 0, o.cy - b.y - b.h);
+  return dx * dx + dy * dy < o.r * o.r;
+}
+
+// Where a pattern point's circle of radius r is drawn on a width x height canvas: where it is when it fits
+// whole, else pinned PIN_ROOM inside the nearest edges ({x, y, pinned}).
+export function chartPosition(cx, cy, r, width, height) {
+  const fits = cx - r >= 0 && cy - r >= 0 && cx + r <= width && cy + r <= height;
+  if (fits) return { x: cx, y: cy, pinned: false };
+  const clamp = (v, hi) => Math.min(Math.max(v, r + PIN_ROOM), hi - r - PIN_ROOM);
+  return { x: clamp(cx, width), y: clamp(cy, height), pinned: true };
+}
+
 // Greedy label placement: each label (in priority order) takes the first of a few positions
 // around its anchor that stays on the canvas and overlaps no label placed before it nor any
-// obstacle (pattern circles, the compass); a label with no free position is left out.
+// obstacle (pattern circles with their clearance, the compass); a label with no free position is left out.
 export function placeLabels(ctx, requests, obstacles, width, height) {
   const placed = [];
-  const overlaps = (a, b) => a.x < b.x + b.w && b.x < a.x + a.w && a.y < b.y + b.h && b.y < a.y + a.h;
   for (const r of [...requests].sort((a, b) => a.priority - b.priority)) {
     ctx.font = r.font;
     const w = Math.ceil(ctx.measureText(r.text).width) + 2, h = r.size + 2;
     // Close around the anchor first; labels that must not be dropped (track names) may also go
-    // further out, with a leader line back to their point.
-    const rings = r.keep ? [r.radius + 3, r.radius + 12, r.radius + 24] : [r.radius + 3];
+    // further out, with a leader line back to their point; an area's name (a constellation's, at the
+    // middle of its stars) may move a little further, with no line: it names no one point.
+    const rings = r.keep ? [r.radius + 3, r.radius + 12, r.radius + 24]
+      : r.kind === "constellation" ? [r.radius + 3, r.radius + 14] : [r.radius + 3];
     let done = false;
     for (const gap of rings) {
       const spots = [
@@ -67,11 +94,11 @@ export function placeLabels(ctx, requests, obstacles, width, height) {
       for (const [x, y] of spots) {
         const box = { x, y, w, h };
         if (x < 0 || y < 0 || x + w > width || y + h > height) continue;
-        if (placed.some((p) => overlaps(p, box))) continue;
+        if (placed.some((p) => blocks(p, box))) continue;
         // An obstacle never blocks the label of its own point (owner); unowned ones block every label.
-        if (obstacles.some((o) => (o.owner === undefined || o.owner !== r.owner) && overlaps(o, box))) continue;
-        placed.push({ ...box, text: r.text, kind: r.kind });
-        if (gap > r.radius + 3) {
+        if (obstacles.some((o) => (o.owner === undefined || o.owner !== r.owner) && blocks(o, box))) continue;
+        placed.push({ ...box, text: r.text, kind: r.kind, owner: r.owner });
+        if (gap > r.radius + 3 && r.keep) {
           const cx = Math.min(Math.max(r.x, x), x + w), cy = Math.min(Math.max(r.y, y), y + h);
           const d = Math.hypot(cx - r.x, cy - r.y) || 1;
           ctx.strokeStyle = r.colour; ctx.lineWidth = 1;
@@ -89,6 +116,18 @@ export function placeLabels(ctx, requests, obstacles, width, height) {
   }
   ctx.textBaseline = "alphabetic";
   return placed;
+}
+
+// A filled arrowhead just outside a pinned circle's rim, pointing along (dx, dy): the way to the point.
+function offChartArrow(ctx, cx, cy, dx, dy, colour) {
+  const n = Math.hypot(dx, dy) || 1, ux = dx / n, uy = dy / n;
+  const base = POINT_RADIUS + 2, tip = POINT_RADIUS + PIN_ROOM - 1;
+  ctx.fillStyle = colour;
+  ctx.beginPath();
+  ctx.moveTo(cx + ux * tip, cy + uy * tip);
+  ctx.lineTo(cx + ux * base - uy * 4, cy + uy * base + ux * 4);
+  ctx.lineTo(cx + ux * base + uy * 4, cy + uy * base - ux * 4);
+  ctx.closePath(); ctx.fill();
 }
 
 function arrow(ctx, x, y, dx, dy, length, label) {
@@ -162,20 +201,27 @@ export function drawSky(canvas, view, options) {
       owner: p.pattern_index === null ? undefined : `p${p.pattern_index}` });
   }
 
+  // Where each pattern point's circle goes: where it lies, or pinned inside the canvas (chartPosition).
+  const drawnAt = new Map();
+  for (const p of sky.pattern_points) {
+    if (p.x !== null && p.y !== null) drawnAt.set(p.index, chartPosition(...P(p.x, p.y), POINT_RADIUS, W, H));
+  }
+
   if (options.edge && sky.generating_edge) {
-    const [a, c] = sky.generating_edge.points;
-    if (a.x !== null && c.x !== null) {
-      const [ax, ay] = P(a.x, a.y), [cx, cy] = P(c.x, c.y);
+    const [i, j] = sky.generating_edge.pattern_indices ?? [];
+    const [a, c] = [drawnAt.get(i), drawnAt.get(j)];
+    if (a && c) {
       ctx.strokeStyle = COLOURS.edge; ctx.lineWidth = 2; ctx.setLineDash([8, 5]);
-      ctx.beginPath(); ctx.moveTo(ax, ay); ctx.lineTo(cx, cy); ctx.stroke();
+      ctx.beginPath(); ctx.moveTo(a.x, a.y); ctx.lineTo(c.x, c.y); ctx.stroke();
       ctx.setLineDash([]);
     }
   }
 
   const factor = exaggeration(sky.pattern_points, scale);
   for (const p of sky.pattern_points) {
-    if (p.x === null || p.y === null) continue;
-    const [cx, cy] = P(p.x, p.y);
+    if (!drawnAt.has(p.index)) continue;
+    const [tx, ty] = P(p.x, p.y);
+    const { x: cx, y: cy, pinned } = drawnAt.get(p.index);
     const matched = p.hip !== null || p.planet !== null;
     // A match of a candidate that is not credible is drawn as doubtful, never as a green "match".
     const colour = !matched ? COLOURS.unmatched : options.credible ? COLOURS.matched : COLOURS.doubtful;
@@ -183,6 +229,8 @@ export function drawSky(canvas, view, options) {
     ctx.setLineDash(matched && !options.credible ? [4, 3] : []);
     ctx.beginPath(); ctx.arc(cx, cy, POINT_RADIUS, 0, 2 * Math.PI); ctx.stroke();
     ctx.setLineDash([]);
+    // Pinned: an arrow from its rim towards where it lies, off the canvas.
+    if (pinned) offChartArrow(ctx, cx, cy, tx - cx, ty - cy, colour);
     if (p.residual_x !== null) {
       ctx.strokeStyle = COLOURS.residual; ctx.lineWidth = 2;
       ctx.beginPath(); ctx.moveTo(cx, cy);
@@ -190,11 +238,12 @@ export function drawSky(canvas, view, options) {
     }
     const label = p.track !== null ? `T${p.track}` : `hand ${p.hand}`;
     const target = p.name || (p.hip !== null ? `HIP ${p.hip}` : p.planet ? `planet ${p.planet}` : "no star");
-    hits.push({ x: cx, y: cy, r: POINT_RADIUS + 2, kind: "point", track: p.track, index: p.index,
+    hits.push({ x: cx, y: cy, r: POINT_RADIUS + 2, kind: "point", track: p.track, index: p.index, pinned,
       text: `${label} → ${target}` + (p.residual_arcsec !== null ? `, residual ${p.residual_arcsec.toFixed(1)}″` : "") +
+        (pinned ? `; off the chart at (${p.x.toFixed(0)}, ${p.y.toFixed(0)}) px of the reference snapshot: ` +
+          "drawn at the edge, the arrow points to it" : "") +
         (p.track !== null ? " (click: show it in the snapshots)" : "") });
-    obstacles.push({ x: cx - POINT_RADIUS, y: cy - POINT_RADIUS, w: 2 * POINT_RADIUS, h: 2 * POINT_RADIUS,
-      owner: `p${p.index}` });
+    obstacles.push({ cx, cy, r: POINT_RADIUS + (pinned ? PIN_ROOM : CIRCLE_CLEARANCE), owner: `p${p.index}` });
     // Same colour as the track in the snapshot player, so T3 here is T3 there.
     requests.push({ text: label, x: cx, y: cy, radius: POINT_RADIUS, font: "600 11px system-ui, sans-serif", size: 11,
       colour: p.track !== null ? trackColour(p.track) : "#ffe066", priority: 10, kind: "track", owner: `p${p.index}`,
