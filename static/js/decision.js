@@ -16,6 +16,16 @@ export function setupDecision(h) {
   $("reject-open").addEventListener("click", openReject);
   $("reject-confirm").addEventListener("click", sendRejection);
   $("reject-cancel").addEventListener("click", cancelSteps);
+  $("comment").addEventListener("input", commentIsFor);
+}
+
+// The comment box's text is about the candidate it was typed for (or sent with from the 3D view): it goes
+// when another candidate is shown, another rank or another search's, as a step opened for that one does,
+// so that a comment never lands on a confirmation it was not written for.
+const shownCandidate = () => `${state.detail?.id}/${state.detail?.search?.search_id ?? null}/${state.rank}`;
+export function commentIsFor() { state.commentFor = shownCandidate(); }
+export function dropStaleComment() {
+  if ($("comment").value && state.commentFor !== shownCandidate()) $("comment").value = "";
 }
 
 const verdictOf = (rank) => state.review?.candidates.find((v) => v.rank === rank) || null;

@@ -21,14 +21,18 @@ export function el(tag, attrs = {}, ...children) {
 
 let toastTimer = null;
 // Show the result of an action (kind "ok", "warn" or "error") in the status line of the header. The
-// status line has its own place in the sticky header, so it never covers a list or a link; a long
-// "ok" is cut to one line there and shown whole on hover and in the message log, while a warning or
-// an error wraps, to be read whole, and stays longer.
-export function toast(message, kind = "ok") {
+// status line has its own place in the sticky header, so it never covers a list or a link. A message is
+// read where it appears, wrapped: an "ok" whole, up to a few lines (console.css: a longer one scrolls in
+// its box), a warning or an error by its first line (further lines, located problems, are in the title
+// and the message log), growing the header and staying longer.
+// `untilMove`: a message about where the operator is ("Last sequence of this page"), which goes when
+// they move (moved()).
+export function toast(message, kind = "ok", { untilMove = false } = {}) {
   const box = $("toast");
-  box.textContent = message.split("\n")[0];
+  box.textContent = kind === "ok" ? message : message.split("\n")[0];
   box.title = message;
   box.className = `toast ${kind}`;
+  box.dataset.untilMove = untilMove ? "1" : "";
   box.hidden = false;
   const log = $("message-log");
   if (log) {
@@ -38,6 +42,15 @@ export function toast(message, kind = "ok") {
   }
   clearTimeout(toastTimer);
   toastTimer = setTimeout(() => { box.hidden = true; }, kind === "ok" ? 5000 : 12000);
+}
+
+// The operator moved to another sequence or candidate: a message about where they were goes with it.
+export function moved() {
+  const box = $("toast");
+  if (!box.dataset.untilMove) return;
+  box.dataset.untilMove = "";
+  box.hidden = true;
+  clearTimeout(toastTimer);
 }
 
 // "1 candidate", "3 candidates".

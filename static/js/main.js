@@ -7,16 +7,16 @@
 // hands: another console's search or pattern edit of the same sequence is announced, and a
 // confirmation names the search it was made on. Every action ends in a visible result or error.
 import * as api from "./api.js";
-import { $, ASSUMED_TIME, el, toast, errorText, fmt, fmtProbability, fmtTime, plural, sequenceTime, snapshotName, store,
-  stored } from "./dom.js";
+import { $, ASSUMED_TIME, el, toast, errorText, fmt, fmtProbability, fmtTime, moved, plural, sequenceTime, snapshotName,
+  store, stored } from "./dom.js";
 import { FrameView } from "./frame.js";
 import { SnapshotPlayer } from "./player.js";
 import { drawSky, hitAt } from "./sky.js";
 import { SESSION, state } from "./state.js";
 import { loadAttitudes, loadSequences, loadSpacecraft, markSelected, noteSearched, setupQueue,
   statusText } from "./queue.js";
-import { cancelSteps, confirmClick, confirmSentFrom, openReject, renderCandidates, setupDecision,
-  verdictSummary } from "./decision.js";
+import { cancelSteps, commentIsFor, confirmClick, confirmSentFrom, dropStaleComment, openReject, renderCandidates,
+  setupDecision, verdictSummary } from "./decision.js";
 import { calibrate, showCalibration } from "./calibration.js";
 
 const POLL_MS = 1000;
@@ -132,6 +132,7 @@ function setupOperator() {
 // ---------------------------------------------------------------- the selected sequence
 
 async function selectSequence(id) {
+  moved();
   await action("Opening the sequence", async () => {
     cancelSteps();
     await loadDetail(id, { fresh: true });
@@ -366,6 +367,7 @@ async function showCandidate() {
   const hasCandidates = !!(d && d.search && d.search.candidates.length);
   if (hasCandidates && !(state.rank >= 1 && state.rank <= d.search.candidates.length)) state.rank = 1;
   if (!hasCandidates) state.rank = null;
+  dropStaleComment();   // typed for another candidate: it goes with it
   // Without candidates the decision panel stays: "no valid attitude" is still a verdict to give.
   $("candidate-body").hidden = !d;
   $("candidate-body").classList.toggle("empty", !hasCandidates);
@@ -446,6 +448,7 @@ async function goToRank(rank) {
   if (!d || !d.search || !d.search.candidates.length) return;
   rank = Math.min(Math.max(1, rank), d.search.candidates.length);
   if (rank === state.rank) return;
+  moved();
   await action("Showing the candidate", async () => {
     cancelSteps();
     state.rank = rank;
@@ -460,7 +463,7 @@ async function stepCandidate(delta) {
   if (!d || !d.search || !d.search.candidates.length) return;
   const rank = Math.min(Math.max(1, state.rank + delta), d.search.candidates.length);
   if (rank === state.rank) {
-    toast(delta > 0 ? "This is the last candidate" : "This is the first candidate");
+    toast(delta > 0 ? "This is the last candidate" : "This is the first candidate", "ok", { untilMove: true });
     return;
   }
   await goToRank(rank);
@@ -571,7 +574,10 @@ function nextSequence(delta) {
   // Nothing beyond it in the queue as it was (a filter since widened, say): the list as it is now.
   const now = ids.indexOf(current);
   if (next === null && now >= 0 && ids[now + delta] !== undefined) next = ids[now + delta];
-  if (next === null) { toast(delta > 0 ? "Last sequence of this page" : "First sequence of this page"); return; }
+  if (next === null) {
+    toast(delta > 0 ? "Last sequence of this page" : "First sequence of this page", "ok", { untilMove: true });
+    return;
+  }
   selectSequence(next);
 }
 
@@ -675,6 +681,7 @@ async function takeRequest(doc) {
     if (request.comment && !box.value.trim()) {
       box.value = request.comment;
       state.sentComment = request.comment;   // cleared with the step it came for (cancelSteps)
+      commentIsFor();
     }
     else if (request.comment && box.value.trim() !== request.comment) {
       toast("The 3D view's comment was not put in the comment box, which holds yours: " + request.comment);

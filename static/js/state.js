@@ -33,5 +33,6 @@ export const state = {
   viewRevision: -1,      // newest revision of this session's view state applied or written
   busy: 0,               // actions in flight: the poll does not apply state meanwhile
   sentComment: null,     // the comment the 3D view sent with its confirmation request, while in the comment box
+  commentFor: null,      // the candidate ("sequence/search/rank") the comment box's text was typed or sent for
   authRequired: false,
 };

@@ -1,0 +1,252 @@
+"""The console's known leftovers of an operator trial, fixed, in a real Chromium: the sky chart's labels keep
+clear of the tracks' circles, a point off the chart is drawn whole inside it, a success message is read
+whole in the status line, a message about where the operator is goes when they move, and a comment leaves
+with the candidate it was typed for.
+
+Facts are read back from the server's API (the candidate view's pixels, the stored confirmation), never from
+the page alone.  Screenshots: /tmp/leftovers-*.png.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+
+from test_console_sessions import (console, expect_text, expect_value, expect_visible, fresh_copy, open_sequence,
+                                   operator_on, press, upload_and_search)
+
+#: The sky chart's pattern circles (static/js/sky.js POINT_RADIUS), in canvas pixels.
+CIRCLE_RADIUS = 9
+#: What "clear of a circle" means here: past the circle's stroke (1.6 px, 3.5 px when ringed) by a visible gap.
+CLEAR_PX = CIRCLE_RADIUS + 3
+
+
+def shot(target, name: str) -> None:
+    """A screenshot of a page or an element, as /tmp/leftovers-NAME.png."""
+    target.screenshot(path=f"/tmp/leftovers-{name}.png")
+
+
+def box_distance(label: dict, x: float, y: float) -> float:
+    """Distance from (x, y) to the nearest point of the label's box (0 inside it)."""
+    dx = max(label["x"] - x, 0.0, x - label["x"] - label["w"])
+    dy = max(label["y"] - y, 0.0, y - label["y"] - label["h"])
+    return math.hypot(dx, dy)
+
+
+def drawn(page, want: str) -> None:
+    """Wait until the sky chart's ``data-view`` (``rank/magnitude limit``) ends with ``want``."""
+    page.wait_for_function("(want) => ('/' + document.getElementById('sky-canvas').dataset.view).endsWith('/' + want)",
+                           arg=want)
+
+
+def show_sky(page, rank: int, mag: float) -> tuple[list[dict], list[dict]]:
+    """The sky chart drawn at ``rank`` and magnitude limit ``mag`` (as the slider sets it): its labels and points."""
+    page.evaluate("(mag) => { const s = document.getElementById('mag-slider'); if (Number(s.value) === mag) return; "
+                  "s.value = mag; s.dispatchEvent(new Event('change')); }", mag)
+    drawn(page, f"{mag:g}")     # first: the magnitude's redraw is of the rank shown before the key
+    press(page, str(rank))
+    drawn(page, f"{rank}/{mag:g}")
+    canvas = page.locator("#sky-canvas")
+    return json.loads(canvas.get_attribute("data-labels")), json.loads(canvas.get_attribute("data-points"))
+
+
+# ---------------------------------------------------------------------------------------------------------
+
+def test_no_label_comes_near_a_tracks_circle(server, api, new_page, tmp_path):
+    """05-earth's candidates, every rank at three magnitude limits: a constellation's name sat on a track's
+    circle ("Lyn" 0.2 px above T3's rim at rank 4 under magnitude 3, "CMa" beside T3 in the trial), the
+    placement testing boxes against the circle's square and letting them touch.  Every label but a point's own
+    (its track name, its matched star's name) now keeps CLEAR_PX from every circle's centre."""
+    seq_id, search = upload_and_search(api, fresh_copy("05-earth.json", "clear", tmp_path))
+    n = len(search["candidates"])
+    assert n >= 2
+    watched, _ = console(new_page, server)
+    page = watched.page
+    open_sequence(page, seq_id, "05-earth-clear")
+    too_close, constellations = [], 0
+    for mag in (3.0, 4.5, 6.0):
+        for rank in range(1, n + 1):
+            labels, points = show_sky(page, rank, mag)
+            assert points and labels
+            constellations += sum(label["kind"] == "constellation" for label in labels)
+            too_close += [(mag, rank, label["text"], f"T{p['track']}", round(box_distance(label, p["x"], p["y"]), 2))
+                          for label in labels for p in points
+                          if label.get("owner") != f"p{p['index']}" and box_distance(label, p["x"], p["y"]) < CLEAR_PX]
+            if (mag, rank) == (3.0, 4):
+                page.locator("#sky-canvas").scroll_into_view_if_needed()
+                shot(page.locator("#sky-canvas"), "01-labels-clear-rank4-mag3")
+    assert too_close == []
+    assert constellations >= 2 * n  # names are drawn, not dropped to keep clear
+    assert watched.errors == []
+
+
+def test_a_point_off_the_chart_is_drawn_whole_inside_it(server, api, new_page, tmp_path):
+    """09-wide-30deg's pattern has tracks carried far off the sensor (x = -296 px of 576): their circles were cut
+    by the canvas edge or not drawn at all.  Every circle is now whole on the canvas: where it lies when it fits,
+    else pinned inside the edge with an arrow towards where it lies, and its tooltip says so."""
+    seq_id, search = upload_and_search(api, fresh_copy("09-wide-30deg.json", "offchart", tmp_path))
+    assert search["status"] == "identified"
+    sky = api(f"/api/sequences/{seq_id}/candidates/1?mag=6")["sky"]
+    b = sky["bounds"]
+    width = 640  # the canvas's width (static/index.html); its height follows the section's aspect
+    scale = width / (b["x_max"] - b["x_min"])
+    height = round((b["y_max"] - b["y_min"]) * scale)
+    where = {p["index"]: ((p["x"] - b["x_min"]) * scale, (p["y"] - b["y_min"]) * scale)
+             for p in sky["pattern_points"] if p["x"] is not None}
+    r = CIRCLE_RADIUS
+    cut = {i for i, (x, y) in where.items() if x - r < 0 or y - r < 0 or x + r > width or y + r > height}
+    assert len(cut) >= 3  # the sample's far tracks
+
+    watched, _ = console(new_page, server)
+    page = watched.page
+    open_sequence(page, seq_id, "09-wide-30deg-offchart")
+    show_sky(page, 1, 6.0)
+    canvas = page.locator("#sky-canvas")
+    assert (int(canvas.get_attribute("width")), int(canvas.get_attribute("height"))) == (width, height)
+    points = {p["index"]: p for p in json.loads(canvas.get_attribute("data-points"))}
+    assert set(points) == set(where)
+    assert {i for i, p in points.items() if p["pinned"]} == cut
+    for i, p in points.items():
+        assert r <= p["x"] <= width - r and r <= p["y"] <= height - r, p   # whole on the canvas
+        if i not in cut:
+            assert math.hypot(p["x"] - where[i][0], p["y"] - where[i][1]) < 0.01  # where it lies
+    # Pixels: each pinned circle's rim is drawn all round, and its arrow between the rim and the edge points
+    # to where the point lies.
+    pixels = page.evaluate("""(pts) => { const ctx = document.getElementById('sky-canvas').getContext('2d');
+        const lit = (x, y) => { const d = ctx.getImageData(Math.round(x), Math.round(y), 1, 1).data;
+                                return Math.max(d[0], d[1], d[2]) > 90; };
+        return pts.map(([x, y, ux, uy]) => ({
+          rim: Array.from({ length: 24 }, (_, k) => [0, 0.5, -0.5].some((dr) =>
+            lit(x + (9 + dr) * Math.cos(k * Math.PI / 12), y + (9 + dr) * Math.sin(k * Math.PI / 12)))).filter(Boolean).length,
+          arrow: [12, 14, 16].filter((d) => lit(x + ux * d, y + uy * d)).length })); }""",
+        [[points[i]["x"], points[i]["y"], *unit(where[i][0] - points[i]["x"], where[i][1] - points[i]["y"])]
+         for i in sorted(cut)])
+    assert all(p["rim"] >= 22 and p["arrow"] >= 2 for p in pixels), pixels
+    # The tooltip says where it lies.
+    far = max(cut, key=lambda i: abs(where[i][0] - points[i]["x"]) + abs(where[i][1] - points[i]["y"]))
+    canvas.scroll_into_view_if_needed()
+    box = canvas.bounding_box()
+    css = box["width"] / width
+    page.mouse.move(box["x"] + points[far]["x"] * css, box["y"] + points[far]["y"] * css)
+    expect_text(page.locator("#sky-tip"), r"off the chart at \(-?\d+, -?\d+\) px of the reference snapshot")
+    shot(canvas, "02-off-chart-pinned")
+    assert watched.errors == []
+
+
+def unit(dx: float, dy: float) -> tuple[float, float]:
+    n = math.hypot(dx, dy)
+    return dx / n, dy / n
+
+
+def test_a_success_message_is_read_whole_and_bounded(server, api, new_page, tmp_path):
+    """A success was cut to one line in the status line (whole only on hover and in the log).  At 1280 px,
+    where the status line shares the header's row, a pattern edit's message wraps, whole and uncut; a very long
+    one stops growing at four lines and scrolls in its box, the header staying within that.  At 1024 px the
+    status line has a row of its own, where the message is one line (it had 140 px there)."""
+    seq_id, _ = upload_and_search(api, fresh_copy("01-clean.json", "toast", tmp_path))
+    watched, _ = console(new_page, server)
+    page = watched.page
+    open_sequence(page, seq_id, "01-clean-toast")
+    header_before = page.locator(".topbar").bounding_box()["height"]
+    page.locator("#pattern-rows tr[data-track] input[type=checkbox]").first.click()
+    toast = page.locator("#toast")
+    expect_text(toast, r"^Pattern version \d+: track T\d+ changed, \d+ points\. Press Search to identify it\.$")
+    version = api(f"/api/sequences/{seq_id}")["pattern"]["version"]
+    assert f"Pattern version {version}:" in toast.inner_text()
+    fit = toast.evaluate("e => ({ sw: e.scrollWidth, cw: e.clientWidth, sh: e.scrollHeight, ch: e.clientHeight, "
+                         "lh: parseFloat(getComputedStyle(e).lineHeight) })")
+    assert fit["sw"] <= fit["cw"] and fit["sh"] <= fit["ch"], fit   # nothing cut
+    assert fit["ch"] > 1.5 * fit["lh"], fit                          # wrapped at this width, not cut
+    shot(page.locator(".topbar"), "03-toast-wrapped-1280")
+    said = toast.inner_text()
+
+    long = " ".join(f"Sentence {k} of a long success message that says what was done." for k in range(40))
+    page.evaluate("(text) => import('/js/dom.js').then((m) => m.toast(text))", long)
+    expect_text(toast, "^Sentence 0 ")
+    assert toast.evaluate("e => e.textContent") == long             # all of it, not its first line
+    fit = toast.evaluate("e => ({ sh: e.scrollHeight, ch: e.clientHeight, lh: parseFloat(getComputedStyle(e).lineHeight),"
+                         " oy: getComputedStyle(e).overflowY })")
+    assert fit["ch"] <= 4 * fit["lh"] + 12 + 1 and fit["sh"] > fit["ch"] and fit["oy"] == "auto", fit
+    header = page.locator(".topbar").bounding_box()["height"]
+    assert header <= header_before + 3 * fit["lh"] + 14, (header_before, header)
+    shot(page.locator(".topbar"), "04-toast-long-bounded")
+    assert watched.errors == []
+
+    narrow, _ = console(new_page, server, width=1024)
+    narrow.page.evaluate("(text) => import('/js/dom.js').then((m) => m.toast(text))", said)
+    toast = narrow.page.locator("#toast")
+    expect_text(toast, f"^{re.escape(said)}$")
+    fit = toast.evaluate("e => ({ sw: e.scrollWidth, cw: e.clientWidth, sh: e.scrollHeight, ch: e.clientHeight, "
+                         "lh: parseFloat(getComputedStyle(e).lineHeight) })")
+    assert fit["sw"] <= fit["cw"] and fit["sh"] <= fit["ch"] < 1.5 * fit["lh"] + 12, fit
+    assert toast.bounding_box()["width"] > 900
+    shot(narrow.page.locator(".topbar"), "05-toast-row-1024")
+
+
+def test_a_message_about_where_the_operator_is_goes_when_they_move(server, api, new_page, tmp_path):
+    """"Last sequence of this page" stayed in the status line after `k` had moved back.  The page's toast timer
+    is held (its 5 s would hide any message in time), so only the move can take it away."""
+    ids = {}
+    for tag in ("lastpage-a", "lastpage-b"):
+        ids[tag] = api("/api/sequences", "POST", raw=fresh_copy("07-single.json", tag, tmp_path).read_bytes())["id"]
+    watched = new_page()
+    page = watched.page
+    page.add_init_script("""(() => { const plain = window.setTimeout;
+        window.setTimeout = (f, ms, ...rest) => (ms >= 5000 ? 0 : plain(f, ms, ...rest)); })();""")
+    page.goto(server + "/")
+    page.wait_for_selector("body[data-ready='1']")
+    page.fill("#filter-search", "07-single-lastpage")
+    rows = page.locator("#sequence-list li")
+    expect_text(rows.nth(1), "lastpage")
+    assert rows.count() == 2
+    first_id, last_id = (int(rows.nth(k).get_attribute("data-id")) for k in (0, 1))
+    assert {first_id, last_id} == set(ids.values())
+    rows.nth(1).click()
+    expect_text(page.locator("#seq-title"), "lastpage")
+    press(page, "j")
+    toast = page.locator("#toast")
+    expect_text(toast, "^Last sequence of this page$")
+    expect_visible(toast)
+    shot(page, "06-last-sequence-toast")
+    press(page, "k")
+    page.wait_for_function("(id) => document.querySelector('#sequence-list li.selected')?.dataset.id === String(id)",
+                           arg=first_id)
+    expect_visible(toast, False)
+    shot(page, "07-moved-back-no-toast")
+    # At the first sequence, `k` says so in turn: messages still show.
+    press(page, "k")
+    expect_text(toast, "^First sequence of this page$")
+    expect_visible(toast)
+    assert watched.errors == []
+
+
+def test_a_comment_typed_here_leaves_with_its_candidate(server, api, new_page, tmp_path):
+    """A comment typed in the console for rank 1 stayed in the box when the operator moved to rank 2, and would
+    have been stored with rank 2's confirmation.  It goes with the candidate it was typed for, as the 3D view's
+    comment goes with its step; one typed for rank 2 is stored with rank 2's confirmation."""
+    seq_id, search = upload_and_search(api, fresh_copy("02-ghosts-hot-pixels.json", "comment", tmp_path))
+    assert search["status"] == "identified" and len(search["candidates"]) >= 2
+    watched = operator_on(new_page, server, "Comment Operator", seq_id, "02-ghosts-hot-pixels-comment")
+    page = watched.page
+    expect_text(page.locator("#cand-rank"), "^rank 1 of")
+    page.fill("#comment", "written for rank 1")
+    press(page, "ArrowRight")
+    expect_text(page.locator("#cand-rank"), "^rank 2 of")
+    expect_value(page.locator("#comment"), "")
+    shot(page.locator("#decision"), "08-comment-left-with-rank-1")
+    press(page, "ArrowLeft")
+    expect_text(page.locator("#cand-rank"), "^rank 1 of")
+    expect_value(page.locator("#comment"), "")          # gone, not hidden away for rank 1
+    press(page, "ArrowRight")
+    expect_text(page.locator("#cand-rank"), "^rank 2 of")
+    page.fill("#comment", "written for rank 2")
+    press(page, "c")                                    # rank 2 is not the credible best: the second step
+    expect_visible(page.locator("#override-step"))
+    expect_value(page.locator("#comment"), "written for rank 2")   # opening the step keeps it
+    page.fill("#override-reason", "the operator's own check of rank 2")
+    page.click("#confirm-override")
+    expect_text(page.locator("#confirm"), r"Confirmed ✓")
+    confirmation = api(f"/api/sequences/{seq_id}/review")["confirmation"]
+    assert (confirmation["rank"], confirmation["comment"]) == (2, "written for rank 2")
+    assert watched.errors == []
