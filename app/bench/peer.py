@@ -761,5 +761,5 @@ def format_table(result: dict) -> str:
               f"{f(s['total_s_median'], '.2f')} / {f(s['total_s_max'], '.2f')} s = imports "
               f"{f(s['import_s_median'], '.2f')} s + index load {f(s['index_load_s_median'], '.2f')} s + first answer "
               f"{f(s['first_answer_s_median'], '.2f')} s + interpreter start",
-              "issue 16 goals: " + ", ".join(f"{k} {'met' if v else 'NOT met'}" for k, v in result["goals"].items())]
+              "speed goals: " + ", ".join(f"{k} {'met' if v else 'NOT met'}" for k, v in result["goals"].items())]
     return "\n".join(lines)

@@ -484,5 +484,5 @@ def format_table(result: dict) -> str:
         for reason, count in reasons.items():
             lines.append(f"ours {OPTICS_LABELS[optics]}: {count} invalid: {reason}")
     verdicts = (f"{goal} {'met' if met else 'NOT met'}" for goal, met in result["goals"].items())
-    lines += ["", "issue 26 goals: " + ", ".join(verdicts)]
+    lines += ["", "real-sky goals: " + ", ".join(verdicts)]
     return "\n".join(lines)

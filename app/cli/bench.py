@@ -1,4 +1,5 @@
-"""`python -m app bench [--suite NAME] [--n N] [--seed S] [--think S] [--frames DIR] [--method M] [--json]`: benchmark figures.
+"""`python -m app bench [--suite NAME] [--n N] [--seed S] [--think S] [--frames DIR] [--method M] [--json]`:
+benchmark figures.
 
 Suites: ``extraction`` (issue 2: tracked stars kept, ghosts and hot pixels
 rejected, time per sequence), ``identification`` (issue 3: top-1/top-5
@@ -54,7 +55,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="load suite: two more clients send worst-case files (64 snapshots x 64 sources) "
                         "without pause; the target still counts the ordinary clients")
     p.add_argument("--servers", type=int, default=1, metavar="N",
-                   help="load suite: N servers on one PostgreSQL archive (needs --database; issue 14)")
+                   help="load suite: N servers on one PostgreSQL archive (needs --database)")
     p.add_argument("--database", default=None, metavar="URL",
                    help="load suite: a postgresql:// URL; the run makes a fresh database on that server")
     p.add_argument("--think", type=float, default=None, metavar="SECONDS",
