@@ -54,7 +54,7 @@ def test_a_session_carries_its_operators_name_for_the_3d_view():
 def test_the_3d_views_operator_field_follows_the_console_until_someone_types_another():
     from types import SimpleNamespace
 
-    from app.viewer.server import Viewer
+    from app.viewer.server import Panel as Viewer  # each 3D view's panel
 
     panel = SimpleNamespace(_operator=SimpleNamespace(value=""), _operator_from_console="")
     Viewer._follow_operator(panel, "Vera")

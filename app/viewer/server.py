@@ -1,28 +1,38 @@
-"""The 3D view: a viser server in the API's process, drawing the shared view state.
+"""The 3D view: a viser server in the API's process, one view per console session.
 
-What it shows (scene units: see :mod:`app.viewer.scene`):
+Each browser client of the viser server is a view of its own (viser's
+per-client ``client.scene`` and ``client.gui``): it draws the console
+session named in the address it was opened at (``GET
+/api/viewer?session=ID`` gives it; the session rides in the websocket
+address, :func:`app.workflow.view_state.address_for_session`), so several
+consoles have their 3D views open at once, each showing its own sequence,
+rank and magnitude limit.  At most :data:`MAX_3D_VIEWS` clients are drawn;
+one more is told so.  A client at the bare address draws the session of the
+console that opened its 3D tab last (:attr:`ViewStateStore.followed`).
 
-* the celestial sphere: catalogue stars as point clouds, one per magnitude
-  class so brighter stars are bigger dots, down to the view's magnitude
-  limit; constellation labels (a few dozen); the celestial equator;
-* for the current candidate of the shared view: the camera frustum, the
-  current pattern's rays onto the sphere (green when the candidate matched
-  the point, orange otherwise), a small clickable sphere at the end of each
-  ray (click: take that track out of the pattern), grey spheres for tracks
-  taken out (click: put back), the matched catalogue stars highlighted and
-  named.
+What a view shows (scene units: see :mod:`app.viewer.scene`):
 
-The GUI has Prev / Next, the magnitude slider and Confirm (operator name,
-optional comment).  Confirm takes the credible best candidate only; a
-confirmation that needs the console's second step (another rank, or one
-replacing the sequence's verdict) is sent to the console it draws
-(:func:`confirm_from_3d`, :func:`app.workflow.view.request_confirmation`),
-which opens that step.
+* the celestial sphere (shared by all views): constellation labels (a few
+  dozen) and the celestial equator; its own catalogue stars as point
+  clouds, one per magnitude class so brighter stars are bigger dots, down
+  to its session's magnitude limit;
+* for its session's candidate: the camera frustum, the current pattern's
+  rays onto the sphere (green when the candidate matched the point, orange
+  otherwise), a small clickable sphere at the end of each ray (click: take
+  that track out of the pattern), grey spheres for tracks taken out (click:
+  put back), the matched catalogue stars highlighted and named.
+
+Its GUI has Prev / Next, the magnitude slider and Confirm (operator name,
+optional comment), acting on its session.  Confirm takes the credible best
+candidate only; a confirmation that needs the console's second step
+(another rank, or one replacing the sequence's verdict) is sent to that
+session's console (:func:`confirm_from_3d`,
+:func:`app.workflow.view.request_confirmation`), which opens that step.
 Status codes are shown in the console's words (:data:`STATUS_TEXT`).
-Every action goes through :mod:`app.workflow`, the
-same code the REST API runs, and a poll thread redraws whenever the shared
-state or the archive behind it changes, so the console and this view stay
-in step without talking to each other.
+Every action goes through :mod:`app.workflow`, the same code the REST API
+runs, and a poll thread redraws a view whenever its session's state or the
+archive behind it changes, so a console and its view stay in step without
+talking to each other.
 
 Security: viser's websocket has no authentication, so it is bound to
 127.0.0.1 whatever the API's host.  The panel's text is Markdown, which
@@ -46,7 +56,8 @@ from app.workflow import AppContext, archive, confirm as confirming, search as s
 from app.workflow.documents import ViewerDocument
 from app.workflow.errors import WorkflowError
 from app.workflow.review import review
-from app.workflow.view_state import DEFAULT_SESSION
+from app.workflow.view_state import (DEFAULT_SESSION, MAX_3D_VIEWS, ViewerClients, address_for_session,
+                                      session_in_address)
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +115,7 @@ def confirm_from_3d(ctx: AppContext, sequence: int | None, rank: int | None, ope
     best candidate only.  A confirmation that needs the second step (a rank
     that is not the credible best, whose reason the audit record keeps, or
     one that would replace the sequence's verdict) is sent to the console
-    drawing ``session`` (default: the one the 3D view draws): the request
+    drawing ``session`` (default: the one the 3D view at the bare address draws): the request
     goes into that session's view state
     (:func:`app.workflow.view.request_confirmation`), and the console opens
     its second step for that rank.  The panel says so in an operator's words
@@ -211,78 +222,91 @@ def panel_title(sequence_id, spacecraft: str | None, status: str) -> str:
             f"status {markdown_text(status_text(status))}")
 
 
-class Viewer:
-    """The running 3D view of one :class:`app.workflow.AppContext`."""
+def refusal_text(limit: int) -> str:
+    """What a 3D view past the bound shows instead of a scene (Markdown)."""
+    return (f"**This server draws at most {limit} 3D views at once, and {limit} are open** (consoles' 3D view "
+            "tabs and 3D view browser tabs). Close one of them, then reload this page.")
 
-    def __init__(self, context, server, sky: SkyModel) -> None:
-        self._ctx = context
-        self._server = server
-        self._sky = sky
-        self._stop = threading.Event()
-        self._wake = threading.Event()
+
+#: What a 3D view of a console session the server has forgotten shows (Markdown).
+SESSION_ENDED_TEXT = ("**The console session this 3D view drew has ended.** Open the 3D view again from a console's "
+                      "3D view tab.")
+
+
+def _session_of_client(server, client_id: int) -> str | None:
+    """The console session named in the address a viser client connected its websocket to (None: none named).
+
+    viser 1.1.1 (pinned) gives a client handle no access to its address;
+    its websocket server keeps each live connection, whose handshake
+    request carries the path and query the page connected to.  ValueError
+    for a malformed session id; a connection already gone reads as none.
+    """
+    connection = server._websock_server._live_connections.get(client_id)
+    return None if connection is None or connection.request is None else session_in_address(connection.request.path)
+
+
+class Panel:
+    """One 3D view: a viser client's own GUI and candidate scene, drawing one console session.
+
+    ``session`` None means the session :attr:`ViewStateStore.followed` names
+    (the 3D view at the bare address).  Every action writes that session, so
+    Prev / Next / Confirm of this view land in the console that opened it.
+    """
+
+    def __init__(self, viewer: "Viewer", client, session: str | None) -> None:
+        self._viewer = viewer
+        self._ctx = viewer.context
+        self._sky = viewer.sky
+        self.client = client
+        self.session = session
         self._drawn_key = None
         self._message_about = None  # the selection the panel's message was written for (_selection)
         self._drawn_mag = None
         self._camera_key = None
         self._candidate_nodes: list = []
-        self._status = ""
         self._build_gui()
-        self._draw_static()
-        self._thread = threading.Thread(target=self._poll, name="viewer-poll", daemon=True)
-        self._thread.start()
 
-    # --- life cycle ---------------------------------------------------------
-    @classmethod
-    def start(cls, context, port: int) -> "Viewer":
-        import viser
+    def current_session(self) -> str:
+        """The session this view draws now."""
+        return self._ctx.view.followed if self.session is None else self.session
 
-        sky = SkyModel.load()
-        server = viser.ViserServer(host=VIEWER_HOST, port=port, label="Star pattern 3D view", verbose=False)
-        try:
-            return cls(context, server, sky)
-        except BaseException:
-            server.stop()
-            raise
-
-    @property
-    def port(self) -> int:
-        """The port viser really listens on (it moves to the next free one when asked for a busy one)."""
-        return int(self._server.get_port())
-
-    def describe(self) -> ViewerDocument:
-        return ViewerDocument(available=True, url=f"http://{VIEWER_HOST}:{self.port}/", host=VIEWER_HOST,
-                              port=self.port)
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._wake.set()
-        self._thread.join(timeout=2.0)
-        self._server.stop()
+    def _document(self):
+        return view.view_document(self._ctx, self.current_session())
 
     # --- GUI ----------------------------------------------------------------
     def _build_gui(self) -> None:
-        gui = self._server.gui
-        gui.configure_theme(dark_mode=True, show_logo=False, show_share_button=False,
-                            brand_color=(90, 180, 255))
+        gui = self.client.gui
         self._info = gui.add_markdown("No sequence selected yet: open one in the console.")
         self._prev = gui.add_button("Prev", hint="previous candidate (rank - 1)")
         self._next = gui.add_button("Next", hint="next candidate (rank + 1)")
         self._mag = gui.add_slider("Faintest mag", min=1.0, max=7.0, step=0.5,
-                                   initial_value=float(self._ctx.view.get().mag))
+                                   initial_value=float(min(7.0, max(1.0, self._ctx.view.get(self.current_session()).mag))))
         self._operator = gui.add_text("Operator", initial_value="")
         self._operator_from_console = ""  # the name last taken from the console (kept while nobody edits it)
         self._comment = gui.add_text("Comment", initial_value="")
         self._confirm = gui.add_button("Confirm", color="green", hint="confirm the candidate shown")
         self._message = gui.add_markdown("")
+        self._gui = [self._info, self._prev, self._next, self._mag, self._operator, self._comment, self._confirm,
+                     self._message]
         self._prev.on_click(lambda event: self._step(-1))
         self._next.on_click(lambda event: self._step(+1))
         self._confirm.on_click(lambda event: self._confirm_shown())
 
         @self._mag.on_update
         def _(event) -> None:
-            if event.client is None:  # our own update from the shared state: nothing to write
+            if event.client is None:  # our own update from the session's state: nothing to write
                 return
             self._act(lambda: self._write_view({"mag": float(self._mag.value)}))
+
+    def release(self, text: str) -> None:
+        """Stop drawing: the panel and the candidate go, ``text`` says why (the client stays connected)."""
+        self._clear_candidate()
+        for handle in self._gui:
+            try:
+                handle.remove()
+            except Exception:  # the client left meanwhile
+                pass
+        self.client.gui.add_markdown(text)
 
     def _act(self, action) -> None:
         """Run a GUI action; its error is shown in the panel instead of being lost in a thread."""
@@ -295,18 +319,18 @@ class Viewer:
             message = f"**Error:** {markdown_text(exc)}"
         self._message.content = message or ""
         try:  # what the message is about: it goes when another candidate, sequence or console is drawn
-            self._message_about = _selection(view.view_document(self._ctx))
+            self._message_about = _selection(self._document())
         except Exception:
             self._message_about = None
-        self._wake.set()
+        self._viewer.wake()
 
     def _write_view(self, changes: dict) -> str:
-        view.set_view(self._ctx, changes, "viewer")
+        view.set_view(self._ctx, changes, "viewer", self.current_session())
         return ""
 
     def _step(self, delta: int) -> None:
         def action() -> str:
-            doc = view.view_document(self._ctx)
+            doc = self._document()
             if doc.sequence is None or not doc.n_candidates:
                 return "No candidates to step through: search the sequence first."
             rank = min(max(1, (doc.rank or 1) + delta), doc.n_candidates)
@@ -317,7 +341,7 @@ class Viewer:
 
     def _confirm_shown(self) -> None:
         def action() -> str:
-            doc = view.view_document(self._ctx)
+            doc = self._document()
             said = confirm_from_3d(self._ctx, doc.sequence, doc.rank, self._operator.value.strip(),
                                    self._comment.value.strip() or None, doc.session)
             if _comment_taken(doc, view.view_document(self._ctx, doc.session)):
@@ -327,7 +351,7 @@ class Viewer:
 
     def _toggle(self, definition_change) -> None:
         def action() -> str:
-            doc = view.view_document(self._ctx)
+            doc = self._document()
             if doc.sequence is None:
                 return "No sequence shown."
             definition = archive.current_pattern(self._ctx, doc.sequence).definition
@@ -336,25 +360,33 @@ class Viewer:
         self._act(action)
 
     # --- scene --------------------------------------------------------------
-    def _draw_static(self) -> None:
-        scene = self._server.scene
-        scene.set_up_direction("+z")
-        for name, vector in self._sky.anchors:
-            scene.add_label(f"/sky/constellations/{name}", name, position=tuple(geo.SPHERE_RADIUS * LABEL_OFFSET
-                                                                              * vector), font_screen_scale=0.8)
-        t = np.linspace(0, 2 * np.pi, 121)
-        ring = geo.SPHERE_RADIUS * np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)])
-        scene.add_line_segments("/sky/equator", np.stack([ring[:-1], ring[1:]], axis=1), (60, 70, 110),
-                                thickness=0.02)
-        scene.add_label("/sky/ncp", "North celestial pole", position=(0.0, 0.0, geo.SPHERE_RADIUS * LABEL_OFFSET))
-        self._draw_stars(self._ctx.view.get().mag)
+    def refresh(self, doc) -> None:
+        """Redraw what changed in the session's state ``doc`` since the last call."""
+        key = (doc.session, doc.sequence, doc.search_id, doc.rank, doc.pattern_version, doc.confirmation_id,
+               doc.status)
+        if doc.mag != self._drawn_mag:
+            self._draw_stars(doc.mag)
+            self._mag.value = float(min(7.0, max(1.0, doc.mag)))
+        if key != self._drawn_key:
+            self._draw_candidate(doc)
+            self._drawn_key = key
+        if self._message_about is not None and _selection(doc) != self._message_about:
+            self._message.content = ""  # it was about what was drawn before
+            self._message_about = None
+        self._follow_operator(doc.operator)
+
+    def _follow_operator(self, name: str | None) -> None:
+        """The Operator field takes the name typed in the console it draws, unless someone typed another here."""
+        if name and self._operator.value.strip() in ("", self._operator_from_console) and name != self._operator.value:
+            self._operator.value = name
+            self._operator_from_console = name
 
     def _draw_stars(self, mag_limit: float) -> None:
         for k, rows in enumerate(geo.magnitude_classes(self._sky.mag, mag_limit)):
             points = geo.SPHERE_RADIUS * self._sky.vectors[rows] if len(rows) else np.zeros((1, 3))
-            self._server.scene.add_point_cloud(f"/sky/stars/class{k}", points, STAR_COLOUR,
-                                               point_size=geo.MAG_CLASS_SIZES[k], point_shape="circle",
-                                               visible=bool(len(rows)))
+            self.client.scene.add_point_cloud(f"/sky/stars/class{k}", points, STAR_COLOUR,
+                                              point_size=geo.MAG_CLASS_SIZES[k], point_shape="circle",
+                                              visible=bool(len(rows)))
         self._drawn_mag = mag_limit
 
     def _clear_candidate(self) -> None:
@@ -364,32 +396,6 @@ class Viewer:
             except Exception:  # already gone with its parent
                 pass
         self._candidate_nodes = []
-
-    def _poll(self) -> None:
-        while not self._stop.is_set():
-            try:
-                doc = view.view_document(self._ctx)
-                key = (doc.sequence, doc.search_id, doc.rank, doc.pattern_version, doc.confirmation_id, doc.status)
-                if doc.mag != self._drawn_mag:
-                    self._draw_stars(doc.mag)
-                    self._mag.value = float(min(7.0, max(1.0, doc.mag)))
-                if key != self._drawn_key:
-                    self._draw_candidate(doc)
-                    self._drawn_key = key
-                if self._message_about is not None and _selection(doc) != self._message_about:
-                    self._message.content = ""  # it was about what was drawn before
-                    self._message_about = None
-                self._follow_operator(doc.operator)
-            except Exception:  # a bad record must not kill the view; try again next time
-                log.exception("3D view could not draw the shared state")
-            self._wake.wait(POLL_S)
-            self._wake.clear()
-
-    def _follow_operator(self, name: str | None) -> None:
-        """The Operator field takes the name typed in the console it draws, unless someone typed another here."""
-        if name and self._operator.value.strip() in ("", self._operator_from_console) and name != self._operator.value:
-            self._operator.value = name
-            self._operator_from_console = name
 
     def _draw_candidate(self, doc) -> None:
         self._clear_candidate()
@@ -406,7 +412,7 @@ class Viewer:
         item = archive.loaded(self._ctx, row)
         camera = item.sequence.camera
         rotation = candidate.rotation
-        scene = self._server.scene
+        scene = self.client.scene
         pose = geo.frustum_pose(rotation, camera)
         self._candidate_nodes.append(scene.add_camera_frustum(
             "/candidate/frustum", fov=pose.fov_rad, aspect=pose.aspect, scale=2.5, color=FRUSTUM_COLOUR,
@@ -441,9 +447,9 @@ class Viewer:
             f"{candidate.false_match_probability:.3g}, {len(hips)} of {len(points)} points matched  \n"
             + _credibility_text(verdict)
             + ("" if doc.confirmation_id is None else f"  \nconfirmed as attitude #{doc.confirmation_id}"))
-        camera_key = (doc.sequence, doc.search_id, doc.rank)
+        camera_key = (doc.session, doc.sequence, doc.search_id, doc.rank)
         if camera_key != self._camera_key:
-            self._point_cameras(boresight)
+            self._point_camera(boresight)
             self._camera_key = camera_key
 
     def _draw_pattern(self, rotation, camera, points: list, matched_tracks: set) -> None:
@@ -451,7 +457,7 @@ class Viewer:
         directions = geo.pixel_directions(rotation, camera, xy)
         colours = np.array([RAY_MATCHED if p.track in matched_tracks and p.track is not None
                             else RAY_UNMATCHED for p in points], dtype=np.uint8).reshape(-1, 3)
-        scene = self._server.scene
+        scene = self.client.scene
         if len(points):
             self._candidate_nodes.append(scene.add_line_segments(
                 "/candidate/rays", geo.ray_segments(directions),
@@ -472,7 +478,7 @@ class Viewer:
 
     def _draw_excluded(self, rotation, camera, item, in_pattern: set) -> None:
         """Grey spheres for tracks the operator took out, at their automatic pattern positions."""
-        scene = self._server.scene
+        scene = self.client.scene
         automatic = item.extraction.pattern
         for track, xy in zip(automatic.track_ids.tolist(), automatic.xy):
             if track < 0 or track in in_pattern or not np.all(np.isfinite(xy)):
@@ -483,19 +489,141 @@ class Viewer:
             handle.on_click(lambda event, track=track: self._toggle(lambda d: geo.toggle_track(d, track)))
             self._candidate_nodes.append(handle)
 
-    def _point_cameras(self, boresight: np.ndarray) -> None:
-        """Look at the candidate's field on the sphere from halfway out along the boresight (new and open clients).
+    def _point_camera(self, boresight: np.ndarray) -> None:
+        """Look at the candidate's field on the sphere from halfway out along the boresight.
 
         The camera orbits the field centre, so dragging shows the frustum and
         rays from the side while the field stays in view.
         """
-        position = tuple(0.45 * geo.SPHERE_RADIUS * boresight)
-        look_at = tuple(geo.SPHERE_RADIUS * boresight)
-        self._server.initial_camera.position = position
-        self._server.initial_camera.look_at = look_at
-        for client in self._server.get_clients().values():
-            client.camera.position = position
-            client.camera.look_at = look_at
+        self.client.camera.position = tuple(0.45 * geo.SPHERE_RADIUS * boresight)
+        self.client.camera.look_at = tuple(geo.SPHERE_RADIUS * boresight)
+
+
+class Viewer:
+    """The running 3D view of one :class:`app.workflow.AppContext`: one :class:`Panel` per admitted client.
+
+    Each browser client of the viser server is admitted with the console
+    session named in its address (:class:`ViewerClients`, at most
+    :data:`MAX_3D_VIEWS`) and gets its own GUI and candidate scene; the sky
+    (constellation names, equator) is shared.  One poll thread reads each
+    drawn session's state once a round and redraws the panels whose state
+    changed.  A client past the bound, or naming a malformed session, is
+    told why and drawn nothing; a panel goes when its client leaves or its
+    session ends (the view-state store forgot it).
+    """
+
+    def __init__(self, context, server, sky: SkyModel, max_views: int = MAX_3D_VIEWS) -> None:
+        self.context = context
+        self.sky = sky
+        self._server = server
+        self.clients = ViewerClients(max_views)
+        self._panels: dict[int, Panel] = {}
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        server.gui.configure_theme(dark_mode=True, show_logo=False, show_share_button=False,
+                                   brand_color=(90, 180, 255))
+        self._draw_static()
+        context.view.on_forget(self._session_ended)
+        server.on_client_connect(self._connected)
+        server.on_client_disconnect(self._disconnected)
+        self._thread = threading.Thread(target=self._poll, name="viewer-poll", daemon=True)
+        self._thread.start()
+
+    # --- life cycle ---------------------------------------------------------
+    @classmethod
+    def start(cls, context, port: int) -> "Viewer":
+        import viser
+
+        sky = SkyModel.load()
+        server = viser.ViserServer(host=VIEWER_HOST, port=port, label="Star pattern 3D view", verbose=False)
+        try:
+            return cls(context, server, sky)
+        except BaseException:
+            server.stop()
+            raise
+
+    @property
+    def port(self) -> int:
+        """The port viser really listens on (it moves to the next free one when asked for a busy one)."""
+        return int(self._server.get_port())
+
+    def describe(self, session: str | None = None) -> ViewerDocument:
+        """Where the 3D view listens; its ``url`` opens a view of ``session`` (None: the bare address)."""
+        base = f"http://{VIEWER_HOST}:{self.port}/"
+        return ViewerDocument(available=True, url=address_for_session(base, session), host=VIEWER_HOST,
+                              port=self.port, session=session, views=len(self.clients),
+                              max_views=self.clients.limit)
+
+    def wake(self) -> None:
+        """Redraw now rather than at the next poll."""
+        self._wake.set()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(timeout=2.0)
+        self._server.stop()
+
+    # --- clients ------------------------------------------------------------
+    def _connected(self, client) -> None:
+        try:
+            session = _session_of_client(self._server, client.client_id)
+        except ValueError as exc:
+            client.gui.add_markdown(f"**This 3D view's address is not one a console opens:** {markdown_text(exc)}. "
+                                    "Open the 3D view from a console's 3D view tab.")
+            return
+        if not self.clients.attach(client.client_id, session):
+            client.gui.add_markdown(refusal_text(self.clients.limit))
+            return
+        panel = Panel(self, client, session)
+        with self._lock:
+            self._panels[client.client_id] = panel
+        self._wake.set()
+
+    def _disconnected(self, client) -> None:
+        self.clients.detach(client.client_id)
+        with self._lock:
+            self._panels.pop(client.client_id, None)
+
+    def _session_ended(self, session: str) -> None:
+        for client_id in self.clients.end_session(session):
+            with self._lock:
+                panel = self._panels.pop(client_id, None)
+            if panel is not None:
+                try:
+                    panel.release(SESSION_ENDED_TEXT)
+                except Exception:  # its client left meanwhile
+                    log.exception("3D view could not release a panel")
+
+    # --- scene --------------------------------------------------------------
+    def _draw_static(self) -> None:
+        scene = self._server.scene
+        scene.set_up_direction("+z")
+        for name, vector in self.sky.anchors:
+            scene.add_label(f"/sky/constellations/{name}", name, position=tuple(geo.SPHERE_RADIUS * LABEL_OFFSET
+                                                                              * vector), font_screen_scale=0.8)
+        t = np.linspace(0, 2 * np.pi, 121)
+        ring = geo.SPHERE_RADIUS * np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)])
+        scene.add_line_segments("/sky/equator", np.stack([ring[:-1], ring[1:]], axis=1), (60, 70, 110),
+                                thickness=0.02)
+        scene.add_label("/sky/ncp", "North celestial pole", position=(0.0, 0.0, geo.SPHERE_RADIUS * LABEL_OFFSET))
+
+    def _poll(self) -> None:
+        while not self._stop.is_set():
+            with self._lock:
+                panels = list(self._panels.values())
+            documents = {}  # each session is read once a round, however many views draw it
+            for panel in panels:
+                try:
+                    session = panel.current_session()
+                    if session not in documents:
+                        documents[session] = view.view_document(self.context, session)
+                    panel.refresh(documents[session])
+                except Exception:  # a bad record or a client gone must not kill the view; try again next time
+                    log.exception("3D view could not draw a session's state")
+            self._wake.wait(POLL_S)
+            self._wake.clear()
 
 
 def start_viewer(context, port: int) -> Viewer | None:

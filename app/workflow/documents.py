@@ -606,7 +606,8 @@ class ViewDocument(Document):
     pattern_version: int | None = None
     confirmation_id: int | None = None
     session: str | None = Field(default=None, description="the console session this state belongs to")
-    followed_by_3d: bool = Field(default=False, description="the 3D view draws this session")
+    followed_by_3d: bool = Field(default=False, description="the 3D view at its bare address draws this session "
+                                   "(each console also has its own: GET /api/viewer?session=...)")
     rejection_id: int | None = Field(default=None, description="the current verdict, when it is 'no valid attitude'")
     operator: str | None = Field(default=None, description="the operator named in this session's console (the 3D "
                                                             "view's Confirm uses it)")
@@ -616,10 +617,13 @@ class ViewDocument(Document):
 
 class ViewerDocument(Document):
     available: bool
-    url: str | None
+    url: str | None = Field(description="the 3D view's page; with a session, a view drawing that console session")
     host: str | None = None
     port: int | None = None
     detail: str | None = None
+    session: str | None = Field(default=None, description="the console session the url's view draws")
+    views: int | None = Field(default=None, description="3D views drawn now (browser clients admitted)")
+    max_views: int | None = Field(default=None, description="3D views drawn at most at once; one more is refused")
 
 
 class IndexHealth(Document):

@@ -1,9 +1,9 @@
 """The view workflow: a console session's selection (:mod:`app.workflow.view_state`) read with its
 archive state, and written after checking it against the archive.
 
-``session=None`` means the session the 3D view draws (see
-:class:`app.workflow.view_state.ViewStateStore`), so the 3D view itself
-calls these functions without naming one.
+``session=None`` means the session the 3D view at its bare address draws
+(:attr:`app.workflow.view_state.ViewStateStore.followed`); a 3D view opened
+from a console names that console's session.
 """
 
 from __future__ import annotations
@@ -102,7 +102,8 @@ def request_confirmation(ctx: AppContext, sequence: int, rank: int, search_id: i
 
 
 def follow(ctx: AppContext, session: str) -> ViewDocument:
-    """Make the 3D view draw ``session`` (the console that opens it calls this) and return its state."""
+    """Make the 3D view at the bare address draw ``session`` (a console opening its 3D tab calls this) and return
+    its state.  A 3D view opened at a console's own address draws that console whatever this says."""
     name = _session(ctx, session)
     ctx.view.follow(name)
     return view_document(ctx, name)

@@ -609,7 +609,7 @@ async function pollView() {
   let doc;
   try { doc = await api.get(viewPath()); } catch { return; /* the health badge reports an unreachable server */ }
   if (state.busy) return;
-  note3D(doc);
+  note3D();
   await followView(doc);
   await takeRequest(doc);
 }
@@ -691,22 +691,21 @@ async function takeRequest(doc) {
 
 // ---------------------------------------------------------------- 3D view tab
 
-function note3D(doc) {
+function note3D() {
   if ($("panel-3d").hidden || !$("viewer-frame").dataset.url) return;
   const url = $("viewer-frame").dataset.url;
-  $("viewer-note").replaceChildren(doc.followed_by_3d
-    ? el("span", {}, "Draws this console's selection. Also at ", el("a", { href: url, target: "_blank", rel: "noopener" }, url),
-      " (this machine only); its Next / Prev / Confirm act on this console.")
-    : el("span", { class: "warn-text" }, "Another console took the 3D view. ",
-      el("button", { class: "small", onclick: follow3D }, "Draw this console's selection")));
+  // Each console has its own 3D view: the address names this session (GET /api/viewer?session=...).
+  $("viewer-note").replaceChildren(el("span", {}, "Draws this console's selection (other consoles have their own). " +
+    "Also at ", el("a", { href: url, target: "_blank", rel: "noopener" }, url),
+    " (this machine only); its Next / Prev / Confirm act on this console."));
 }
 
+// The operator's name for this console's 3D view, and the 3D view at the bare address drawing this console.
 async function follow3D() {
   try {
     await shareOperator();
     await api.put("/api/viewer", { session: SESSION });
-    const doc = await api.get(viewPath());
-    note3D(doc);
+    note3D();
   } catch (err) {
     toast(`The 3D view cannot follow this console: ${errorText(err)}`, "error");
   }
@@ -730,10 +729,11 @@ async function openPanel(panelId) {
   window.scrollTo(0, scrolled[panelId] ?? 0);
   if (panelId !== "panel-3d") return;
   try {
-    const info = await api.get("/api/viewer");
+    const info = await api.get(`/api/viewer?session=${encodeURIComponent(SESSION)}`);
     if (!info.available) { $("viewer-note").textContent = info.detail || "The 3D view is not running."; return; }
-    // The 3D view draws one console at a time: the one that opened it last.
-    const url = `${info.url}?session=${encodeURIComponent(SESSION)}`;
+    // The address of a 3D view drawing this console's session (the 3D view at the bare address draws the
+    // console that opened its 3D tab last: follow3D).
+    const url = info.url;
     $("viewer-frame").dataset.url = url;
     await follow3D();
     if ($("viewer-frame").src !== url) $("viewer-frame").src = url;

@@ -1,4 +1,4 @@
-"""/api/view and /api/viewer: each console session's selection, and which one the 3D view draws."""
+"""/api/view and /api/viewer: each console session's selection, and the 3D view's address for a session."""
 
 from __future__ import annotations
 
@@ -34,15 +34,18 @@ def put_view(edit: ViewEdit, session: str | None = Session, token_operator: str 
 
 
 @router.get("/viewer", response_model=ViewerDocument,
-            summary="Where the 3D view listens (loopback only), or why it is not running")
-def get_viewer(ctx: AppContext = Depends(get_context)):
+            summary="Where the 3D view listens (loopback only), or why it is not running; with a session, the "
+                    "address of a 3D view drawing that console session")
+def get_viewer(session: str | None = Query(None, pattern=SESSION_PATTERN,
+                                           description="the console session the 3D view's address should draw"),
+               ctx: AppContext = Depends(get_context)):
     if ctx.viewer is None:
         return ViewerDocument(available=False, url=None, detail="the 3D view is not running on this server")
-    return ctx.viewer.describe()
+    return ctx.viewer.describe(session)
 
 
 @router.put("/viewer", response_model=ViewDocument,
-            summary="Make the 3D view draw a console session (the console that opens it); that session's state")
+            summary="Make the 3D view at its bare address (no session named) draw a console session; its state")
 def follow_session(body: ViewerFollow, _operator: str | None = Depends(writer),
                    ctx: AppContext = Depends(get_context)):
     return view.follow(ctx, body.session)
