@@ -4,7 +4,9 @@ All persistence of the ground station goes through :class:`Storage`, with two
 backends behind the same methods (:meth:`Storage.open` picks one):
 
 * **SQLite** (:mod:`app.storage.sqlite`), the embedded default: one file in
-  WAL mode with ``synchronous=FULL``, one connection behind a lock;
+  WAL mode with ``synchronous=FULL``, the writers' connection behind a lock
+  and a read-only connection per concurrent reader (reads never wait for a
+  write);
 * **PostgreSQL** (:mod:`app.storage.postgres`, ``DATABASE_URL=postgresql://...``
   or ``--db postgresql://...``): one archive shared by several servers on
   several machines, psycopg 3 with a connection pool, row and advisory locks

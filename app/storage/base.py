@@ -6,7 +6,8 @@ into ``%s``, and ``IS ?`` into ``IS NOT DISTINCT FROM %s``).  What differs
 between the backends is behind five hooks:
 
 * :meth:`Storage._transaction` - a connection inside one transaction
-  (SQLite: the one connection under a lock, ``BEGIN IMMEDIATE`` for writers;
+  (SQLite: the writers' connection under a lock with ``BEGIN IMMEDIATE``, a
+  reader's own read-only connection in WAL mode;
   PostgreSQL: a pooled connection, ``READ COMMITTED`` for writers and a
   ``REPEATABLE READ READ ONLY`` snapshot for readers);
 * :meth:`Storage._lock_sequence` - the sequence's row lock that numbers pattern

@@ -5,13 +5,21 @@ SQLite in WAL mode (``journal_mode=WAL``, ``synchronous=FULL``,
 the WAL has been fsync'ed, so anything a method has returned survives a
 SIGKILL or a power cut.
 
-Threads: one connection guarded by a lock; methods may be called from any
-thread (the FastAPI thread pool).  SQLite serialises writers anyway; the lock
-also makes each method one atomic transaction without SQLITE_BUSY retries.
-Writers take the write lock up front (``BEGIN IMMEDIATE``), so the numbering
-of pattern versions and the supersession of confirmations need no other lock.
-Several processes on one file work (the busy time-out waits for the writer),
-but several machines need :mod:`app.storage.postgres`.
+Threads: methods may be called from any thread (the FastAPI thread pool).
+Writers share one connection guarded by a lock: SQLite serialises writers
+anyway, and the lock makes each method one atomic transaction without
+SQLITE_BUSY retries.  Writers take the write lock up front (``BEGIN
+IMMEDIATE``), so the numbering of pattern versions and the supersession of
+confirmations need no other lock.  Readers never take that lock: each reading
+method borrows a read-only connection of its own (:class:`_Readers`, opened on
+first need and kept for the next reader) and runs one deferred transaction on
+it.  In WAL mode a reader sees the last commit before its first statement and
+neither waits for a writer nor holds one up, so a search reading its sequence
+does not queue behind a worst-case upload's large INSERT and its fsync (issue
+29: under two clients sending such files, ordinary searches waited up to
+hundreds of milliseconds on the one shared connection).  Several processes on
+one file work (the busy time-out waits for the writer), but several machines
+need :mod:`app.storage.postgres`.
 
 Schema versions: ``schema_version`` holds the versions applied;
 :data:`MIGRATIONS` lists the SQL of each version in order and
@@ -26,6 +34,7 @@ from __future__ import annotations
 import os
 import sqlite3
 import threading
+from contextlib import contextmanager
 from pathlib import Path
 
 from app.storage.base import POSTGRES_SCHEMES, Storage
@@ -333,9 +342,10 @@ class SQLiteStorage(Storage):
     backend = "sqlite"
 
     def __init__(self, connection: sqlite3.Connection, path: str) -> None:
-        self._conn = connection
+        self._conn = connection  # the writers' connection (and the migrations')
         self._path = path
         self._mutex = threading.RLock()
+        self._readers = _Readers(path)
         self._closed = False
 
     @classmethod
@@ -374,6 +384,7 @@ class SQLiteStorage(Storage):
         with self._mutex:
             if not self._closed:
                 self._closed = True
+                self._readers.close()
                 self._conn.close()
 
     @property
@@ -399,19 +410,19 @@ class SQLiteStorage(Storage):
                                    f"(first in table {broken[0][0]})")
 
     class _Transaction:
-        def __init__(self, storage: "SQLiteStorage", write: bool) -> None:
+        """A writer's transaction on the writers' connection, under their lock."""
+
+        def __init__(self, storage: "SQLiteStorage") -> None:
             self._storage = storage
-            self._write = write
 
         def __enter__(self) -> sqlite3.Connection:
             self._storage._mutex.acquire()
             if self._storage._closed:
                 self._storage._mutex.release()
                 raise StorageError("storage is closed")
-            # Writers take the write lock up front (no lock upgrade deadlocks between
-            # processes); readers use a deferred transaction: one consistent snapshot.
+            # Writers take the write lock up front (no lock upgrade deadlocks between processes).
             try:
-                self._storage._conn.execute("BEGIN IMMEDIATE" if self._write else "BEGIN")
+                self._storage._conn.execute("BEGIN IMMEDIATE")
             except BaseException:
                 self._storage._mutex.release()
                 raise
@@ -433,8 +444,9 @@ class SQLiteStorage(Storage):
             finally:
                 self._storage._mutex.release()
 
-    def _transaction(self, write: bool = True, snapshot: bool = False) -> "_Transaction":
-        return SQLiteStorage._Transaction(self, write)  # every transaction is one snapshot here
+    def _transaction(self, write: bool = True, snapshot: bool = False):
+        # Every transaction is one snapshot here, a reader's included.
+        return SQLiteStorage._Transaction(self) if write else self._readers.transaction()
 
     def _insert(self, conn: sqlite3.Connection, sql: str, params) -> int | None:
         cursor = conn.execute(sql, params)
@@ -442,3 +454,64 @@ class SQLiteStorage(Storage):
 
     def _backend_facts(self, conn: sqlite3.Connection) -> dict:
         return {"journal_mode": conn.execute("PRAGMA journal_mode").fetchone()[0]}
+
+
+class _Readers:
+    """Read-only connections to one SQLite file, one per reader at a time (see the module docstring).
+
+    A connection is opened when every open one is in use and kept for the next reader, so there are
+    at most as many as readers ever ran at once (the server's thread pool bounds them).  Each is
+    ``query_only``: a reading method that tried to write would fail rather than bypass the writers'
+    lock.
+    """
+
+    def __init__(self, path: str) -> None:
+        self._path = path
+        self._idle: list[sqlite3.Connection] = []
+        self._lock = threading.Lock()
+        self._closed = False
+
+    def _open(self) -> sqlite3.Connection:
+        try:
+            conn = sqlite3.connect(self._path, isolation_level=None, check_same_thread=False, timeout=30.0)
+        except sqlite3.Error as exc:
+            raise StorageError(f"cannot open database {self._path}: {exc}") from None
+        conn.row_factory = sqlite3.Row
+        conn.execute("PRAGMA busy_timeout=30000")
+        conn.execute("PRAGMA query_only=ON")
+        return conn
+
+    @contextmanager
+    def transaction(self):
+        """A connection of its own in one deferred transaction: one snapshot of the archive."""
+        with self._lock:
+            if self._closed:
+                raise StorageError("storage is closed")
+            conn = self._idle.pop() if self._idle else None
+        if conn is None:
+            conn = self._open()
+        reusable = False
+        try:
+            conn.execute("BEGIN")
+            yield conn
+        finally:
+            try:
+                if conn.in_transaction:
+                    conn.execute("ROLLBACK")  # a reader's: nothing to keep, it ends the snapshot
+                reusable = True
+            except sqlite3.Error:
+                pass  # a connection in an unknown state is not handed to the next reader
+            with self._lock:
+                if reusable and not self._closed:
+                    self._idle.append(conn)
+                    conn = None
+            if conn is not None:
+                conn.close()
+
+    def close(self) -> None:
+        """Close the idle connections now; one in use is closed when its reader is done."""
+        with self._lock:
+            self._closed = True
+            idle, self._idle = self._idle, []
+        for conn in idle:
+            conn.close()
