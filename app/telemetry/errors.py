@@ -52,6 +52,10 @@ class TelemetryError(ValueError):
         self.filename = filename
         super().__init__(self.summary)
 
+    def __reduce__(self):
+        # Pickled whole, problems and all: a compute worker's error reaches the server as it was raised.
+        return type(self), (self.problems,), {"filename": self.filename, "truncated": self.truncated}
+
     @classmethod
     def at(cls, location: str, message: str, *, filename: str | None = None) -> TelemetryError:
         """An error with a single problem."""

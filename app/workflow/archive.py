@@ -133,11 +133,40 @@ def parse_upload(ctx: AppContext, data: bytes, filename: str | None) -> ParsedUp
     calibration when there is one (else the configured default camera).
     """
     filename = clean_filename(filename)
-    default = CAMERAS.get(ctx.settings.default_camera)
+    sequence, defaulted = telemetry_job(data, filename, ctx.settings.default_camera, ctx.settings.max_upload_bytes)
+    return parsed_upload(ctx, data, filename, sequence, defaulted)
+
+
+#: Uploads larger than this are parsed on the compute pool's bulk lane rather than in the server
+#: (:func:`telemetry_job`): validating a file is Python work that holds the server's one interpreter
+#: lock, ~50 ms for a worst-case file of 64 x 64 sources (200 kB), while a sample file of 16 snapshots
+#: of 10 sources is 10 kB.  32 kB is about 500 sources of JSON, beyond :data:`LARGE_UPLOAD_SOURCES`, so
+#: a file parsed there is also extracted there.
+LARGE_UPLOAD_BYTES = 32 * 1024
+
+
+def parse_lane(data: bytes) -> str | None:
+    """Where an upload of ``data`` is parsed: :data:`BULK` for a large one, None in the server itself."""
+    return BULK if len(data) > LARGE_UPLOAD_BYTES else None
+
+
+def telemetry_job(data: bytes, filename: str | None, default_camera: str, max_bytes: int, *,
+                  sky=None) -> tuple[Sequence, bool]:
+    """An upload's telemetry and whether it was given the default camera ``default_camera`` (a name of
+    :data:`app.camera.CAMERAS`) because the file has no camera block; a compute-pool job (it needs no
+    catalogue), its answer completed by :func:`parsed_upload`.  Raises :class:`app.telemetry.TelemetryError`."""
+    default = CAMERAS.get(default_camera)
     marker = None if default is None else dataclasses.replace(default)  # equal, but recognisable by identity
-    sequence = parse_telemetry(data, filename=filename, default_camera=marker, max_bytes=ctx.settings.max_upload_bytes)
+    sequence = parse_telemetry(data, filename=filename, default_camera=marker, max_bytes=max_bytes)
+    return sequence, marker is not None and sequence.camera is marker
+
+
+def parsed_upload(ctx: AppContext, data: bytes, filename: str | None, sequence: Sequence,
+                  defaulted: bool) -> ParsedUpload:
+    """The upload of ``data`` whose telemetry :func:`telemetry_job` read as ``sequence`` (``defaulted``: given
+    the default camera), with its spacecraft's calibration and hot-pixel map from the archive."""
     calibration = None
-    if marker is not None and sequence.camera is marker:
+    if defaulted:
         calibration = ctx.storage.current_calibration(sequence.spacecraft)
         if calibration is not None:
             sequence = dataclasses.replace(sequence, camera=Camera(**calibration.camera))

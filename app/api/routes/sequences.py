@@ -79,7 +79,14 @@ async def upload(request: Request, background: BackgroundTasks,
                  _operator: str | None = Depends(writer), ctx: AppContext = Depends(get_context)):
     data, form_name = await _upload_bytes(request, ctx.settings.max_upload_bytes)
     deadline = work_deadline(ctx)  # the time-out runs from here, as a search's does
-    upload = await run_in_threadpool(archive.parse_upload, ctx, data, form_name or filename)
+    name, lane = archive.clean_filename(form_name or filename), archive.parse_lane(data)
+    if lane is None:
+        upload = await run_in_threadpool(archive.parse_upload, ctx, data, name)
+    else:  # a large file is validated in a worker: its parsing holds none of the server's threads
+        sequence, defaulted = await compute_within(ctx, deadline, "the upload's parsing", archive.telemetry_job, data,
+                                                   name, ctx.settings.default_camera, ctx.settings.max_upload_bytes,
+                                                   lane=lane)
+        upload = await run_in_threadpool(archive.parsed_upload, ctx, data, name, sequence, defaulted)
     stored = await run_in_threadpool(archive.stored_upload, ctx, upload)
     if stored is not None:
         search_after_answer(background, ctx, stored, search)
