@@ -27,8 +27,9 @@ from kvn_reader import parse_kvn
 
 @pytest.fixture(scope="module")
 def env(tmp_path_factory, sky, sample_dir):
-    """(client, context, {sample name: sequence id}) with 02 (identified), 05 (no match) and 06 (made
-    ambiguous by keeping its three brightest tracks) uploaded and searched."""
+    """(client, context, {sample name: sequence id}) with 02 (identified), 05 (no match), 06 and 01, and a
+    copy of 01 made ambiguous by keeping its four brightest tracks (``"ambiguous"``: four stars fit, but not
+    beyond doubt; three fit too many places to be credible at all), uploaded and searched."""
     ctx = AppContext(storage=Storage.open(tmp_path_factory.mktemp("guard") / "guard.sqlite3"), sky=sky)
     client = TestClient(create_app(ctx))
     ids = {}
@@ -36,10 +37,14 @@ def env(tmp_path_factory, sky, sample_dir):
         r = client.post("/api/sequences", content=(sample_dir / name).read_bytes())
         assert r.status_code == 201, r.text
         ids[name] = r.json()["id"]
-    sparse = ids["06-sparse.json"]
-    points = client.get(f"/api/sequences/{sparse}").json()["pattern"]["points"]
-    brightest = [p["track"] for p in sorted(points, key=lambda p: -(p["brightness"] or 0))][:3]
-    assert client.put(f"/api/sequences/{sparse}/pattern", json={"include_tracks": brightest}).status_code == 200
+    copy = json.loads((sample_dir / "01-clean.json").read_text())
+    copy["sequence_id"] += "-four-stars"
+    r = client.post("/api/sequences", content=json.dumps(copy).encode())
+    assert r.status_code == 201, r.text
+    ids["ambiguous"] = four = r.json()["id"]
+    points = client.get(f"/api/sequences/{four}").json()["pattern"]["points"]
+    brightest = [p["track"] for p in sorted(points, key=lambda p: -(p["brightness"] or 0))][:4]
+    assert client.put(f"/api/sequences/{four}/pattern", json={"include_tracks": brightest}).status_code == 200
     for sid in ids.values():
         assert client.post(f"/api/sequences/{sid}/search", json={}).status_code == 200
     yield client, ctx, ids
@@ -209,12 +214,12 @@ def test_no_match_is_rejected_with_a_reason_and_a_rejection_is_a_verdict(env):
 def test_the_queue_puts_what_needs_an_operator_first(env):
     client, _, ids = env
     statuses = {s["id"]: s["status"] for s in client.get("/api/sequences").json()["items"]}
-    assert statuses[ids["06-sparse.json"]] == "ambiguous", "the three-star pattern must leave an operator the choice"
+    assert statuses[ids["ambiguous"]] == "ambiguous", "the four-star pattern must leave an operator the choice"
     assert {"ambiguous", "rejected", "confirmed"} <= set(statuses.values())
     page = client.get("/api/sequences", params={"order": "queue"}).json()
     order = ["ambiguous", "no_match", "identified", "new", "rejected", "confirmed"]
     got = [order.index(s["status"]) for s in page["items"]]
-    assert got == sorted(got) and page["items"][0]["id"] == ids["06-sparse.json"]
+    assert got == sorted(got) and page["items"][0]["id"] == ids["ambiguous"]
     # Search by sequence id, and a page larger than 8 when there is more.
     found = client.get("/api/sequences", params={"search": "EARTH"}).json()
     assert [s["id"] for s in found["items"]] == [ids["05-earth.json"]]
@@ -222,7 +227,7 @@ def test_the_queue_puts_what_needs_an_operator_first(env):
     assert client.get("/api/sequences", params={"search": "%"}).json()["total"] == 0  # a literal %, no wildcard
     bad = client.get("/api/sequences", params={"order": "random"})
     assert bad.status_code == 422 and bad.json()["problems"][0]["location"] == "query.order"
-    assert client.get("/api/spacecraft").json() == [{"name": "SIM-TUBSAT", "sequences": 4}]
+    assert client.get("/api/spacecraft").json() == [{"name": "SIM-TUBSAT", "sequences": 5}]
 
 
 def test_a_best_candidate_chance_explains_is_never_credible_whatever_the_status(env):

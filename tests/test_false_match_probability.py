@@ -24,18 +24,23 @@ from app.identification.verify import false_match_probability
 from app.simulate import simulate_sequence
 
 
-def test_the_probability_of_a_fit_this_tight_counts_the_subsets_refinement_chose_from():
+def test_the_probability_of_a_fit_this_tight_counts_the_subsets_the_consensus_chose_from():
     r, density, n, sum_sq = 10 * 4.69e-4, 479.0, 744, 5 * (1.41 * 4.69e-4) ** 2
     p = 1 - np.exp(-density * np.pi * r * r)
     capture = bdtrc(5 - 3, 10 - 2, p)
     tight = chdtr(2 * 5 - 4, 4 * sum_sq / r ** 2)  # 3 taken by the attitude, 1 by the generating pair
-    expected = n * capture * min(1.0, math.comb(8, 3) * tight)
+    # Five of at most SMALL_SET (7) points the consensus chose from: C(7 - 2, 5 - 2) subsets.
+    expected = n * capture * min(1.0, math.comb(5, 3) * tight)
     got = false_match_probability(10, 5, r, density, n, sum_sq)
     assert got == pytest.approx(expected, rel=1e-9)
     assert got > 1e-3  # the old formula gave 3.3e-4 for this very match
-    # Every point matched: no subset was chosen, nothing is charged for it.
-    all_ten = false_match_probability(10, 10, r, density, n, 10 * (0.4 * 4.69e-4) ** 2)
-    assert all_ten < 1e-12
+    # Every point matched, or more than the consensus tries (leave-one-out's single path): nothing charged.
+    ten = 10 * (0.4 * 4.69e-4) ** 2
+    assert false_match_probability(10, 10, r, density, n, ten) == pytest.approx(
+        n * bdtrc(10 - 3, 8, p) * chdtr(2 * 10 - 4, 4 * ten / r ** 2), rel=1e-9)
+    eight = 8 * (0.4 * 4.69e-4) ** 2
+    assert false_match_probability(16, 8, r, density, n, eight) == pytest.approx(
+        n * bdtrc(8 - 3, 14, p) * chdtr(2 * 8 - 4, 4 * eight / r ** 2), rel=1e-9)
 
 
 def test_optics_fitted_with_the_attitude_cost_a_degree_of_freedom_each():

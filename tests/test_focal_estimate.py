@@ -239,15 +239,16 @@ def test_solve_prints_the_focal_length_a_wrong_declaration_hides(tmp_path, capsy
 
 
 def test_triangle_features_stay_an_independent_opinion(sky, monkeypatch):
-    """The bright triangles' match is a hypothesis of the bright-pair method only: on the sample sparse
-    field, where triangle features' first edge settles nothing and the estimate is made, Liebe's method
-    answers exactly as it does without the estimate (here: nothing found)."""
+    """The bright triangles' match is a hypothesis of the bright-pair method only: on sample 03-jupiter,
+    where triangle features' first edge does not settle the pattern and the estimate is made, Liebe's
+    method answers exactly as it does without the estimate.  (The sparse sample served until triangle
+    features were built for a ladder of detection thresholds: they now settle it at the first edge.)"""
     from pathlib import Path
 
     from app.identification import solve_sequence
     from app.telemetry.formats import parse_telemetry
 
-    path = Path(__file__).parent.parent / "sample_telemetry" / "06-sparse.json"
+    path = Path(__file__).parent.parent / "sample_telemetry" / "03-jupiter.json"
     sequence = parse_telemetry(path.read_bytes(), filename=path.name)
     made = []
 

@@ -570,14 +570,16 @@ def false_match_probability(n_points: int, n_matched: int, capture_tolerance_rad
     and the generating pair's separation, matched by the index lookup, is no
     chance evidence: ``d = 2k - 4``.  Optical parameters fitted with the
     attitude (``n_fitted``: the focal length, k1) absorb one more each:
-    ``d = 2k - 4 - n_fitted``.  Refinement keeps the best-fitting subset of
-    the points within its reach (:func:`refine`: leave-one-out rejection,
-    and the consensus of small sets), so the tightness is that of the best
-    of up to ``C(m - 2, k - 2)`` subsets, and its probability is multiplied
-    by that count (1 when every point matched).  ``m`` bounds the points in
-    reach from above: counting only those within reach at the end (the
+    ``d = 2k - 4 - n_fitted``.  Refinement keeps, when :data:`SMALL_SET` points
+    or fewer remain, the largest subset that agrees within the noise (tried
+    among all of them: :func:`refine`), so a fit of ``k`` such points is the
+    tightest of up to ``C(min(m, SMALL_SET) - 2, k - 2)`` subsets, and its
+    probability is multiplied by that count (1 when every point matched, and
+    for larger sets, whose leave-one-out rejection follows a single path).
+    Charging ``C(m - 2, k - 2)`` instead left real frames of 16-32 points
+    ambiguous; counting only the points within reach at the end (the
     rotation moves while refining) left 4-6 wrong candidates of 1,200 below
-    1e-3 in ``bench --suite camera``, against none.
+    1e-3 in ``bench --suite camera``.
 
     Measured over 1,600 simulated cases (``bench --suite camera --n 100``):
     without the last two terms, 35 of the 1,233 candidates put below 1e-3
@@ -589,6 +591,6 @@ def false_match_probability(n_points: int, n_matched: int, capture_tolerance_rad
     p = 1.0 - np.exp(-density_per_sr * np.pi * r * r)
     capture = float(bdtrc(n_matched - 3, n_points - 2, p))  # P[X >= k - 2] = P[X > k - 3]
     dof = 2 * n_matched - 4 - n_fitted
-    subsets = math.comb(n_points - 2, n_matched - 2)
+    subsets = math.comb(min(n_points, SMALL_SET) - 2, n_matched - 2) if n_matched <= SMALL_SET else 1
     tight = min(1.0, subsets * float(chdtr(dof, 4.0 * sum_sq_residual_rad2 / (r * r)))) if dof > 0 else 1.0
     return float(min(1.0, max(1, n_hypotheses) * capture * tight))

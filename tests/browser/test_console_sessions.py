@@ -87,14 +87,21 @@ def upload_and_search(api, path: Path, body: dict | None = None) -> tuple[int, d
     return seq_id, api(f"/api/sequences/{seq_id}/search", "POST", body=body or {})
 
 
-def make_ambiguous(api, sample: str, tag: str, directory: Path) -> int:
-    """A sequence whose pattern keeps only its three brightest tracks: three stars fit several places."""
+def keep_brightest(api, sample: str, tag: str, directory: Path, n: int) -> int:
+    """A fresh copy of ``sample`` whose pattern keeps only its ``n`` brightest tracks."""
     seq_id = api("/api/sequences", "POST", raw=fresh_copy(sample, tag, directory).read_bytes())["id"]
     points = api(f"/api/sequences/{seq_id}")["pattern"]["points"]
-    brightest = [p["track"] for p in sorted(points, key=lambda p: -(p["brightness"] or 0))][:3]
+    brightest = [p["track"] for p in sorted(points, key=lambda p: -(p["brightness"] or 0))][:n]
     api(f"/api/sequences/{seq_id}/pattern", "PUT", body={"include_tracks": brightest})
+    return seq_id
+
+
+def make_ambiguous(api, sample: str, tag: str, directory: Path) -> int:
+    """A sequence whose pattern keeps only its four brightest tracks: four stars fit, but not beyond doubt
+    (three fit too many places to be credible at all)."""
+    seq_id = keep_brightest(api, sample, tag, directory, 4)
     status = api(f"/api/sequences/{seq_id}/search", "POST", body={})["status"]
-    assert status == "ambiguous", f"three stars of {sample} were expected to leave the choice to an operator ({status})"
+    assert status == "ambiguous", f"four stars of {sample} were expected to leave the choice to an operator ({status})"
     return seq_id
 
 
@@ -343,9 +350,10 @@ def test_a_confirmation_refused_for_a_replaced_search_shows_the_new_search_whole
 
 
 def test_a_replacing_search_without_candidates_is_announced_in_words(server, api, new_page, tmp_path):
-    """Another console searches again with a method that finds nothing (triangle features on a sparse
-    field): the notice says so, not "back at rank -"."""
-    seq_id, first = upload_and_search(api, fresh_copy("06-sparse.json", "emptied", tmp_path))
+    """Another console searches again with a method that finds nothing (triangle features on three
+    points, none with two neighbours inside the rim): the notice says so, not "back at rank -"."""
+    seq_id = keep_brightest(api, "06-sparse.json", "emptied", tmp_path, 3)
+    first = api(f"/api/sequences/{seq_id}/search", "POST", body={})
     assert first["candidates"]
     watched = operator_on(new_page, server, "Sparse Watcher", seq_id, "06-sparse-emptied")
     page = watched.page
@@ -480,7 +488,7 @@ def test_no_valid_attitude_refused_after_another_verdict_shows_that_verdict(serv
 
 
 def test_the_work_queue_puts_what_needs_an_operator_first(server, api, new_page, tmp_path):
-    ambiguous = make_ambiguous(api, "06-sparse.json", "queue", tmp_path)
+    ambiguous = make_ambiguous(api, "01-clean.json", "queue", tmp_path)
     upload_and_search(api, fresh_copy("05-earth.json", "queue", tmp_path))
     api("/api/sequences", "POST", raw=fresh_copy("07-single.json", "queue", tmp_path).read_bytes())  # stays new
     for name in ("01-clean.json", "03-jupiter.json", "08-csv.csv"):
@@ -507,7 +515,7 @@ def test_the_work_queue_puts_what_needs_an_operator_first(server, api, new_page,
     page.wait_for_function("[...document.querySelectorAll('#sequence-list li[data-status]')]"
                            ".every((li) => li.dataset.status === 'no_match')")
     page.select_option("#filter-status", "")
-    page.fill("#filter-search", "06-sparse-queue")
+    page.fill("#filter-search", "01-clean-queue")
     page.wait_for_function(f"document.querySelectorAll('#sequence-list li[data-id]').length === 1 && "
                            f"document.querySelector('#sequence-list li[data-id]').dataset.id === '{ambiguous}'")
     watched.screenshot("13-queue")
