@@ -12,7 +12,7 @@ Conventions (used everywhere in this project):
       d = 1 + k1 r^2 + k2 r^4
       u = cx + f * a * d,  v = cy + f * b * d
 
-A declared camera may also say how well it is known (issue 11): the focal
+A declared camera may also say how well it is known: the focal
 length to a fraction ``focal_length_tolerance`` (default
 :data:`DEFAULT_FOCAL_LENGTH_TOLERANCE` when not declared) and bounds on the
 undeclared distortion, ``|k1| <= k1_bound``, ``|k2| <= k2_bound`` (None:

@@ -1,7 +1,7 @@
 """Fit the camera's optics together with the attitude; calibrate one camera over many observations.
 
 Real star cameras have a focal length known to ~1-5 % and radial distortion
-nobody declared (issue 11).  Given stars already identified -- measured pixels
+nobody declared.  Given stars already identified -- measured pixels
 ``z_i`` matched to catalogue unit vectors ``s_i`` (ICRS) -- these functions
 find the attitude and the optics that put the catalogue where the stars were
 seen, with honest uncertainties.  Pure numpy over arrays; no I/O.
@@ -843,7 +843,7 @@ class Calibration:
     rotations_before: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        """The calibration's JSON (issue 11): camera, sigma, counts, rms before and after."""
+        """The calibration's JSON: camera, sigma, counts, rms before and after."""
         return {
             "camera": self.camera.to_dict(),
             "sigma": dict(self.sigma),

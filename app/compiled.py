@@ -1,9 +1,9 @@
-"""Compiled kernels (issue 27): numba's ``njit`` with its on-disk cache, and the one warm-up that compiles them.
+"""Compiled kernels: numba's ``njit`` with its on-disk cache, and the one warm-up that compiles them.
 
 Why numba.  The identification's inner steps (an optics fit's Gauss-Newton,
 the nearest star of every point of every hypothesis, a refinement's
 re-matching) are loops over a dozen points where each numpy call costs
-microseconds of overhead whatever the data (issue 16's floor).  numba
+microseconds of overhead whatever the data (the floor numpy set).  numba
 compiles them to machine code from the Python source: wheels for every
 platform we support, no compiler on the user's machine.
 

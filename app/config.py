@@ -32,7 +32,7 @@ class Settings:
     # test or a launcher can set the environment first.
     #: Database path or URL for `serve` and `batch` (STARID_DB, else DATABASE_URL); None: the storage
     #: default (SQLite in ~/.local/share/starid).  ``postgresql://user:password@host:port/db`` selects
-    #: the PostgreSQL archive several servers can share (issue 14).
+    #: the PostgreSQL archive several servers can share.
     database: str | None = field(
         default_factory=lambda: os.environ.get("STARID_DB") or os.environ.get("DATABASE_URL") or None)
     #: Most connections one process keeps to a PostgreSQL archive (STARID_DB_POOL_SIZE): each method

@@ -36,7 +36,7 @@ snapshot:
 Earth in view: no stars, no planets; bright blobs (clouds, glints) that
 drift each with its own velocity, so no rigid motion links them.
 
-Imperfect optics (issue 11)
+Imperfect optics
 ---------------------------
 Real focal lengths are known to ~1-5 % and lenses have radial distortion
 nobody declared.  ``true_camera`` (built by :func:`true_optics`) is the camera
@@ -711,7 +711,7 @@ def write_simulation(outdir: Path, n: int, seed: int, camera_name: str | None, s
     return paths
 
 
-# --- full frames (issue 15) ---------------------------------------------------
+# --- full frames ---------------------------------------------------
 #
 # A star camera's whole picture instead of its spot list: every catalogue star in view drawn with a
 # Gaussian point-spread function integrated over the pixels, its flux from its magnitude, on a sky

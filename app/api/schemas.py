@@ -243,7 +243,7 @@ class ViewerFollow(_Strict):
 
 
 class ViewEdit(_Strict):
-    """A write to the shared view state (issue 5): only the fields sent change; null clears one."""
+    """A write to the shared view state: only the fields sent change; null clears one."""
 
     sequence: DbId | None = None
     rank: DbId | None = None

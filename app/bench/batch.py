@@ -1,4 +1,4 @@
-"""Batch reprocessing benchmark (issue 14): sequences per second with 1 and 2 Dask workers.
+"""Batch reprocessing benchmark: sequences per second with 1 and 2 Dask workers.
 
 ``python -m app bench --suite batch [--n N] [--seed S]``: ``N`` sequences
 (default 300, the three cameras in turn, nominal scenario) are simulated and
@@ -40,7 +40,7 @@ import psutil
 
 DEFAULT_SEQUENCES = 300
 RUNS = (1, 2, 1, 2)
-#: Issue 14's target: two workers give at least this many times the sequences per second of one.
+#: The target: two workers give at least this many times the sequences per second of one.
 TARGET_RATIO = 1.8
 
 

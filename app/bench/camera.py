@@ -1,4 +1,4 @@
-"""Camera-model benchmark (issue 11): identification when the declared camera is wrong, and calibration.
+"""Camera-model benchmark: identification when the declared camera is wrong, and calibration.
 
 Identification rows: ``n`` simulated single snapshots and ``n`` 16-snapshot
 sequences per row, whose true optics differ from the declared camera

@@ -1,8 +1,8 @@
-"""Extraction benchmark (issue 2): stars kept, ghosts and hot pixels rejected, speed.
+"""Extraction benchmark: stars kept, ghosts and hot pixels rejected, speed.
 
 One table per simulator scenario: "ghosts" (1-3 ghosts per snapshot, 0-2
 hot pixels) and "ghosts3" (exactly 3 ghosts in every snapshot of 10
-sources, 0-2 hot pixels: the worst case benchmarked, issue 28), each with
+sources, 0-2 hot pixels: the worst case benchmarked), each with
 ``n_sequences`` sequences (300: 100 per camera) cycling through the cameras
 of :data:`app.camera.CAMERAS`, drawn from ``[seed, i]``; the truth says what
 every source is.  A scenario's sequences are simulated first, then

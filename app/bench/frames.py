@@ -1,4 +1,4 @@
-"""Full-frame benchmark (issue 15): ``python -m app bench --suite frames [--n N] [--seed S] [--json]``.
+"""Full-frame benchmark: ``python -m app bench --suite frames [--n N] [--seed S] [--json]``.
 
 Every figure comes from frames rendered now by :func:`app.simulate.simulate_frames` (Gaussian PSF
 sigma 1.2 px, sky 200 e-, read noise 10 e-, 16 bit, six hot pixels per camera, a satellite trail in

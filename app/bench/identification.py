@@ -1,4 +1,4 @@
-"""Identification benchmark (issue 3): correctness, accuracy and speed against simulated truth.
+"""Identification benchmark: correctness, accuracy and speed against simulated truth.
 
 For every camera model and scenario, ``n`` simulated sequences are solved
 in one process with one :class:`~app.identification.Sky`.  A candidate is

@@ -1,4 +1,4 @@
-"""Peer benchmark (issue 16): this project against cedar-solve (tetra3) on the same snapshots.
+"""Peer benchmark: this project against cedar-solve (tetra3) on the same snapshots.
 
 ``python -m app bench --suite peer [--n N] [--seed S] [--json]``
 
@@ -67,7 +67,7 @@ import numpy as np
 
 PEER_PACKAGE = "cedar-solve"
 CAMERA_NAME = "tubsat-752x582-20deg"
-#: ``fov_max_error`` as a fraction of ``fov_estimate`` (issue 16), and in the focal-error row.
+#: ``fov_max_error`` as a fraction of ``fov_estimate``, and in the focal-error row.
 FOV_MAX_ERROR = 0.025
 FOCAL_ERROR = 0.05
 #: tetra3's own give-up time per frame (its default).
@@ -84,7 +84,7 @@ STARTUP_RUNS = 3
 MARKER = "starid-peer.json"
 RUNNER = Path(__file__).with_name("peer_runner.py")
 
-#: Issue 16's goals, as ratios of ours to the peer's figure (or absolute limits).
+#: The speed goals, as ratios of ours to the peer's figure (or absolute limits).
 GOAL_SINGLE_MEDIAN_RATIO = 0.5
 GOAL_SINGLE_P95_RATIO = 1.0
 GOAL_SINGLE_MAX_MS = 100.0

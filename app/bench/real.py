@@ -1,4 +1,4 @@
-"""Real-frames benchmark (issue 26).
+"""Real-frames benchmark.
 
 ``python -m app bench --suite real [--frames DIR] [--time-from-reference] [--n N] [--json]``
 
@@ -57,7 +57,7 @@ circle between the reported RA, Dec of the image centre pixel (ours: the first c
 has none) and the reference's (:func:`boresight_error_deg`).
 Per tool, optics and group (and all frames): identified within 0.1 deg, confidently wrong
 (claimed and more than 0.5 deg off), the median error of the claimed answers in arcsec, the
-slowest frame in seconds, and the invalid runs; issue 26's goals are checked on them.  When the
+slowest frame in seconds, and the invalid runs; the real-sky goals are checked on them.  When the
 peer cannot be made or started the suite says why and reports ours alone.
 """
 
@@ -94,7 +94,7 @@ WRONG_DEG = 0.5
 ARCSEC_PER_RADIAN = 180.0 * 3600.0 / math.pi
 SIDECAR_FORMAT = "tubsat-frames/1"
 
-#: Issue 26's goals: the fraction of frames identified within 0.1 deg per optics, the worst frame's
+#: The real-sky goals: the fraction of frames identified within 0.1 deg per optics, the worst frame's
 #: seconds with and without a field of view, the median error.
 GOAL_RIGHT_FRACTION = {"exact": 24 / 25, "long": 22 / 25, "short": 22 / 25, "none": 20 / 25}
 GOAL_SLOWEST_S = {"exact": 2.0, "long": 2.0, "short": 2.0, "none": 10.0}
@@ -409,7 +409,7 @@ def invalid_reasons(rows: list[dict]) -> dict:
 
 
 def goals(summary: dict) -> dict:
-    """Issue 26's goals on ours (and against the peer when it was measured): ``{goal: met}``."""
+    """The real-sky goals on ours (and against the peer when it was measured): ``{goal: met}``."""
     ours = summary["ours"]
     out = {}
     for optics, fraction in GOAL_RIGHT_FRACTION.items():

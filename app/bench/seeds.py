@@ -1,4 +1,4 @@
-"""Liebe's tables reproduced with this project's engines (seed 000, issue 6).
+"""Liebe's tables reproduced with this project's engines (seed 000).
 
 * **Table 2** - success of the initial estimate (lost-in-space) in six
   error situations, for the bright-pair method and the triangle-feature

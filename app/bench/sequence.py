@@ -1,4 +1,4 @@
-"""Sequence attitude, uncertainty and tracking benchmark (issue 6).
+"""Sequence attitude, uncertainty and tracking benchmark.
 
 * Calibration of the reported 1-sigma: over simulated 16-snapshot
   sequences solved end to end, the error of the averaged attitude at the
@@ -106,7 +106,7 @@ def format_table(result: dict) -> str:
     if c["error_over_sigma_rms"]:
         e = c["error_over_sigma_rms"]
         lines.append(f"  RMS(error / reported sigma): x {e['x']:.3f}  y {e['y']:.3f}  roll {e['roll']:.3f}"
-                     "   (1.000 = honest; issue 6 asks 0.8-1.2)")
+                     "   (1.000 = honest; the goal is 0.8-1.2)")
         lines.append(f"  body rate within 3 sigma: every axis {c['rate_within_3sigma_every_axis']:.4f}, "
                      f"Mahalanobis {c['rate_within_3sigma_mahalanobis']:.4f}")
     for t in (result["tracking"], result["tracking_wide"]):

@@ -1,4 +1,4 @@
-"""``solve IMAGE --annotate OUT.png`` (issue 26): the solved frame written as an annotated PNG.
+"""``solve IMAGE --annotate OUT.png``: the solved frame written as an annotated PNG.
 
 The frame at its own size, stretched as the console's previews are, with the first candidate's
 identified stars circled and named, the constellation figures, the detected sources no star explains

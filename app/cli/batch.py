@@ -1,6 +1,6 @@
 """`python -m app batch (FILES | --archive) [--scheduler ADDRESS] [--workers N] [--out results.jsonl]`.
 
-Extraction and identification of many sequences on Dask (issue 14; see
+Extraction and identification of many sequences on Dask (see
 :mod:`app.workflow.batch`):
 
 * ``FILES --out results.jsonl``: one ``solve --json`` line per file, appended

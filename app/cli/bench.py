@@ -1,25 +1,25 @@
 """`python -m app bench [--suite NAME] [--n N] [--seed S] [--think S] [--frames DIR] [--method M] [--json]`:
 benchmark figures.
 
-Suites: ``extraction`` (issue 2: tracked stars kept, ghosts and hot pixels
-rejected, time per sequence), ``identification`` (issue 3: top-1/top-5
+Suites: ``extraction`` (tracked stars kept, ghosts and hot pixels
+rejected, time per sequence), ``identification`` (top-1/top-5
 correct, wrong "identified" answers, attitude errors, time per sequence and
 the seed's deviation table; ``--method tf`` solves by Liebe's triangle features instead of the
-default bright pairs), ``load`` (issue 4: the real server under 20
+default bright pairs), ``load`` (the real server under 20
 concurrent clients; here ``--n`` is the duration in seconds, default 30, and
 ``--think`` each client's pause between loops, default 1 s, 0 for saturation;
-``--adversarial`` adds two clients sending worst-case files, issue 12).
-``seeds`` (issue 6, also ``--seeds``: Liebe's Tables 2 and 3 and Fig. 2,
-see :mod:`app.bench.seeds`).  ``camera`` (issue 11: identification with
+``--adversarial`` adds two clients sending worst-case files).
+``seeds`` (also ``--seeds``: Liebe's Tables 2 and 3 and Fig. 2,
+see :mod:`app.bench.seeds`).  ``camera`` (identification with
 wrong focal lengths and undeclared distortion, and calibration accuracy
 from 20, 50 and 200 sequences, see :mod:`app.bench.camera`).  ``batch``
-(issue 14: sequences per second of ``python -m app batch`` with 1 and 2 Dask
+(sequences per second of ``python -m app batch`` with 1 and 2 Dask
 workers, see :mod:`app.bench.batch`); ``load`` also takes ``--servers 2
 --database postgresql://...`` (two servers on one shared archive).
 ``calibration`` (the pulls of many calibrations: are the stated sigmas
 honest and the fit centred? ``--n`` trials of 20 sequences, default 60; see
 :mod:`app.bench.calibration`).
-``real`` (issue 26: real star-camera frames against astrometry.net's WCS, side by side with
+``real`` (real star-camera frames against astrometry.net's WCS, side by side with
 cedar-solve; ``--frames DIR``, default ``$STARID_REAL_FRAMES`` or ``../shared/real-frames``;
 ``--time-from-reference`` gives each frame its reference's time in a sidecar; ``--n`` the first N
 frames; see :mod:`app.bench.real`).

@@ -4,7 +4,7 @@ Writes ``<id>.json`` (tubsat-snapshots/1) or, with ``--csv``, ``<id>.csv``,
 and ``<id>.truth.json`` for each sequence; prints the paths written.
 The same arguments give the same files byte for byte.
 
-``--frames fits|png`` (issue 15) renders whole frames instead of spot lists: ``<id>.fits``
+``--frames fits|png`` renders whole frames instead of spot lists: ``<id>.fits``
 (one image extension per frame; times and optics in the headers) or a folder ``<id>/`` of
 16-bit PNGs with its ``frames.json`` sidecar, plus ``<id>.truth.json`` (every drawn star's exact
 position, flux and SNR, the hot pixels, the trail).  ``--frames-per-pass`` frames each
@@ -80,7 +80,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--name", default=None,
                         help="sequence id and file name (NAME.json, or NAME-0000.json ... when --n > 1)")
     parser.add_argument("--csv", action="store_true", help="write the CSV form instead of JSON")
-    frames = parser.add_argument_group("full frames (issue 15)", "rendered images instead of spot lists")
+    frames = parser.add_argument_group("full frames", "rendered images instead of spot lists")
     frames.add_argument("--frames", choices=("fits", "png"), default=None,
                         help="render frames: one multi-extension FITS per pass, or a folder of PNGs + frames.json")
     frames.add_argument("--frames-per-pass", type=_int_at_least(1), default=4, metavar="N",

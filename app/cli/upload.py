@@ -4,7 +4,7 @@ Directories are searched (not recursively) for ``*.json`` and ``*.csv``
 files, leaving out ``*.truth.json`` (the simulator's truth files; stderr
 says how many); files named explicitly are always sent.  Spot lists go to
 ``POST /api/sequences``.
-Full frames (issue 15) go to ``POST /api/frames``, as ``solve`` reads them:
+Full frames go to ``POST /api/frames``, as ``solve`` reads them:
 an image file named explicitly (FITS, PNG, JPEG, TIFF) is one pass, with
 ``<stem>.frames.json`` beside it as its sidecar if there is one; a
 directory holding images is one pass of all of them, with its

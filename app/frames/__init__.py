@@ -1,4 +1,4 @@
-"""Full-frame images (issue 15): star-camera frames -> the same Sequence as spot-list telemetry.
+"""Full-frame images: star-camera frames -> the same Sequence as spot-list telemetry.
 
 * :mod:`app.frames.images` reads FITS (astropy; a multi-extension FITS is a pass) and PNG, JPEG,
   TIFF 8/16 bit (Pillow), bounded by :class:`FrameLimits`;

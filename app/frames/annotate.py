@@ -1,4 +1,4 @@
-"""The annotated frame (issue 26): a solved frame drawn the way astrometry.net users expect it.
+"""The annotated frame: a solved frame drawn the way astrometry.net users expect it.
 
 The identified stars circled and named, the constellation stick figures, the detected sources no
 star explains (small squares), an RA/Dec grid and a title line (where the image centre points, the

@@ -221,7 +221,7 @@ class NearStarCells:
         return (self.cells_per_edge, self._words, self._word_rank, self._first, self._stars)
 
 
-# --- compiled look-ups (issue 27): one point at a time, no temporaries ----------------------------------
+# --- compiled look-ups: one point at a time, no temporaries ----------------------------------
 
 @njit
 def _popcount64(x):

@@ -1,6 +1,6 @@
 """Lost-in-space identification: pattern -> ranked, distinct, refined attitudes.
 
-The pipeline is the seed's (004) with the improvements issue 3 asks for:
+The pipeline is the seed's (004) with these improvements:
 hypotheses from the bright-pair index (:mod:`.hypotheses`), each checked by
 mapping the whole pattern onto the sky; then the best ones are refined by
 least squares over all their matched stars, merged when they are the same

@@ -80,7 +80,7 @@ class SearchOptions:
     #: ... and checking at most this many hypotheses at the other focal lengths (a phase that starts within
     #: the count runs whole): a wrong focal length is usually found within a few steps (40 single snapshots of
     #: the 20 deg camera 5 % off: 15,000-65,000 hypotheses in all, 0.07-0.43 s of CPU), while a pattern that
-    #: fits nowhere (the Earth, noise) tries every step (10 random points: 90,000-136,000).  Issue 27 measured
+    #: fits nowhere (the Earth, noise) tries every step (10 random points: 90,000-136,000).  It was measured
     #: 30,000: Earth-in-view snapshots 2-4x faster (p95 690 -> 280 ms on the 20 deg camera) with every row of
     #: the identification and camera benchmarks unchanged, but one of 100 snapshots 5 % off (bench --suite
     #: peer) then went unidentified: its triangles fit no focal length and the stepped search found it after

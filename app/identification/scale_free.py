@@ -1,4 +1,4 @@
-"""Lost in space with an unknown field of view (issue 26): the scale from the stars themselves.
+"""Lost in space with an unknown field of view: the scale from the stars themselves.
 
 Why.  A photograph, or a star-tracker test frame, often comes with no optics
 at all.  The bright-pair lookup needs the scale (an edge is looked up by its

@@ -26,7 +26,7 @@ log = logging.getLogger(__name__)
 
 #: Cell maps (1-5 MB each) kept on disk, the most recently made.
 MAX_CACHED_FILES = 12
-#: The catalogue depths (issue 26), each an index of its own: (faintest Hp, longest edge in degrees, the
+#: The catalogue depths, each an index of its own: (faintest Hp, longest edge in degrees, the
 #: faintest camera limiting magnitude it serves).  The default index (Hp 6.5, ~8,000 stars) holds ~15 stars in
 #: a 10 x 7.5 deg field, enough for the method (it needs 4-6); a narrower field (2-8 deg: a limiting magnitude
 #: past 7, see :attr:`app.camera.Camera.limiting_magnitude`) needs fainter stars, and its longest edge is

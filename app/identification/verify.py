@@ -250,7 +250,7 @@ def _cells_within(field: StarField, radius_rad: float) -> NearStarCells:
     return own[radius_rad * 1.2]
 
 
-# --- the compiled refinement (issue 27) ----------------------------------------------------------------
+# --- the compiled refinement ----------------------------------------------------------------
 
 @njit
 def _det3(A):

@@ -1,6 +1,6 @@
 """Who may write: bearer tokens mapped to operator names.
 
-Rules (issue 4):
+Rules:
 
 * On a loopback address (127.0.0.1, ::1, localhost) writes need no token:
   only local users can reach the server.

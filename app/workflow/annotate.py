@@ -1,4 +1,4 @@
-"""Annotated frames (issue 26): a solved frame with its stars named, the constellation figures, the
+"""Annotated frames: a solved frame with its stars named, the constellation figures, the
 unmatched sources and an RA/Dec grid (drawn by :mod:`app.frames.annotate`), assembled here from a solve.
 
 * ``python -m app solve IMAGE --annotate OUT.png`` (:func:`annotate_solve`): the frame read again from

@@ -1,4 +1,4 @@
-"""Batch reprocessing on Dask (issue 14): extraction and identification of many sequences.
+"""Batch reprocessing on Dask: extraction and identification of many sequences.
 
 ``python -m app batch`` (:mod:`app.cli.batch`) runs it; three inputs and outputs:
 

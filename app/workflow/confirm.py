@@ -8,7 +8,7 @@ exports never change afterwards.  (Confirmations stored before the ACM
 existed get theirs rendered from the stored record on request, with the same
 creation date: :func:`attitude_acm`.)
 
-Guard rails (issue 13):
+Guard rails:
 
 * a candidate that is not the credible best (:mod:`app.workflow.review`:
   not rank 1, a ``no_match`` or ``ambiguous`` search, a search older than
@@ -45,7 +45,7 @@ from app.workflow.text import require_audit_text
 #: Originator written into the CCSDS messages.
 ORIGINATOR = "STARID GROUND STATION"
 CAMERA_FRAME_COMMENT = "REF_FRAME_B SENSOR_1 is the star camera frame: +X pixel column, +Y pixel row, +Z boresight"
-#: First comment of every message of a sequence whose frames carried no time (issue 26): its epochs are the
+#: First comment of every message of a sequence whose frames carried no time: its epochs are the
 #: stated J2000.0 epoch, not when the frames were taken, and a reader of the message alone must know that.
 TIME_ASSUMED_COMMENT = ("WARNING: the frames carried no time: the epochs are assumed (J2000.0 plus 1 s a frame), "
                         "not observation times, and the attitude is referred to the stars' J2000.0 mean places "
@@ -132,7 +132,7 @@ def render_acm(row: SequenceRow, item: LoadedSequence, candidate: CandidateDocum
                method: str, search_id: int | None, operator: str, confirmed_at: datetime,
                comment: str | None = None, override_reason: str | None = None,
                overridden: list[str] | None = None) -> str:
-    """The ACM (issue 14): every snapshot's attitude with the body rate, the covariance of the attitude
+    """The ACM: every snapshot's attitude with the body rate, the covariance of the attitude
     at the reference epoch (the QUEST model's 1-sigma, camera axes) and how it was determined."""
     times, rotations = attitude_per_snapshot(item, candidate)
     if not times:

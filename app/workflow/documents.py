@@ -720,7 +720,7 @@ class StoredCalibration(CalibrationDocument):
 
 
 # ---------------------------------------------------------------------------
-# Operator review: candidate verdicts, rejections, the work queue (issue 13)
+# Operator review: candidate verdicts, rejections, the work queue
 # ---------------------------------------------------------------------------
 
 class CandidateVerdict(Document):
@@ -806,7 +806,7 @@ class OperatorDocument(Document):
 
 
 # ---------------------------------------------------------------------------
-# Frame previews (issue 15 item 5)
+# Frame previews
 # ---------------------------------------------------------------------------
 
 class FrameDetection(Document):

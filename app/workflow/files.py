@@ -79,7 +79,7 @@ def telemetry_files(paths: list[str], *, fov_deg: float | None = None, time: dat
             yield path, None, exc
 
 
-# --- image files and folders of frames (issue 15) ------------------------------------------------
+# --- image files and folders of frames ------------------------------------------------
 
 #: Why ``fov_deg`` is refused for a spot-list file: its camera block (or the default camera, which the
 #: operator can see and change in the file) is the camera, and a field of view given for a batch of

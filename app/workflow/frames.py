@@ -1,4 +1,4 @@
-"""Full-frame images in the workflow (issue 15): uploads of a pass of frames, hot-pixel maps, image files
+"""Full-frame images in the workflow: uploads of a pass of frames, hot-pixel maps, image files
 on the command line.
 
 An upload of frames ends as an ordinary archived sequence: the frames are detected

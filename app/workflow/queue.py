@@ -1,4 +1,4 @@
-"""The work queue (issue 13): new uploads searched without an operator, bulk lists for the console.
+"""The work queue: new uploads searched without an operator, bulk lists for the console.
 
 An operator receiving a pass of telemetry wants the sequences searched by
 the time they look at them, and the ones that need a person (ambiguous, no

@@ -1,4 +1,4 @@
-"""The operator's review of a sequence: each candidate's verdict and the sequence's own (issue 13).
+"""The operator's review of a sequence: each candidate's verdict and the sequence's own.
 
 A candidate is *credible* when it is the credible best: rank 1 of a search
 whose status is ``identified`` (identification's own test: at most

@@ -1,7 +1,7 @@
 """The view state of each console session: which sequence, candidate rank and magnitude limit it shows.
 
 Every browser tab of the console is a *session* with its own selection
-(issue 13: two operators, or two tabs, must not move each other's
+(two operators, or two tabs, must not move each other's
 sequence).  A console names its session in every ``GET``/``PUT /api/view``
 (``?session=...``, a random id the tab keeps in its sessionStorage).  Each
 3D view (a browser client of the viser server) draws the session named in

@@ -1,4 +1,4 @@
-// Frame panel (issue 15): the frame of the snapshot the player shows, as kept at upload (stretched
+// Frame panel: the frame of the snapshot the player shows, as kept at upload (stretched
 // to 8 bits, at most 1024 pixels wide: GET /api/sequences/{id}/frames and .../frames/{i}.png),
 // with what the detector made of it: the detections reported as sources (circles, labelled with
 // their track as the player names it), the blobs it rejected (orange diamonds, the reason in the

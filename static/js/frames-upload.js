@@ -1,4 +1,4 @@
-// Full-frame images in the upload box (issue 15): which dropped files are frames and which is their
+// Full-frame images in the upload box: which dropped files are frames and which is their
 // sidecar, and the one POST /api/frames request that sends them as one pass.
 import { ApiError, uploadForm } from "./api.js";
 import { $ } from "./dom.js";

@@ -79,7 +79,7 @@ def query_utc(t: datetime | None, name: str) -> datetime | None:
     """A time from the query as UTC (a time without a zone is read as UTC, as everywhere in the archive).
 
     A time whose conversion leaves the calendar (``0001-01-01T00:00+00:01``)
-    is refused at its parameter (found by the schema fuzz run of issue 12).
+    is refused at its parameter (found by the schema fuzz run).
     """
     if t is None:
         return None

@@ -1,4 +1,4 @@
-"""/api/frames: a pass of star-camera frames (FITS, PNG, JPEG, TIFF) uploaded as one sequence (issue 15);
+"""/api/frames: a pass of star-camera frames (FITS, PNG, JPEG, TIFF) uploaded as one sequence;
 /api/sequences/{id}/frames: the previews kept of its frames, with their overlays."""
 
 from __future__ import annotations
