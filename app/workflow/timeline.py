@@ -257,8 +257,14 @@ def flag_text(flag: TimelineFlag, entries: list[TimelineEntry] | tuple[TimelineE
     if flag.kind == "overlap":
         return f"overlap: {b} starts {_duration(flag.seconds)} before {a} ends"
     return (f"jump: {b} is {math.degrees(flag.angle_rad):.4g} deg from {a}'s attitude carried "
-            f"{_duration(abs(flag.seconds))} by the body rate (1-sigma {math.degrees(flag.sigma_rad):.2g} deg, "
-            f"chi2 {flag.chi2:.3g})")
+            f"{_duration(abs(flag.seconds))} by the body rate, {_times_sigma(flag)} its 1-sigma of "
+            f"{math.degrees(flag.sigma_rad):.2g} deg")
+
+
+def _times_sigma(flag: TimelineFlag) -> str:
+    """How far beyond its uncertainty a jump is, in words an operator reads at a glance."""
+    ratio = flag.angle_rad / flag.sigma_rad if flag.sigma_rad else math.inf
+    return "far beyond" if not math.isfinite(ratio) or ratio >= 1000 else f"{ratio:.3g} times"
 
 
 def _duration(seconds: float) -> str:
@@ -266,7 +272,11 @@ def _duration(seconds: float) -> str:
         return f"{seconds:.3g} s"
     if seconds < 7200:
         return f"{seconds / 60:.3g} min"
-    return f"{seconds / 3600:.3g} h"
+    if seconds < 3 * 86400:
+        return f"{seconds / 3600:.3g} h"
+    if seconds < 730 * 86400:
+        return f"{seconds / 86400:.3g} days"
+    return f"{seconds / (365.25 * 86400):.3g} years"
 
 
 # ---------------------------------------------------------------------------
