@@ -20,7 +20,7 @@ from app.api.errors import install_error_handlers
 from app.api.routes import ROUTERS
 from app.workflow import AppContext
 
-#: The console's files (issue 5), served at /.
+#: The console's files, served at /.
 STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
 #: Where the vendored Swagger UI is served (static/vendor/swagger-ui).
 SWAGGER_UI = "/vendor/swagger-ui"

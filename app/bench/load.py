@@ -1,4 +1,4 @@
-"""Load benchmark of the REST API (issue 4): 20 concurrent clients on loopback.
+"""Load benchmark of the REST API: 20 concurrent clients on loopback.
 
 ``python -m app bench --suite load [--n SECONDS] [--seed S] [--json]``.
 
@@ -31,11 +31,11 @@ exhausted flagged, rather than upload a fresh sequence twice.
 
 Latency percentiles are nearest-rank percentiles of all requests of a kind
 (p95 = the smallest latency at least 95 % of the requests did not exceed).
-The target of issue 4 is zero errors and a 95th-percentile search latency of
+The target is zero errors and a 95th-percentile search latency of
 at most 150 ms.
 
 With ``adversarial`` (``--adversarial``: 2) that many more clients send
-worst-case files without pause for the whole run (issue 12): every file
+worst-case files without pause for the whole run: every file
 valid and inside every limit, 64 snapshots of 64 sources, each made fresh so
 that none is answered from the archive (:func:`worst_case_telemetry`:
 random sources, sources piled on one pixel, a dense cluster, in turn).  The
@@ -46,7 +46,7 @@ within the time-out) are reported beside it.
 With ``database`` (``--database postgresql://...``) the servers share a fresh
 PostgreSQL database made on that server for the run (and dropped after it)
 instead of a SQLite file; with ``servers`` (``--servers 2``) that many
-servers run on it (issue 14), each with its own worker pool as configured
+servers run on it, each with its own worker pool as configured
 (one search worker per core by default), and client i uploads through
 server i and searches and views through the next one.
 """
@@ -73,7 +73,7 @@ REPO = Path(__file__).resolve().parents[2]
 SAMPLE_DIR = REPO / "sample_telemetry"
 DEFAULT_SECONDS = 30
 DEFAULT_CLIENTS = 20
-#: Issue 4's acceptance target for the 95th-percentile search latency.
+#: The acceptance target for the 95th-percentile search latency.
 TARGET_P95_SEARCH_MS = 150.0
 #: Loops a client without pause makes per second, at most (measured: 20 clients, ~1.9 each);
 #: with a pause, one loop per pause plus ~50 ms of requests.  Fresh sequences for half the
@@ -154,7 +154,7 @@ def fresh_uploads(n: int, seed: int) -> list[Upload]:
 
 
 def worst_case_telemetry(seed: int, shape: str = "random", n_snapshots: int = 64, n_sources: int = 64) -> bytes:
-    """A valid JSON telemetry file inside every limit that costs extraction the most (issue 12).
+    """A valid JSON telemetry file inside every limit that costs extraction the most.
 
     ``random``: sources uniform over the sensor, unrelated between snapshots
     (the rotation search finds ~900 candidate pairs per snapshot pair);

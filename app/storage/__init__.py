@@ -10,7 +10,7 @@ backends behind the same methods (:meth:`Storage.open` picks one):
 * **PostgreSQL** (:mod:`app.storage.postgres`, ``DATABASE_URL=postgresql://...``
   or ``--db postgresql://...``): one archive shared by several servers on
   several machines, psycopg 3 with a connection pool, row and advisory locks
-  where records are numbered or superseded (issue 14).
+  where records are numbered or superseded.
 
 The methods and their SQL are written once (:mod:`app.storage.base`); the
 records they return are the same dataclasses whatever the backend
@@ -45,7 +45,7 @@ Records
   (``replaces_rejection``), a rejection names the confirmation it withdraws
   (``replaces_confirmation``), both at insert, so no rejection is ever updated.
 * ``hot_pixel_maps``, ``frame_uploads`` - versioned hot-pixel maps of a camera
-  and the frames each sequence came from (issue 15), append-only.
+  and the frames each sequence came from, append-only.
 * ``frame_previews`` - append-only, one row per snapshot of a sequence uploaded
   as frames (schema version 7): the frame stretched to 8 bits and averaged
   over ``scale`` x ``scale`` blocks so that it is at most 1024 pixels wide,

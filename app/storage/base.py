@@ -610,7 +610,7 @@ class Storage:
         return {"ok": True, "backend": self.backend, "path": self.path, "schema_version": version,
                 **facts, "counts": counts}
 
-    # -- hot-pixel maps and frame uploads (issue 15) -------------------------
+    # -- hot-pixel maps and frame uploads -------------------------
 
     def add_hot_pixel_map(self, spacecraft: str, sensor: str, *, map_doc: dict, frames: int, hot_pixels: int,
                           based_on: int | None, seq_id: int | None = None) -> "HotPixelMapRow":
@@ -670,7 +670,7 @@ class Storage:
                                (upload_sha256,)).fetchone()
         return None if row is None else int(row[0])
 
-    # -- frame previews (issue 15 item 5) -------------------------------------
+    # -- frame previews -------------------------------------
 
     def add_frame_previews(self, seq_id: int, previews: list[dict]) -> int:
         """Store the previews of a sequence's frames (each a dict: ``snapshot``, ``width``, ``height``,

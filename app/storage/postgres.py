@@ -1,4 +1,4 @@
-"""The PostgreSQL backend: one archive shared by several servers on several machines (issue 14).
+"""The PostgreSQL backend: one archive shared by several servers on several machines.
 
 Selected by ``DATABASE_URL=postgresql://user:password@host:port/database`` or
 ``--db postgresql://...``; the methods are those of :class:`app.storage.Storage`,
@@ -242,7 +242,7 @@ MIGRATIONS: list[list[str]] = [
         "ALTER TABLE sequences ADD COLUMN camera_calibration INTEGER",
         _sequences_keep_content((*_UPLOAD_COLUMNS_V1, "extraction_json", "camera_json", "camera_calibration")),
     ],
-    # 4 (issue 13): operator verdicts: "no valid attitude" (a rejection with its reason) as a verdict
+    # 4: operator verdicts: "no valid attitude" (a rejection with its reason) as a verdict
     # and a status; a confirmation records an override's reason and the guard rail's reasons.  The
     # status CHECK is altered in place (SQLite rebuilds the table for the same change).
     [
@@ -271,7 +271,7 @@ MIGRATIONS: list[list[str]] = [
         _confirmations_only_supersede(("epoch", "rate_deg_s_json", "override_reason", "overridden_json",
                                        "replaces_rejection")),
     ],
-    # 5 (issue 15): hot-pixel maps of a spacecraft's camera (one per sensor size), versioned and
+    # 5: hot-pixel maps of a spacecraft's camera (one per sensor size), versioned and
     # append-only; uploads of frames by the hash of their content and parameters.
     [
         """CREATE TABLE hot_pixel_maps (
@@ -294,13 +294,13 @@ MIGRATIONS: list[list[str]] = [
         )""",
         *_refuse("frame_uploads", "frame uploads are append-only"),
     ],
-    # 6 (issue 14): the CCSDS ACM of a confirmation, rendered once at confirmation, frozen.
+    # 6: the CCSDS ACM of a confirmation, rendered once at confirmation, frozen.
     [
         "ALTER TABLE confirmations ADD COLUMN acm_text TEXT",
         _confirmations_only_supersede(("epoch", "rate_deg_s_json", "override_reason", "overridden_json",
                                        "replaces_rejection", "acm_text")),
     ],
-    # 7 (issue 15 item 5): a preview of each frame of a sequence uploaded as frames (PNG of at most
+    # 7: a preview of each frame of a sequence uploaded as frames (PNG of at most
     # 2 MiB, with its overlay), one per snapshot, append-only.
     [
         """CREATE TABLE frame_previews (

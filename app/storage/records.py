@@ -140,11 +140,11 @@ class ConfirmationRow:
     superseded_by: int | None
     epoch: datetime | None = None  # the reference snapshot's time, the APM's EPOCH
     rate_deg_s: list[float] | None = None  # fitted body rate, camera axes (None: no sequence fit)
-    override_reason: str | None = None  # why the operator confirmed past a guard rail (issue 13)
+    override_reason: str | None = None  # why the operator confirmed past a guard rail
     overridden: list[str] | None = None  # the guard rail's reasons the operator overrode
     replaces_rejection: int | None = None  # the rejection this confirmation replaced as the verdict
     withdrawn_by: int | None = None  # the rejection that withdrew this confirmation (read, never stored here)
-    acm_text: str | None = None  # the CCSDS ACM rendered at confirmation (None: confirmed before ACMs, issue 14)
+    acm_text: str | None = None  # the CCSDS ACM rendered at confirmation (None: confirmed before ACMs)
 
     @property
     def is_current(self) -> bool:
@@ -337,7 +337,7 @@ def _rejection_row(row) -> RejectionRow:
                         replaced_by_rejection=row["replaced_by_rejection"])
 
 
-# -- hot-pixel map records (issue 15) ------------------------------------------
+# -- hot-pixel map records ------------------------------------------
 
 class StaleHotPixelMap(StorageError):
     """A hot-pixel map was computed from a version that is no longer the newest."""
@@ -364,7 +364,7 @@ def _hot_pixel_map_row(row) -> HotPixelMapRow:
                           seq_id=row["seq_id"], created_at=_time(row["created_at"]))
 
 
-# -- frame previews (issue 15 item 5) -------------------------------------------
+# -- frame previews -------------------------------------------
 
 #: Largest PNG of one frame preview the archive stores (bytes); the schema refuses larger ones too.
 MAX_PREVIEW_PNG_BYTES = 2 * 1024 * 1024

@@ -187,7 +187,7 @@ MIGRATIONS: list[list[str]] = [
               OR NEW.camera_calibration IS NOT OLD.camera_calibration
             BEGIN SELECT RAISE(ABORT, 'an upload is never changed'); END""",
     ],
-    # 4 (issue 13): operator verdicts.  "No valid attitude" (a rejection with its reason) is a verdict
+    # 4: operator verdicts.  "No valid attitude" (a rejection with its reason) is a verdict
     # and a status; a confirmation records the reason an operator gave for overriding a guard rail
     # and the guard rail's own reasons.  The status CHECK can only change by rebuilding the table
     # (foreign keys are off during migrations and checked before the commit); its indexes and
@@ -251,7 +251,7 @@ MIGRATIONS: list[list[str]] = [
         _confirmations_only_supersede(("epoch", "rate_deg_s_json", "override_reason", "overridden_json",
                                        "replaces_rejection")),
     ],
-    # (issue 15) hot-pixel maps of a spacecraft's camera (one per sensor size), versioned and
+    # hot-pixel maps of a spacecraft's camera (one per sensor size), versioned and
     # append-only like calibrations; uploads of frames by the hash of their content and parameters,
     # so the same frames sent again give the stored sequence even after the map has grown.
     [
@@ -281,7 +281,7 @@ MIGRATIONS: list[list[str]] = [
         """CREATE TRIGGER frame_uploads_no_delete BEFORE DELETE ON frame_uploads
             BEGIN SELECT RAISE(ABORT, 'frame uploads are append-only'); END""",
     ],
-    # 6 (issue 14): the CCSDS ACM of a confirmation, rendered once at confirmation like its APM and
+    # 6: the CCSDS ACM of a confirmation, rendered once at confirmation like its APM and
     # AEM (NULL for confirmations made before), frozen like every other column.
     [
         "ALTER TABLE confirmations ADD COLUMN acm_text TEXT",
@@ -289,7 +289,7 @@ MIGRATIONS: list[list[str]] = [
         _confirmations_only_supersede(("epoch", "rate_deg_s_json", "override_reason", "overridden_json",
                                        "replaces_rejection", "acm_text")),
     ],
-    # 7 (issue 15 item 5): a preview of each frame of a sequence uploaded as frames (the frame
+    # 7: a preview of each frame of a sequence uploaded as frames (the frame
     # stretched to 8 bits, averaged over scale x scale blocks, as PNG; at most 2 MiB) with its overlay
     # (detections, rejected blobs, hot pixels), one per snapshot, append-only.
     [

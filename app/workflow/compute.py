@@ -12,7 +12,7 @@ pattern.
 
 The pool is written out here rather than taken from
 :class:`concurrent.futures.ProcessPoolExecutor` because the server needs
-four things that executor cannot give (issue 12):
+four things that executor cannot give:
 
 * **Lanes.**  Interactive work (searches, ordinary uploads) runs on the
   ``processes`` workers; large uploads (:data:`BULK`) run on their own
