@@ -76,7 +76,7 @@ async function uploadFiles(files) {
   const note = skipped.length ? `; ${plural(skipped.length, "truth file")} skipped` : "";
   // A pass of frames counts as one upload, beside the spot-list files.
   const unit = images.length ? "upload" : "file";
-  toast(failures ? `${done.length} of ${results.length} ${unit}s uploaded${note}; see the errors next to the files`
+  toast(failures ? `${done.length} of ${results.length} ${unit}s stored${note}; see the errors next to the files`
     : `${plural(done.length, unit)} uploaded${note}`, failures ? "error" : "ok");
   await Promise.all([loadSequences(), loadSpacecraft()]);
   if (done.length) await onSelect(done.at(-1).id);
