@@ -47,7 +47,9 @@ const TIME_STEPS = [1, 2, 5, 10, 15, 30, 60, 120, 300, 600, 900, 1800, 3600, 720
   172800, 604800, 2592000, 31536000];
 
 function timeTicks(t0, t1) {
-  const step = 1000 * (TIME_STEPS.find((s) => (t1 - t0) / (1000 * s) <= 8) || TIME_STEPS.at(-1));
+  // Beyond the table (a span of more than 8 years), a round number of years: never more than 8 labels.
+  const years = (t1 - t0) / (1000 * TIME_STEPS.at(-1));
+  const step = 1000 * (TIME_STEPS.find((s) => (t1 - t0) / (1000 * s) <= 8) || TIME_STEPS.at(-1) * niceStep(years, 8));
   const ticks = [];
   for (let t = Math.ceil(t0 / step) * step; t <= t1; t += step) ticks.push(t);
   return { ticks, step };
