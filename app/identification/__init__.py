@@ -334,7 +334,7 @@ def chance_of_falling_near(xy: np.ndarray, camera, rotation: np.ndarray, field, 
     if field.mag is None:
         brighter = np.full(len(distance), len(field.vectors))
     else:
-        brighter = np.searchsorted(np.sort(field.mag), field.mag[stars[seen]], side="right")
+        brighter = np.searchsorted(field.mag, field.mag[stars[seen]], side="right")  # mag ascends
     out[seen] = np.pi * distance ** 2 * brighter / (4 * np.pi)
     return out
 

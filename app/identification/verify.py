@@ -54,7 +54,8 @@ class StarField:
     #: (n,) chord within which a point's nearest star is certainly that star (half its distance to the
     #: nearest other one, at any epoch), or None.
     alone_within: np.ndarray | None = None
-    #: (n,) the stars' magnitudes, or None (then every star counts as equally bright).
+    #: (n,) the stars' magnitudes, brightest first as the index's (a prefix of it), or None (then every
+    #: star counts as equally bright).
     mag: np.ndarray | None = None
 
     @classmethod
