@@ -16,8 +16,8 @@ The peer runs in ONE long-lived subprocess of that environment
 its attitude and its own ``perf_counter`` time around
 ``Tetra3.solve_from_centroids`` out, so neither its start-up nor the pipe
 is counted against it.  Its default database; ``fov_estimate`` the
-camera's horizontal field of view and ``fov_max_error`` 2.5 % of it (issue
-16), 5 % in the row whose focal length is 5 % off.  Every wait on it has a
+camera's horizontal field of view and ``fov_max_error`` 2.5 % of it, 5 %
+in the row whose focal length is 5 % off.  Every wait on it has a
 time-out; a peer that hangs is killed and restarted (at most
 :data:`MAX_PEER_RESTARTS` times).
 

@@ -15,8 +15,8 @@ method borrows a read-only connection of its own (:class:`_Readers`, opened on
 first need and kept for the next reader) and runs one deferred transaction on
 it.  In WAL mode a reader sees the last commit before its first statement and
 neither waits for a writer nor holds one up, so a search reading its sequence
-does not queue behind a worst-case upload's large INSERT and its fsync (issue
-29: under two clients sending such files, ordinary searches waited up to
+does not queue behind a worst-case upload's large INSERT and its fsync (under
+two clients sending such files, ordinary searches waited up to
 hundreds of milliseconds on the one shared connection).  Several processes on
 one file work (the busy time-out waits for the writer), but several machines
 need :mod:`app.storage.postgres`.
@@ -353,18 +353,14 @@ class SQLiteStorage(Storage):
         path = sqlite_path(path_or_url)
         try:
             Path(path).parent.mkdir(parents=True, exist_ok=True)
-            # isolation_level=None: we issue BEGIN/COMMIT ourselves, so the
-            # transaction boundaries are exactly the methods' boundaries.
-            conn = sqlite3.connect(path, isolation_level=None, check_same_thread=False, timeout=30.0)
-        except (OSError, sqlite3.Error) as exc:
+        except OSError as exc:
             raise StorageError(f"cannot open database {path}: {exc}") from None
-        conn.row_factory = sqlite3.Row
+        conn = _connect(path)
         try:
             mode = conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
             if str(mode).lower() != "wal":
                 raise StorageError(f"cannot switch {path} to WAL mode (got {mode})")
             conn.execute("PRAGMA synchronous=FULL")
-            conn.execute("PRAGMA busy_timeout=30000")
             storage = cls(conn, path)
             # Foreign keys are off while migrating: a migration may rebuild a table to change a
             # constraint (SQLite's documented way, see migration 4); _migrate checks every key
@@ -456,6 +452,19 @@ class SQLiteStorage(Storage):
         return {"journal_mode": conn.execute("PRAGMA journal_mode").fetchone()[0]}
 
 
+def _connect(path: str) -> sqlite3.Connection:
+    """A connection to ``path`` as every connection here is made: rows by name, a 30 s busy time-out, and
+    isolation_level=None: we issue BEGIN/COMMIT ourselves, so the transaction boundaries are exactly the
+    methods' boundaries."""
+    try:
+        conn = sqlite3.connect(path, isolation_level=None, check_same_thread=False, timeout=30.0)
+        conn.row_factory = sqlite3.Row
+        conn.execute("PRAGMA busy_timeout=30000")
+    except sqlite3.Error as exc:
+        raise StorageError(f"cannot open database {path}: {exc}") from None
+    return conn
+
+
 class _Readers:
     """Read-only connections to one SQLite file, one per reader at a time (see the module docstring).
 
@@ -472,12 +481,7 @@ class _Readers:
         self._closed = False
 
     def _open(self) -> sqlite3.Connection:
-        try:
-            conn = sqlite3.connect(self._path, isolation_level=None, check_same_thread=False, timeout=30.0)
-        except sqlite3.Error as exc:
-            raise StorageError(f"cannot open database {self._path}: {exc}") from None
-        conn.row_factory = sqlite3.Row
-        conn.execute("PRAGMA busy_timeout=30000")
+        conn = _connect(self._path)
         conn.execute("PRAGMA query_only=ON")
         return conn
 
