@@ -39,7 +39,9 @@ interleaved frame by frame, so a slow spell of the machine hits both.
 Rows: single snapshots (scenario "single") of the 20 deg 752 x 582 camera;
 the same with the true focal length 5 % off (alternating in sign); 16-snapshot
 sequences (scenario "nominal": ours on the whole sequence, the peer on its
-middle snapshot).  Correct = boresight within 0.1 deg and roll within 0.5
+middle snapshot); and two rows of frames in which no star is seen (10 random
+points; the Earth in view), where the right answer is none and the goal is
+the peer's time on the same frame.  Correct = boresight within 0.1 deg and roll within 0.5
 deg of the truth; "claimed" = our status ``identified`` / the peer's
 ``MATCH_FOUND``; a wrong claim is a claimed answer that is not correct.
 Our start-up (imports, index load and the first answer) is measured in a
@@ -90,6 +92,8 @@ GOAL_SINGLE_P95_RATIO = 1.0
 GOAL_SINGLE_MAX_MS = 100.0
 GOAL_SEQUENCE_MEDIAN_RATIO = 1.0
 GOAL_STARTUP_S = 1.0
+#: A frame with no star: answered (nothing claimed) within the peer's time on the same frame, 95 % of them.
+GOAL_NO_MATCH_RATIO = 1.0
 
 
 class PeerUnavailable(Exception):
@@ -487,10 +491,11 @@ def _timing(ms: list[float], prefix: str = "ms") -> dict:
 
 
 def _verdict(R_est, R_true) -> tuple[bool, float | None, float | None]:
-    """(correct, boresight error, roll error in arcsec) of an answer (None: no answer)."""
+    """(correct, boresight error, roll error in arcsec) of an answer (None: no answer); with no truth
+    (``R_true`` None: no star in the frame) every answer is wrong."""
     from app.bench.identification import is_correct
 
-    if R_est is None:
+    if R_est is None or R_true is None:
         return False, None, None
     return is_correct(np.asarray(R_est), np.asarray(R_true))
 
@@ -533,7 +538,7 @@ def _ours(sky, sequence, R_true) -> SimpleNamespace:
     ms = (time.perf_counter() - t0) * 1000.0
     cpu_ms = (time.process_time() - c0) * 1000.0
     cands = solved.solution.candidates
-    R_ref_true = R_true[solved.extraction.reference]
+    R_ref_true = None if R_true is None else R_true[solved.extraction.reference]
     top1, bore, roll = _verdict(cands[0].rotation_matrix if cands else None, R_ref_true)
     claimed = solved.solution.status == IDENTIFIED
     return SimpleNamespace(ms=ms, cpu_ms=cpu_ms, claimed=claimed, correct=top1, top1=top1, bore=bore, roll=roll,
@@ -577,6 +582,46 @@ def run_row(sky, peer: RestartingPeer, label: str, scenario: str, n: int, seed: 
     return {"label": label, "scenario": scenario, "focal_error": focal_error,
             "fov_max_error_fraction": fov_max_error,
             "ours": _summary(frames, "ours"), "peer": _summary(frames, "peer")}
+
+
+def _no_match_frame(rng, camera, kind: str):
+    """One snapshot in which no star is seen: ``"noise"``, 10 points scattered uniformly over the sensor with
+    random brightness (hot pixels, noise); ``"earth"``, the middle snapshot of a simulated Earth-in-view
+    sequence (bright drifting blobs), drawn again until it has at least 3 sources (fewer is answered at once
+    by both tools).  A one-snapshot :class:`~app.telemetry.Sequence`."""
+    from dataclasses import replace
+
+    from app.simulate import simulate_sequence
+
+    while True:
+        sequence, _ = simulate_sequence(rng, camera, "single" if kind == "noise" else "earth")
+        snapshot = sequence.snapshots[len(sequence.snapshots) // 2]
+        if kind == "noise":
+            xy = rng.uniform([0.0, 0.0], [camera.width - 1.0, camera.height - 1.0], size=(10, 2))
+            snapshot = replace(snapshot, xy=xy, brightness=rng.uniform(50.0, 250.0, size=10))
+        if snapshot.n_sources >= 3:
+            return replace(sequence, snapshots=(replace(snapshot, index=0),))
+
+
+def run_no_match_row(sky, peer: RestartingPeer, label: str, kind: str, n: int, seed: int) -> dict:
+    """``n`` frames in which no star is seen (:func:`_no_match_frame`), ours and the peer's interleaved:
+    right = nothing claimed."""
+    from app.camera import CAMERAS
+
+    camera = CAMERAS[CAMERA_NAME]
+    rng = np.random.default_rng([seed, 16, 99, kind == "noise"])
+    frames = []
+    for _ in range(n):
+        sequence = _no_match_frame(rng, camera, kind)
+        ours = _ours(sky, sequence, None)
+        theirs = _theirs(peer, sequence.snapshots[0], camera, None, FOV_MAX_ERROR)
+        del ours.extraction
+        frames.append(SimpleNamespace(ours=ours, peer=theirs, eligible=True))
+    per_frame = [f.ours.ms / max(f.peer.ms, 1e-3) for f in frames]
+    return {"label": label, "scenario": kind, "focal_error": 0.0, "fov_max_error_fraction": FOV_MAX_ERROR,
+            "no_stars": True, "ours": _summary(frames, "ours"), "peer": _summary(frames, "peer"),
+            "per_frame_ratio_median": _pct(per_frame, 50), "per_frame_ratio_p95": _pct(per_frame, 95),
+            "ours_within_peer_time": sum(r <= 1.0 for r in per_frame)}
 
 
 _STARTUP_CODE = """
@@ -671,7 +716,9 @@ def run(n_sequences: int = 100, seed: int = 1) -> dict:
         rows = [run_row(sky, peer, "single snapshot", "single", n_sequences, seed),
                 run_row(sky, peer, "single, focal length 5 % off", "single", n_sequences, seed,
                         focal_error=FOCAL_ERROR, fov_max_error=FOCAL_ERROR),
-                run_row(sky, peer, "16-snapshot sequence", "nominal", n_sequences, seed)]
+                run_row(sky, peer, "16-snapshot sequence", "nominal", n_sequences, seed),
+                run_no_match_row(sky, peer, "no star: 10 random points", "noise", n_sequences, seed),
+                run_no_match_row(sky, peer, "no star: the Earth in view", "earth", n_sequences, seed)]
     except PeerError as exc:
         reason = f"cedar-solve failed during the run: {exc}"
         print(f"peer: skipped: {reason}", file=sys.stderr)
@@ -680,6 +727,7 @@ def run(n_sequences: int = 100, seed: int = 1) -> dict:
         peer.close()
     startup = measure_startup(seed)
     single, sequence = rows[0], rows[2]
+    no_star = [row for row in rows if row.get("no_stars")]
     fov = float(camera.fov_deg[0])
     ratios = {
         "single_median": _ratio(single["ours"]["ms_median"], single["peer"]["ms_median"]),
@@ -701,6 +749,9 @@ def run(n_sequences: int = 100, seed: int = 1) -> dict:
         "sequence_median_le_1x_peer_single_median": ratios["sequence_median_vs_peer_single_median"] is not None
         and ratios["sequence_median_vs_peer_single_median"] <= GOAL_SEQUENCE_MEDIAN_RATIO,
         "startup_le_1s": startup["total_s_max"] is not None and startup["total_s_max"] <= GOAL_STARTUP_S,
+        "no_star_p95_per_frame_le_1x_peer": all(row["per_frame_ratio_p95"] is not None
+                                                and row["per_frame_ratio_p95"] <= GOAL_NO_MATCH_RATIO
+                                                and row["ours"]["claimed"] == 0 for row in no_star),
     }
     return {"peer": {"package": PEER_PACKAGE, "version": facts.get("version"), "numpy": facts.get("numpy"),
                      "venv": facts.get("path"), "venv_made_now": facts.get("made"),
@@ -735,9 +786,12 @@ def format_table(result: dict) -> str:
     for row in result["rows"]:
         for who, name in (("ours", "ours"), ("peer", "cedar-solve")):
             s = row[who]
+            # A frame without stars is answered right when nothing is claimed.
+            right = 1 - s["claimed"] / s["n"] if row.get("no_stars") else s["correct_fraction"]
             lines.append(f"{row['label']:<30} {name:<12} {f(s['ms_median']):>7} {f(s['ms_p95']):>7} "
-                         f"{f(s['ms_max']):>7} {f(s['ms_mean']):>7} {f(s['correct_fraction'], '.3f'):>8} "
-                         f"{f(s['correct_fraction_eligible'], '.3f'):>8} {s['wrong_claimed']:>6} "
+                         f"{f(s['ms_max']):>7} {f(s['ms_mean']):>7} {f(right, '.3f'):>8} "
+                         f"{f(right if row.get('no_stars') else s['correct_fraction_eligible'], '.3f'):>8} "
+                         f"{s['wrong_claimed']:>6} "
                          f"{s['not_solved']:>8} {f(s['boresight_err_arcsec_median']):>7} "
                          f"{f(s['roll_err_arcsec_median']):>7} {f(s['cpu_ms_median']):>7} {f(s['cpu_ms_p95']):>7}")
         o, q = row["ours"], row["peer"]
@@ -750,7 +804,13 @@ def format_table(result: dict) -> str:
                  "eligible ones: >= 5 stars in a single snapshot, >= 4 tracked stars in a sequence; wrong: claimed "
                  "but not correct; bore50, roll50: median errors of the correct answers, arcsec; cpu50, cpu95: CPU time "
                  "(process_time) over the same call, less moved by other work on the machine; 16-snapshot rows: ours = extraction + identification + sequence fit of the "
-                 "sequence, the peer = its middle snapshot; the 5 % row gives the peer fov_max_error 5 %)")
+                 "sequence, the peer = its middle snapshot; the 5 % row gives the peer fov_max_error 5 %; "
+                 "no-star rows: correct = nothing claimed, wrong = a claim)")
+    for row in result["rows"]:
+        if row.get("no_stars"):
+            lines.append(f"{row['label']}: ours / the peer's time on the same frame, median "
+                         f"{f(row['per_frame_ratio_median'], '.2f')}x, p95 {f(row['per_frame_ratio_p95'], '.2f')}x; "
+                         f"within the peer's time on {row['ours_within_peer_time']} of {row['ours']['n']} frames")
     r, s = result["ratios"], result["startup"]
     lines += ["",
               f"16-snapshot sequence (ours) vs the peer's single-frame median: median "
