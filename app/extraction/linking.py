@@ -36,10 +36,11 @@ The steps of :func:`extract`:
    (identification then finds it matches no star).
 5. **Association.**  In the common frame a star is a fixed direction.
    Snapshots are visited in order; each one's sources are assigned to the
-   existing tracks' mean directions by ``linear_sum_assignment`` on the
-   angular distance, within the link gate (when every source's nearest
-   track is a different one that is already the optimum); the rest start
-   new tracks.  A
+   existing tracks' mean directions by the optimal one-to-one assignment
+   (:mod:`app.extraction.assignment`, scipy's ``linear_sum_assignment``
+   method) on the angular distance, within the link gate (when every
+   source's nearest track is a different one that is already the optimum);
+   the rest start new tracks.  A
    star missing from some snapshots simply rejoins its track later.  The
    rotations are then re-solved once more against these fuller tracks.
 6. **Outliers.**  A sighting farther from the mean of its track's other
@@ -73,6 +74,8 @@ import math
 import numpy as np
 
 from app.attitude import solve_wahba
+from app.compiled import njit, warm_up_with
+from app.extraction.assignment import min_cost_assignment
 from app.extraction.model import GHOST, HOT_PIXEL, OUTLIER, Extraction, ExtractionParameters, Track
 from app.extraction.motion import estimate_pair_rotations, expand_ranges
 from app.extraction.pattern import carried_tracks, seed_pattern, tracks_pattern
@@ -391,48 +394,84 @@ def _associate(common: np.ndarray, snap: np.ndarray, comp: np.ndarray, usable: n
                gate_chord: float) -> np.ndarray:
     """(M,) track label per flattened source (-1 unusable), snapshots visited in order.
 
-    Costs are 1 - cos(angle) = chord^2 / 2, monotonic in the angle.
+    Costs are 1 - cos(angle) = chord^2 / 2, monotonic in the angle.  The loop over snapshots, with the
+    tracks' means updated after each, is :func:`_associate_kernel`.
     """
-    label = np.full(len(snap), -1, dtype=int)
-    sums = np.zeros((len(snap), 3))
-    means = np.zeros((len(snap), 3))
-    track_comp = np.full(len(snap), -1)
-    n_tracks = 0
-    max_cost = gate_chord**2 / 2.0
-    too_far = 10.0
     bounds = np.searchsorted(snap, np.arange(snap.max(initial=-1) + 2))
+    return _associate_kernel(common, comp, usable, bounds, gate_chord**2 / 2.0)
+
+
+#: Cost of a source-track pair beyond the gate in the assignment: more than any pair within it (<= 2).
+_TOO_FAR = 10.0
+
+
+@njit
+def _associate_kernel(common, comp, usable, bounds, max_cost):
+    """:func:`_associate`'s labels; snapshot s's sources are ``bounds[s]:bounds[s + 1]``.
+
+    Each usable source of a snapshot goes to the track of its component whose mean direction is nearest
+    (least 1 - cos), within ``max_cost``; where two sources want one track the optimal one-to-one
+    assignment (:func:`min_cost_assignment`, pairs beyond the gate costing :data:`_TOO_FAR`) decides.  A
+    track's mean is the normalised sum of its sightings, updated after each snapshot.  The rest start
+    new tracks, numbered in order.
+    """
+    m = common.shape[0]
+    label = np.full(m, -1)
+    sums = np.zeros((m, 3))
+    means = np.zeros((m, 3))
+    track_comp = np.full(m, -1)
+    n_tracks = 0
     for s in range(len(bounds) - 1):
         idx = np.arange(bounds[s], bounds[s + 1])[usable[bounds[s]:bounds[s + 1]]]
         if len(idx) == 0:
             continue
-        assigned = np.zeros(len(idx), dtype=bool)
         candidates = np.flatnonzero(track_comp[:n_tracks] == comp[idx[0]])
         if len(candidates):
-            cost = 1.0 - common[idx] @ means[candidates].T
-            nearest = np.argmin(cost, axis=1)
-            rows = np.flatnonzero(cost[np.arange(len(idx)), nearest] <= max_cost)
-            cols = nearest[rows]
-            if len(np.unique(cols)) < len(cols):
+            cost = np.empty((len(idx), len(candidates)))
+            for r in range(len(idx)):
+                for k in range(len(candidates)):
+                    t = candidates[k]
+                    cost[r, k] = 1.0 - (common[idx[r], 0] * means[t, 0] + common[idx[r], 1] * means[t, 1]
+                                        + common[idx[r], 2] * means[t, 2])
+            col = np.full(len(idx), -1)
+            wanted = np.zeros(len(candidates), dtype=np.int64)
+            conflict = False
+            for r in range(len(idx)):
+                nearest = np.argmin(cost[r])
+                if cost[r, nearest] <= max_cost:
+                    col[r] = nearest
+                    wanted[nearest] += 1
+                    conflict |= wanted[nearest] > 1
+            if conflict:
                 # two sources want one track: the optimal one-to-one assignment decides
-                cost[cost > max_cost] = too_far
-                # Imported here: scipy.optimize costs ~0.1 s at start-up and few sequences come here.
-                from scipy.optimize import linear_sum_assignment
-
-                rows, cols = linear_sum_assignment(cost)
-                keep = cost[rows, cols] < too_far
-                rows, cols = rows[keep], cols[keep]
-            tracks = candidates[cols]
-            label[idx[rows]] = tracks
-            sums[tracks] += common[idx[rows]]
-            means[tracks] = _normalized(sums[tracks])
-            assigned[rows] = True
-        new = idx[~assigned]
-        fresh = n_tracks + np.arange(len(new))
-        label[new] = fresh
-        sums[fresh] = means[fresh] = common[new]
-        track_comp[fresh] = comp[new]
-        n_tracks += len(new)
+                col[:] = -1
+                far = np.where(cost > max_cost, _TOO_FAR, cost)
+                rows, cols = min_cost_assignment(far)
+                for k in range(len(rows)):
+                    if far[rows[k], cols[k]] < _TOO_FAR:
+                        col[rows[k]] = cols[k]
+            for r in range(len(idx)):
+                if col[r] >= 0:
+                    t = candidates[col[r]]
+                    label[idx[r]] = t
+                    sums[t] += common[idx[r]]
+                    means[t] = sums[t] / np.sqrt(sums[t, 0] * sums[t, 0] + sums[t, 1] * sums[t, 1]
+                                                 + sums[t, 2] * sums[t, 2])
+        for r in range(len(idx)):
+            if label[idx[r]] < 0:
+                label[idx[r]] = n_tracks
+                sums[n_tracks] = common[idx[r]]
+                means[n_tracks] = common[idx[r]]
+                track_comp[n_tracks] = comp[idx[r]]
+                n_tracks += 1
     return label
+
+
+@warm_up_with
+def _warm_up_association() -> None:
+    """Compile :func:`_associate_kernel` for the arrays :func:`_associate` passes."""
+    common = np.array([[0.0, 0.0, 1.0], [0.0, 0.001, 1.0], [0.0, 0.0, 1.0], [0.001, 0.0, 1.0]])
+    _associate(common, np.array([0, 0, 1, 1]), np.zeros(4, dtype=int), np.ones(4, dtype=bool), 0.01)
 
 
 def _track_sizes(label: np.ndarray) -> np.ndarray:
