@@ -12,8 +12,11 @@ import numpy as np
 import pytest
 from scipy.optimize import linear_sum_assignment
 
-from app.extraction import linking
+from app.attitude.rotations import rotation_from_rotvec
+from app.camera import CAMERAS
+from app.extraction import extract, linking, motion
 from app.extraction.assignment import min_cost_assignment
+from app.simulate import simulate_sequence
 
 
 def _normalized(v: np.ndarray) -> np.ndarray:
@@ -127,3 +130,86 @@ def test_min_cost_assignment_finds_the_optimum_a_greedy_choice_misses():
     rows, cols = min_cost_assignment(cost)
     assert list(zip(rows, cols)) == [(0, 1), (1, 0)]
     assert cost[rows, cols].sum() == 3.5
+
+
+# --- the numpy scoring of rotation hypotheses, as it was before the kernel ------------------------------
+
+def scores_reference(rotation, va_index, vb_index, vectors, score_gate):
+    """motion._scores before the kernel: batched matmuls, in chunks of bounded memory."""
+    n = vectors.shape[1]
+    step = max(1, (1 << 21) // max(1, n * n))
+    score = np.empty(len(rotation))
+    for start in range(0, len(rotation), step):
+        part = slice(start, start + step)
+        pred = np.matmul(vectors[va_index[part]], np.swapaxes(rotation[part], -1, -2))
+        dots = np.matmul(pred, np.swapaxes(vectors[vb_index[part]], -1, -2))
+        d2 = 2.0 - 2.0 * dots.max(axis=2)
+        score[part] = np.clip(1.0 - d2 / score_gate**2, 0.0, None).sum(axis=1)
+    return score
+
+
+def _score_rounding(vectors, gate):
+    """How far two roundings of the scores may differ: a dot product near 1 is known to a few 1e-16 (numpy's
+    matmul fuses its multiply-adds, the kernel does not), and each of the n terms divides 2 - 2 dot by g^2."""
+    return vectors.shape[1] * 1e-15 / gate**2
+
+
+def _random_snapshots(rng, n_snap, n, spread=0.15):
+    """(n_snap, n, 3) one star field seen turned by (n_snap, 3, 3) small rotations, with noise, its ghosts
+    and dropouts, the tail of each snapshot zero padding; and the rotations (v_s = R_s v)."""
+    sky = _normalized(np.column_stack([rng.normal(0, spread, (n, 2)), np.ones(n)]))
+    turn = rotation_from_rotvec(rng.normal(0, 0.03, (n_snap, 3)))
+    vectors = _normalized(np.matmul(sky, np.swapaxes(turn, 1, 2)) + rng.normal(0, 1e-3, (n_snap, n, 3)))
+    for s in range(n_snap):
+        vectors[s] = vectors[s, rng.permutation(n)]
+        ghosts = rng.random(n) < 0.2
+        vectors[s, ghosts] = _normalized(np.column_stack([rng.normal(0, spread, (ghosts.sum(), 2)),
+                                                         np.ones(ghosts.sum())]))
+        vectors[s, int(rng.integers(1, n + 1)):] = 0.0
+    return vectors, turn
+
+
+def test_scores_kernel_matches_the_numpy_scores_on_random_hypotheses():
+    """Snapshots related by small rotations; hypotheses near the true ones, some far off."""
+    rng = np.random.default_rng(5)
+    scoring, h = 0, 500
+    for n in (1, 3, 10, 17, 40):
+        vectors, turn = _random_snapshots(rng, 6, n)
+        va, vb = rng.integers(0, 6, h), rng.integers(0, 6, h)
+        error = rotation_from_rotvec(rng.normal(0, 0.003, (h, 3)) * rng.choice([1, 10], (h, 1)))
+        rotation = error @ turn[vb] @ np.swapaxes(turn[va], 1, 2)  # v_b = R v_a, give or take the error
+        gate = 0.01
+        score = motion._scores(rotation, va, vb, vectors, gate)
+        expected = scores_reference(rotation, va, vb, vectors, gate)
+        scoring += np.count_nonzero(expected)
+        np.testing.assert_allclose(score, expected, rtol=0, atol=_score_rounding(vectors, gate))
+    assert scoring > 5 * h / 3  # many hypotheses score, not only zeros
+
+
+@pytest.fixture(scope="module")
+def recorded_calls():
+    """The arguments of the extraction's kernels while extracting simulated sequences (ghosts, three cameras)."""
+    calls = {"scores": []}
+    scores = motion._scores
+
+    def record_scores(*args):
+        calls["scores"].append(args)
+        return scores(*args)
+
+    motion._scores = record_scores
+    try:
+        rng = np.random.default_rng(3)
+        for scenario in ("ghosts3", "nominal", "sparse"):
+            for camera in CAMERAS.values():
+                extract(simulate_sequence(rng, camera, scenario)[0])
+    finally:
+        motion._scores = scores
+    return calls
+
+
+def test_scores_kernel_matches_the_numpy_scores_on_real_hypotheses(recorded_calls):
+    assert len(recorded_calls["scores"]) >= 9
+    for args in recorded_calls["scores"]:
+        vectors, gate = args[3], args[4]
+        np.testing.assert_allclose(motion._scores(*args), scores_reference(*args), rtol=0,
+                                   atol=_score_rounding(vectors, gate))

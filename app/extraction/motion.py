@@ -36,7 +36,8 @@ the identification search caps its work, each link scores at most
 those of the brightest sources first (a star is more often bright than a
 ghost, and the seed, too, starts from the brightest stars).  Below the cap
 nothing is dropped or reordered, so ordinary telemetry extracts exactly as
-without it; and the scoring runs in chunks of bounded memory.
+without it; and the scoring, a compiled loop (:func:`_scores`), holds
+nothing but the scores in memory.
 """
 
 from __future__ import annotations
@@ -48,12 +49,11 @@ import numpy as np
 from scipy.special import gammaln
 
 from app.attitude import rotation_from_pair, solve_wahba
+from app.compiled import njit, warm_up_with
 
 #: Slot width separating the chords of different snapshot pairs in one
 #: sorted array; chords are at most 2.
 _SLOT = 10.0
-#: Most (hypothesis x source pair) distances held in memory at once while scoring (8 bytes each).
-_SCORE_CHUNK = 1 << 21
 #: Hypotheses expanded per link before the brightest are chosen, as a multiple of the link's cap
 #: (bounds the memory of the expansion itself, which a regular grid would blow up).
 _EXPANSION_FACTOR = 8
@@ -204,21 +204,32 @@ def _refit(rotation: np.ndarray, va: np.ndarray, vb: np.ndarray, gate: float) ->
     return np.where((mutual.sum(axis=1) >= 2)[:, None, None], refined, rotation)
 
 
-def _scores(rotation: np.ndarray, va_index: np.ndarray, vb_index: np.ndarray, vectors: np.ndarray,
-            score_gate: float) -> np.ndarray:
-    """(H,) truncated-quadratic score of each hypothesis, in chunks of bounded memory."""
+@njit
+def _scores(rotation, va_index, vb_index, vectors, score_gate):
+    """(H,) truncated-quadratic score of each hypothesis: sum over a's sources of max(0, 1 - d^2 / g^2).
+
+    Hypothesis h rotates the sources of snapshot ``va_index[h]`` by ``rotation[h]``; d is the chord to the
+    nearest source of snapshot ``vb_index[h]``.  The nearest source has the largest dot product, and
+    ``2 - 2 max(dot)`` is the smallest squared chord (2 - 2x rounds monotonically).  Zero padding rows
+    rotate to 0, a dot of 0 and d^2 = 2: beyond every gate, they add nothing.
+    """
     n = vectors.shape[1]
-    step = max(1, _SCORE_CHUNK // max(1, n * n))
-    score = np.empty(len(rotation))
-    for start in range(0, len(rotation), step):
-        part = slice(start, start + step)
-        pred = np.matmul(vectors[va_index[part]], np.swapaxes(rotation[part], -1, -2))  # (h, Na, 3) = (R v_a)^T
-        # The nearest source has the largest dot product: 2 - 2 max(dot) is the smallest squared chord
-        # of :func:`_nearest_chord_sq`, bit for bit (2 - 2x rounds monotonically), without making and
-        # scanning the (h, Na, Nb) array of chords (a third of the time).
-        dots = np.matmul(pred, np.swapaxes(vectors[vb_index[part]], -1, -2))
-        d2 = 2.0 - 2.0 * dots.max(axis=2)
-        score[part] = np.clip(1.0 - d2 / score_gate**2, 0.0, None).sum(axis=1)
+    gate_sq = score_gate * score_gate
+    score = np.zeros(rotation.shape[0])
+    for h in range(rotation.shape[0]):
+        R = rotation[h]
+        a = vectors[va_index[h]]
+        b = vectors[vb_index[h]]
+        total = 0.0
+        for i in range(n):
+            p0 = R[0, 0] * a[i, 0] + R[0, 1] * a[i, 1] + R[0, 2] * a[i, 2]
+            p1 = R[1, 0] * a[i, 0] + R[1, 1] * a[i, 1] + R[1, 2] * a[i, 2]
+            p2 = R[2, 0] * a[i, 0] + R[2, 1] * a[i, 1] + R[2, 2] * a[i, 2]
+            best = -np.inf
+            for j in range(n):
+                best = max(best, p0 * b[j, 0] + p1 * b[j, 1] + p2 * b[j, 2])
+            total += max(0.0, 1.0 - (2.0 - 2.0 * best) / gate_sq)
+        score[h] = total
     return score
 
 
@@ -305,3 +316,10 @@ def estimate_pair_rotations(vectors: np.ndarray, hypothesis_sources: np.ndarray,
     matches[found[ok]] = np.where(mutual[ok], match[ok], -1)
     inlier_sq = best[ok][mutual[ok]]
     return PairRotations(rotation, n_inliers, matches, inlier_sq)
+
+
+@warm_up_with
+def _warm_up_motion() -> None:
+    """Compile :func:`_scores` for the arrays :func:`estimate_pair_rotations` passes."""
+    vectors = np.array([[[0.0, 0.0, 1.0], [0.0, 0.01, 1.0]], [[0.0, 0.0, 1.0], [0.01, 0.0, 1.0]]])
+    _scores(np.eye(3)[None], np.array([0]), np.array([1]), vectors, 0.01)
