@@ -18,14 +18,17 @@ before numba is first imported.
 Compiling.  Each kernel module registers a warm-up (:func:`warm_up_with`: a
 call of each kernel on tiny inputs of the types the program uses).
 :func:`warm_up` runs them all once per process and says in ONE log line
-whether it compiled (the first run after an install: 15 s of CPU) or loaded
-the cache (0.2-0.3 s).  :func:`app.identification.identify` warms up before
-its search's clock starts; a server's search workers warm up before they
-say they are ready (no job waits on a compilation past its hard limit); a
-server whose searches run in its own threads warms up in a background
-thread and answers meanwhile.  Processes warming up at once take turns (a
-lock file in the cache directory): the first compiles, the others load what
-it wrote.
+whether it compiled (the first run after an install: 20-25 s of CPU for
+seven warm-ups, measured 2026-11-25) or loaded the cache (0.2-0.3 s, most
+of it numba setting itself up on its first kernel).
+:func:`app.identification.identify` warms up before its search's clock
+starts; a server's compute pool (:mod:`app.workflow.compute`) warms up in
+its workers, or in a thread of its own, while the server answers.
+Processes warming up at once share the work: each warm-up is run under a
+lock file of its own in the cache directory, a process compiles the
+warm-ups nobody else is compiling and then loads the others from what the
+others wrote (a server's three workers on two cores: about half the time
+of one process compiling everything).
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ import os
 import threading
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 from app.config import settings
 
@@ -71,10 +74,12 @@ def warm_up_with(function: Callable[[], None]) -> Callable[[], None]:
     return function
 
 
-def warm_up() -> dict:
+def warm_up(say: bool = True) -> dict:
     """Compile (or load from the cache) every registered kernel, once per process; one log line says which.
 
     Returns ``{"seconds": ..., "compiled": n kernels compiled now, "loaded": n loaded from the cache}``.
+    ``say=False`` leaves the log line to the caller (:func:`describe`): a
+    worker process has no log of its own and reports to its server.
     """
     global _warmed, _report
     if _warmed:
@@ -83,50 +88,69 @@ def warm_up() -> dict:
         if _warmed:  # another thread warmed them while this one waited
             return _report
         t0 = time.perf_counter()
-        with _one_process_at_a_time():
-            for function in list(_warm_ups):
-                function()
-        seconds = time.perf_counter() - t0
-        compiled = sum(sum(k.stats.cache_misses.values()) for k in _kernels)
-        loaded = sum(sum(k.stats.cache_hits.values()) for k in _kernels)
-        if compiled:
-            log.warning("compiled %d numba kernels in %.1f s (the first run after an install; kept in %s)",
-                        compiled, seconds, os.environ["NUMBA_CACHE_DIR"])
-        else:
-            log.info("loaded %d compiled kernels from %s in %.2f s", loaded, os.environ["NUMBA_CACHE_DIR"], seconds)
-        _report = {"seconds": seconds, "compiled": compiled, "loaded": loaded}
+        _run_sharing_the_work(list(_warm_ups))
+        _report = {"seconds": time.perf_counter() - t0,
+                   "compiled": sum(sum(k.stats.cache_misses.values()) for k in _kernels),
+                   "loaded": sum(sum(k.stats.cache_hits.values()) for k in _kernels)}
         _warmed = True
+        if say:
+            log.log(logging.WARNING if _report["compiled"] else logging.INFO, "%s", describe(_report))
         return _report
 
 
+def describe(report: dict) -> str:
+    """:func:`warm_up`'s report in words: compiled (the first run after an install) or loaded from the cache."""
+    if report["compiled"]:
+        return (f"compiled {report['compiled']} numba kernels in {report['seconds']:.1f} s (the first run after "
+                f"an install; kept in {os.environ['NUMBA_CACHE_DIR']})")
+    return f"loaded {report['loaded']} compiled kernels from {os.environ['NUMBA_CACHE_DIR']} in {report['seconds']:.2f} s"
+
+
+def _run_sharing_the_work(functions: list[Callable[[], None]]) -> None:
+    """Run every warm-up, each while this process holds that warm-up's lock file.
+
+    A warm-up whose lock another process holds is being compiled there: it
+    is skipped for now and run once that lock is free, when it only loads
+    what the other process wrote.  Processes starting together (a server's
+    workers, a batch's) so compile different warm-ups at once, on as many
+    cores, instead of each compiling all of them or all waiting for one.
+    """
+    pending = list(functions)
+    while pending:
+        for function in list(pending):
+            with _lock_of(function, wait=False) as mine:
+                if mine:
+                    function()
+                    pending.remove(function)
+        if pending:  # every one left is being compiled elsewhere: wait for the first, then load it
+            with _lock_of(pending[0], wait=True):
+                pending.pop(0)()
+
+
 @contextlib.contextmanager
-def _one_process_at_a_time():
-    """An exclusive lock on the cache directory while warming up: the processes starting together (a server's
-    workers, a batch's) compile one after the other, the first writing the cache the others then load,
-    instead of each compiling the same kernels at once (two workers on two cores: 57 s instead of 15)."""
+def _lock_of(function: Callable[[], None], wait: bool) -> Iterator[bool]:
+    """An exclusive lock on ``function``'s lock file in the cache directory; yields whether this process has it
+    (with ``wait``, once it has).  Where nothing can be shared (no ``fcntl``, a read-only cache) it yields True:
+    each process compiles for itself."""
     try:
         import fcntl
-    except ImportError:  # not POSIX: each process compiles for itself
-        yield
+    except ImportError:  # not POSIX
+        yield True
         return
     directory = Path(os.environ["NUMBA_CACHE_DIR"])
     try:
         directory.mkdir(parents=True, exist_ok=True)
-        lock = open(directory / "warm-up.lock", "a")
-    except OSError:  # a read-only cache: nothing to share
-        yield
+        lock = open(directory / f"warm-up.{function.__module__}.{function.__qualname__}.lock", "a")
+    except OSError:  # a read-only cache
+        yield True
         return
     with lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
         try:
-            yield
+            fcntl.flock(lock, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            yield False
+            return
+        try:
+            yield True
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
-
-
-def warm_up_in_background() -> threading.Thread:
-    """:func:`warm_up` in a daemon thread, so that a server answers while it compiles (a search that needs
-    the kernels meanwhile waits for them in :func:`warm_up`)."""
-    thread = threading.Thread(target=warm_up, name="compile-kernels", daemon=True)
-    thread.start()
-    return thread

@@ -10,6 +10,19 @@ second; the server loads its own first, so that on a first start the index
 cache the workers read exist), and a job carries only its sequence and
 pattern.
 
+**Kernels first, while the server answers.**  Every worker, bulk ones too
+(an extraction needs them), loads the compiled kernels
+(:func:`app.compiled.warm_up`: 0.2-0.3 s from their cache; the first start
+after an install compiles them, 20-25 s of CPU shared among the workers)
+before it says it is ready, and takes no job before: a job is timed from
+when it is sent, and compiling inside it would run it past its hard limit.
+The server does not wait for them: :attr:`ComputePool.kernels_ready` is a
+future done once every lane has a ready worker (one log line says so,
+compiled or loaded, and when), and a request that needs the pool waits for
+it first, its time-out counted from then (:mod:`app.api.routes.common`), so
+nothing fails for a compilation while health, the console and the archive
+answer at once.
+
 The pool is written out here rather than taken from
 :class:`concurrent.futures.ProcessPoolExecutor` because the server needs
 four things that executor cannot give:
@@ -77,8 +90,14 @@ PARENT_CHECK_S = 0.2
 BULK_NICENESS = 19
 #: A worker that fails to start is started again after this many seconds, doubling up to the cap.
 RESTART_BACKOFF_S = (0.5, 30.0)
-#: How long :meth:`ComputePool.warm_up` waits for the workers to load the catalogue, seconds.
-WARM_UP_TIMEOUT_S = 120.0
+#: A worker stopped by SIGINT or SIGTERM before it could ignore them is replaced after this many seconds: the
+#: same stop reached the server (Ctrl-C in a terminal, a service manager), which is shutting down meanwhile.
+STOPPED_WHILE_STARTING_S = 5.0
+#: How long a request waits for :attr:`ComputePool.kernels_ready` at most, seconds: a first start compiles for
+#: 20-25 s of CPU on two cores (the catalogue index, when it is built, is the server's before it answers).
+WARM_UP_TIMEOUT_S = 180.0
+#: The modules whose import registers every compiled kernel's warm-up (:func:`app.compiled.warm_up_with`).
+KERNEL_MODULES = ("app.identification",)
 #: Default hard limit of one job, as a multiple of the search time-out (STARID_SEARCH_TIMEOUT_S).
 HARD_LIMIT_FACTOR = 3.0
 #: Hard limit of a job submitted without a deadline (background work, or callers with budgets of
@@ -164,8 +183,9 @@ def _lower_priority(niceness: int) -> None:
         os.nice(niceness)
 
 
-def _worker_main(conn, server_pid: int, load_sky: bool, niceness: int) -> None:
-    """A worker's life: set up, say ready, then run one job at a time until told to stop or orphaned."""
+def _worker_main(conn, server_pid: int, load_sky: bool, niceness: int, kernel_modules: tuple[str, ...]) -> None:
+    """A worker's life: set up, say ready (with the kernels' warm-up report), then run one job at a time until
+    told to stop or orphaned."""
     global worker_context
     _die_with_server(server_pid)
     # A Ctrl-C or a service manager's SIGTERM reaches the whole process group, workers included: the
@@ -179,15 +199,12 @@ def _worker_main(conn, server_pid: int, load_sky: bool, niceness: int) -> None:
     if load_sky:
         from app.identification import Sky
 
-        from app.compiled import warm_up
-
         sky = Sky().with_every_depth()  # loaded from the cache the server made (narrow fields need Hp 8)
-        # The identification's compiled kernels, before the worker says it is ready: loaded from their cache
-        # (0.2-0.3 s), or compiled on the first run after an install (15 s of CPU).  Compiling while a job
-        # waits would run it past its hard limit (a worker killed mid-compilation, measured).
-        warm_up()
+    # The compiled kernels, before the worker says it is ready: loaded from their cache (0.2-0.3 s), or
+    # compiled on the first run after an install.  Compiling while a job waits would run it past its hard
+    # limit (a worker killed mid-compilation, measured).  The server logs the report: a worker has no log.
+    conn.send(("ready", _warm_up_kernels(kernel_modules, say=False)))
     worker_context = WorkerContext(sky=sky)
-    conn.send(("ready",))
     while True:
         try:
             message = conn.recv()
@@ -206,6 +223,19 @@ def _worker_main(conn, server_pid: int, load_sky: bool, niceness: int) -> None:
             return
         except Exception as exc:  # noqa: BLE001 - an unpicklable result
             conn.send((job_id, False, RuntimeError(f"the result could not be sent back: {exc}")))
+
+
+def _warm_up_kernels(kernel_modules: tuple[str, ...], say: bool) -> dict | None:
+    """Import ``kernel_modules`` (registering their kernels' warm-ups) and warm them up; None when there are none."""
+    if not kernel_modules:
+        return None
+    import importlib
+
+    for name in kernel_modules:
+        importlib.import_module(name)
+    from app.compiled import warm_up
+
+    return warm_up(say=say)
 
 
 # ---------------------------------------------------------------------------
@@ -230,6 +260,7 @@ class _Worker:
     process: Any  # multiprocessing.Process
     conn: Any  # the server's end of the pipe
     ready: bool = False
+    warm_up: dict | None = None  # the kernels' warm-up report it sent with "ready"
     job: _Job | None = None
     started: float = 0.0  # when the current job was sent
     stopping: bool = False
@@ -252,14 +283,27 @@ class ComputePool:
     ``hard_limit_s``: a job running longer has its worker killed (default
     :data:`HARD_LIMIT_FACTOR` times the configured search time-out);
     ``load_sky`` False starts interactive workers without a catalogue (tests
-    of the pool itself).
+    of the pool itself).  ``kernel_modules``: what every worker (or, with
+    threads, the pool's own warm-up thread) imports and warms up before
+    :attr:`kernels_ready`; by default the product's kernels
+    (:data:`KERNEL_MODULES`) where the catalogue is loaded, none in a pool
+    without one.
     """
 
     def __init__(self, processes: int, *, threads: int = 1, sky: Any = None, bulk_processes: int | None = None,
-                 hard_limit_s: float | None = None, load_sky: bool = True) -> None:
+                 hard_limit_s: float | None = None, load_sky: bool = True,
+                 kernel_modules: tuple[str, ...] | None = None) -> None:
         from app.config import settings
 
         config = settings()
+        if kernel_modules is None:
+            kernel_modules = KERNEL_MODULES if (load_sky if processes else sky is not None) else ()
+        self._started = time.monotonic()
+        #: Done (with :func:`app.compiled.warm_up`'s report, summed over the workers) once every lane has a worker
+        #: with its kernels loaded; failed with :class:`WorkerLost` if the pool stops first.  Marked running at
+        #: once, so that a waiter giving up (an asyncio wrapper cancelled) cannot cancel it for everyone.
+        self.kernels_ready: Future = Future()
+        self.kernels_ready.set_running_or_notify_cancel()
         self.processes = max(0, int(processes))
         self._threads = max(1, threads)
         self._sky = sky
@@ -269,7 +313,6 @@ class ComputePool:
         self.bulk_processes = max(1, int(bulk)) if self.processes else 0
         # Re-entrant: a future's done-callback runs in the thread that completes it and may submit again.
         self._lock = threading.RLock()
-        self._ready_changed = threading.Condition(self._lock)
         self._closing = False
         self._ids = itertools.count(1)
         if not self.processes:
@@ -277,7 +320,10 @@ class ComputePool:
                 raise ValueError("a thread pool needs the server's Sky")
             self._executors = {INTERACTIVE: ThreadPoolExecutor(max_workers=self._threads, thread_name_prefix="compute"),
                                BULK: ThreadPoolExecutor(max_workers=1, thread_name_prefix="compute-bulk")}
+            threading.Thread(target=self._warm_up_here, args=(kernel_modules,), name="compile-kernels",
+                             daemon=True).start()
             return
+        self._kernel_modules = kernel_modules
         self._context = multiprocessing.get_context("spawn")
         self._lanes = {INTERACTIVE: _Lane(INTERACTIVE, self.processes, load_sky, 0),
                        BULK: _Lane(BULK, self.bulk_processes, False, BULK_NICENESS)}
@@ -322,29 +368,42 @@ class ComputePool:
         self._wake()
         return future
 
-    def warm_up(self, timeout_s: float = WARM_UP_TIMEOUT_S) -> bool:
-        """Wait until every worker has started (each loads the catalogue, ~1 s), at most ``timeout_s``.
+    @property
+    def ready(self) -> bool:
+        """Whether the kernels are ready (:attr:`kernels_ready`): jobs submitted now start as soon as a worker is free."""
+        return self.kernels_ready.done() and self.kernels_ready.exception() is None
 
-        The server calls this before it answers: a request that arrived while
-        the workers were still loading would spend its time-out waiting for
-        them.  Returns whether all were ready in time (if not, it is logged and
-        the requests of the first seconds may be answered 503).
-        """
-        if not self.processes:
-            return True
-        deadline = time.monotonic() + timeout_s
-        with self._ready_changed:
-            while not self._all_ready():
-                remaining = deadline - time.monotonic()
-                if remaining <= 0 or self._closing:
-                    log.error("the compute workers were not all ready after %.0f s", timeout_s)
-                    return False
-                self._ready_changed.wait(remaining)
-        return True
+    # --- the kernels --------------------------------------------------------
+    def _warm_up_here(self, kernel_modules: tuple[str, ...]) -> None:
+        """A thread pool's warm-up, in a thread of the server: jobs that need the kernels meanwhile wait for them
+        in :func:`app.compiled.warm_up`."""
+        try:
+            self._kernels_are_ready(_warm_up_kernels(kernel_modules, say=False))
+        except Exception as exc:  # noqa: BLE001 - logged; a job's own call of warm_up then says what fails
+            log.exception("the compiled kernels could not be loaded")
+            self.kernels_ready.set_exception(exc)
 
-    def _all_ready(self) -> bool:
-        return all(sum(1 for w in self._workers if w.lane == lane.name and w.ready) >= lane.size
-                   for lane in self._lanes.values())
+    def _kernels_are_ready(self, report: dict | None) -> None:
+        """Resolve :attr:`kernels_ready` with ``report`` and say in one log line what it took."""
+        from app.compiled import describe
+
+        where = (f"worker processes: {self.processes} search, {self.bulk_processes} bulk" if self.processes
+                 else "threads of the server")
+        said = f"; {describe(report)}" if report else ""
+        log.log(logging.WARNING if report and report["compiled"] else logging.INFO,
+                "compute ready %.1f s after start (%s)%s", time.monotonic() - self._started, where, said)
+        self.kernels_ready.set_result(report)
+
+    def _lanes_ready(self) -> None:
+        """Resolve :attr:`kernels_ready` once every lane has a ready worker (under the lock)."""
+        if self.kernels_ready.done():
+            return
+        ready = [w for w in self._workers if w.ready]
+        if all(any(w.lane == lane for w in ready) for lane in self._lanes):
+            reports = [w.warm_up for w in ready if w.warm_up]
+            self._kernels_are_ready({"seconds": max(r["seconds"] for r in reports),
+                                     "compiled": sum(r["compiled"] for r in reports),
+                                     "loaded": sum(r["loaded"] for r in reports)} if reports else None)
 
     def pids(self) -> list[int]:
         """Process ids of the live workers (tests and diagnostics)."""
@@ -363,13 +422,14 @@ class ComputePool:
         if not self.processes:
             for executor in self._executors.values():
                 executor.shutdown(wait=False, cancel_futures=True)
-            return
+            return  # a warm-up still running ends with the process (a daemon thread)
         with self._lock:
             if self._closing:
                 return
             self._closing = True
             self._stop_deadline = time.monotonic() + timeout_s
-            self._ready_changed.notify_all()  # nobody waits for a start that will not come
+            if not self.kernels_ready.done():  # nobody waits for a start that will not come
+                self.kernels_ready.set_exception(WorkerLost("the compute pool stopped before its workers were ready"))
         self._wake()
         self._dispatcher.join(timeout_s + 10.0)
         if self._dispatcher.is_alive():  # never expected: the dispatcher kills what does not stop
@@ -428,7 +488,8 @@ class ComputePool:
     def _start_worker(self, lane: _Lane) -> None:
         server_end, worker_end = self._context.Pipe(duplex=True)
         process = self._context.Process(target=_worker_main, name=f"starid-{lane.name}-worker",
-                                        args=(worker_end, os.getpid(), lane.load_sky, lane.niceness),
+                                        args=(worker_end, os.getpid(), lane.load_sky, lane.niceness,
+                                              self._kernel_modules),
                                         daemon=True)
         process.start()
         worker_end.close()  # the worker holds its own copy: EOF here means the worker is gone
@@ -489,9 +550,9 @@ class ComputePool:
             while worker.conn.poll():
                 message = worker.conn.recv()
                 if message[0] == "ready":
-                    worker.ready = True
+                    worker.ready, worker.warm_up = True, message[1]
                     self._lanes[worker.lane].failures = 0
-                    self._ready_changed.notify_all()
+                    self._lanes_ready()
                     continue
                 job_id, ok, value = message
                 job, worker.job = worker.job, None
@@ -525,6 +586,13 @@ class ComputePool:
             worker.job.future.set_exception(WorkerLost(f"the worker process {how} while running the job"))
             worker.job = None
         if not self._closing:
+            if not worker.ready and -(worker.process.exitcode or 0) in (signal.SIGINT, signal.SIGTERM):
+                # A stop sent to every process (Ctrl-C, a service manager) reached this worker before it could
+                # ignore it: the server got it too and is stopping.  Replaced later, if it is not.
+                lane.restart_at = time.monotonic() + STOPPED_WHILE_STARTING_S
+                log.info("compute worker %s (%s) was stopped by a signal while starting; another starts in %.0f s "
+                         "unless the server is stopping", worker.process.pid, worker.lane, STOPPED_WHILE_STARTING_S)
+                return
             if not worker.ready:
                 lane.failures += 1
                 low, high = RESTART_BACKOFF_S
@@ -559,6 +627,8 @@ class ComputePool:
             pass
 
     def _fail_everything(self, error: BaseException) -> None:
+        if not self.kernels_ready.done():
+            self.kernels_ready.set_exception(error)
         for lane in self._lanes.values():
             while lane.queue:
                 job = lane.queue.popleft()

@@ -122,22 +122,19 @@ def build_context(*, database: str | None = None, host: str = "127.0.0.1",
             sky = Sky().with_every_depth()  # a first start builds the deeper index the workers then load
             log.info("catalogue ready: %d stars to Hp %.1f, %d bright pairs", sky.index.n_stars,
                      sky.index.mag_limit, sky.index.n_pairs)
-            if not config.search_processes:
-                from app.compiled import warm_up_in_background
-
-                warm_up_in_background()  # the searches run here: their compiled kernels, while the server answers
-            else:
-                # After the Sky: on a first start it built the index cache the workers now load.
+            if config.search_processes:
+                # After the Sky: on a first start it built the index cache the workers now load.  Not waited
+                # for: the server answers while the workers load their kernels (compute.kernels_ready).
                 compute = ComputePool(config.search_workers, bulk_processes=config.bulk_workers,
                                       hard_limit_s=3 * config.search_timeout_s)
-                compute.warm_up()
     except BaseException:
         if compute is not None:
             compute.shutdown()
         storage.close()
         raise
     context = AppContext(storage=storage, sky=sky, settings=config, access=access, _compute=compute)
-    log.info("searches run in %s", context.compute.kind)
+    # Made here in either case, so that a thread pool's kernels warm up from the start as the workers' do.
+    log.info("searches run in %s; they wait for the compiled kernels, which load meanwhile", context.compute.kind)
     return context
 
 
@@ -154,4 +151,5 @@ def health(ctx: AppContext) -> HealthDocument:
     return HealthDocument(status="ok" if ok else "degraded", db=db, index=index_doc,
                           auth_required_for_writes=ctx.access.require_token,
                           max_upload_bytes=ctx.settings.max_upload_bytes,
-                          search_timeout_s=ctx.settings.search_timeout_s, search_workers=ctx.compute.kind)
+                          search_timeout_s=ctx.settings.search_timeout_s, search_workers=ctx.compute.kind,
+                          compute_ready=ctx.compute.ready)

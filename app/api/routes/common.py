@@ -16,7 +16,7 @@ from starlette.requests import ClientDisconnect
 from app.api.errors import ApiError
 from app.api.schemas import MAX_ID
 from app.workflow import AppContext, queue
-from app.workflow.compute import INTERACTIVE, JobExpired, JobKilled
+from app.workflow.compute import INTERACTIVE, WARM_UP_TIMEOUT_S, JobExpired, JobKilled
 from app.workflow.documents import UploadDocument
 
 #: An oversized body is read and thrown away up to this many bytes, so that a client that sends its
@@ -44,6 +44,10 @@ class Deadline:
 
     done_by: float
     start_by: float
+
+    def later(self, seconds: float) -> "Deadline":
+        """The same deadlines ``seconds`` later (the time spent waiting for the compute pool's kernels)."""
+        return Deadline(done_by=self.done_by + seconds, start_by=self.start_by + seconds)
 
 #: Path parameters are database integers.
 ID_LIMITS = {"ge": 1, "le": MAX_ID}
@@ -198,14 +202,39 @@ def busy(ctx: AppContext, what: str) -> ApiError:
                     headers={"Retry-After": "1"})
 
 
+async def wait_for_kernels(ctx: AppContext, what: str) -> float:
+    """Wait until the compute pool's workers have their compiled kernels; the seconds waited (0 once they have).
+
+    Only the first seconds after a start wait (0.3 s; 20-25 s on the first
+    start after an install, which compiles them); the rest of the server
+    answers meanwhile.  503 only if they are not ready within
+    :data:`app.workflow.compute.WARM_UP_TIMEOUT_S` (workers that cannot start).
+    """
+    ready = ctx.compute.kernels_ready
+    if ready.done() and ready.exception() is None:
+        return 0.0
+    t0 = time.monotonic()
+    try:
+        # The pool's future is marked running: a cancelled wrapper (a client gone) cannot cancel it for others.
+        await asyncio.wait_for(asyncio.wrap_future(ready), timeout=WARM_UP_TIMEOUT_S)
+    except Exception:  # noqa: BLE001 - not ready in time, or a pool stopping: the same answer
+        raise ApiError(503, f"{what} was not done: the server's compute workers are not ready (they load, on a "
+                            f"first start compile, their kernels; waited {time.monotonic() - t0:.0f} s). Nothing "
+                            "was stored; try again.", headers={"Retry-After": "10"}) from None
+    return time.monotonic() - t0
+
+
 async def compute_within(ctx: AppContext, deadline: Deadline, what: str, fn: Callable, *args,
                          lane: str = INTERACTIVE):
     """``fn(*args)`` in the compute pool, or 503 (:func:`busy`) when it is not done by ``deadline.done_by``.
 
     A job still queued at ``deadline.start_by`` is never started (the pool
     drops it), so a burst of requests that time out does not leave the
-    workers busy with answers nobody waits for.
+    workers busy with answers nobody waits for.  The deadlines count from
+    when the pool's kernels are ready (:func:`wait_for_kernels`): a request
+    sent while a first start compiles them waits, it is not timed out.
     """
+    deadline = deadline.later(await wait_for_kernels(ctx, what))
     future = ctx.compute.submit_within(fn, *args, lane=lane, deadline=deadline.start_by)
     try:
         # wrap_future passes a cancellation on to the pool's future: a queued job is dropped.

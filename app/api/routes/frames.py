@@ -17,7 +17,7 @@ from starlette.datastructures import UploadFile
 
 from app.api.errors import ApiError
 from app.api.routes.common import (ID_LIMITS, get_context, read_body_limited, replay_request, search_after_answer,
-                                   writer)
+                                   wait_for_kernels, writer)
 from app.api.schemas import SpacecraftName
 from app.frames import FrameLimits
 from app.timefmt import parse_utc_time
@@ -146,6 +146,7 @@ async def upload_frames(request: Request, background: BackgroundTasks,
     if isinstance(prepared, UploadDocument):  # the same frames were stored before
         search_after_answer(background, ctx, prepared, search)
         return JSONResponse(prepared.model_dump(mode="json"), status_code=200, background=background)
+    await wait_for_kernels(ctx, "the frames' reading")  # the time-out counts from when the workers are ready
     deadline = limits.timeout_s + FRAMES_GRACE_S
     # The bulk lane: whole frames are heavy, and must never hold up the ordinary searches; a job still
     # queued when its answer is due is dropped, not started.
