@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from scipy.optimize import linear_sum_assignment
 
+from app.attitude import solve_wahba
 from app.attitude.rotations import rotation_from_rotvec
 from app.camera import CAMERAS
 from app.extraction import extract, linking, motion
@@ -188,22 +189,28 @@ def test_scores_kernel_matches_the_numpy_scores_on_random_hypotheses():
 
 @pytest.fixture(scope="module")
 def recorded_calls():
-    """The arguments of the extraction's kernels while extracting simulated sequences (ghosts, three cameras)."""
-    calls = {"scores": []}
-    scores = motion._scores
+    """The arguments of the extraction's kernels while extracting simulated sequences (three cameras)."""
+    kernels = {"scores": (motion, "_scores"), "refine_links": (motion, "_refine_links"),
+               "refine_to_common": (linking, "_refine_to_common")}
+    originals = {name: getattr(module, attribute) for name, (module, attribute) in kernels.items()}
+    calls = {name: [] for name in kernels}
 
-    def record_scores(*args):
-        calls["scores"].append(args)
-        return scores(*args)
+    def recorder(name):
+        def record(*args):
+            calls[name].append(tuple(a.copy() if isinstance(a, np.ndarray) else a for a in args))
+            return originals[name](*args)
+        return record
 
-    motion._scores = record_scores
+    for name, (module, attribute) in kernels.items():
+        setattr(module, attribute, recorder(name))
     try:
         rng = np.random.default_rng(3)
         for scenario in ("ghosts3", "nominal", "sparse"):
             for camera in CAMERAS.values():
                 extract(simulate_sequence(rng, camera, scenario)[0])
     finally:
-        motion._scores = scores
+        for name, (module, attribute) in kernels.items():
+            setattr(module, attribute, originals[name])
     return calls
 
 
@@ -213,3 +220,149 @@ def test_scores_kernel_matches_the_numpy_scores_on_real_hypotheses(recorded_call
         vectors, gate = args[3], args[4]
         np.testing.assert_allclose(motion._scores(*args), scores_reference(*args), rtol=0,
                                    atol=_score_rounding(vectors, gate))
+
+
+# --- the numpy refinement of each link's best hypotheses, as it was before the kernel --------------------
+
+def nearest_chord_sq_reference(rotation, va, vb):
+    pred = np.matmul(va, np.swapaxes(rotation, -1, -2))
+    return 2.0 - 2.0 * np.matmul(pred, np.swapaxes(vb, -1, -2))
+
+
+def mutual_matches_reference(d2, gate_sq):
+    nearest_b = np.argmin(d2, axis=2)
+    nearest_a = np.argmin(d2, axis=1)
+    back = np.take_along_axis(nearest_a, nearest_b, axis=1)
+    best = np.take_along_axis(d2, nearest_b[..., None], axis=2)[..., 0]
+    mutual = (back == np.arange(d2.shape[1])) & (best < gate_sq)
+    return nearest_b, mutual
+
+
+def refit_reference(rotation, va, vb, gate):
+    d2 = nearest_chord_sq_reference(rotation, va, vb)
+    match, mutual = mutual_matches_reference(d2, gate**2)
+    refined = solve_wahba(np.take_along_axis(vb, match[..., None], axis=1), va, mutual.astype(float))
+    return np.where((mutual.sum(axis=1) >= 2)[:, None, None], refined, rotation)
+
+
+def refine_links_reference(hyp_r, score, link, links, vectors, fit_gate, n_refine):
+    """The numpy steps of estimate_pair_rotations from the scores to the winner's matches, as the kernel
+    returns them: (L, 3, 3) rotations (NaN without hypotheses), (L, N) matches (-1: none), (L, N) their
+    squared chords (0 elsewhere)."""
+    order = np.lexsort((-score, link))
+    sorted_link = link[order]
+    group_start = np.flatnonzero(np.r_[True, sorted_link[1:] != sorted_link[:-1]])
+    rank = np.arange(len(order)) - np.repeat(group_start, np.diff(np.r_[group_start, len(order)]))
+    keep = order[rank < n_refine]
+    found = link[keep]
+    va, vb = vectors[links[found, 0]], vectors[links[found, 1]]
+    r = refit_reference(hyp_r[keep], va, vb, fit_gate)
+    d2 = nearest_chord_sq_reference(r, va, vb)
+    match, mutual = mutual_matches_reference(d2, fit_gate**2)
+    best_d2 = np.take_along_axis(d2, match[..., None], axis=2)[..., 0]
+    fit_score = np.where(mutual, 1.0 - best_d2 / fit_gate**2, 0.0).sum(axis=1)
+    order = np.lexsort((-fit_score, found))
+    winner = order[np.r_[True, found[order][1:] != found[order][:-1]]]
+    found, va, vb = found[winner], va[winner], vb[winner]
+    r = refit_reference(r[winner], va, vb, fit_gate)
+    d2 = nearest_chord_sq_reference(r, va, vb)
+    match, mutual = mutual_matches_reference(d2, fit_gate**2)
+    best = np.take_along_axis(d2, match[..., None], axis=2)[..., 0]
+    rotation = np.full((len(links), 3, 3), np.nan)
+    matches = np.full((len(links), vectors.shape[1]), -1)
+    match_sq = np.zeros((len(links), vectors.shape[1]))
+    rotation[found] = r
+    matches[found] = np.where(mutual, match, -1)
+    match_sq[found] = np.where(mutual, best, 0.0)
+    return rotation, matches, match_sq
+
+
+def _assert_same_refinement(args):
+    rotation, matches, match_sq = motion._refine_links(*args)
+    expected_rotation, expected_matches, expected_sq = refine_links_reference(*args)
+    np.testing.assert_array_equal(np.isnan(rotation), np.isnan(expected_rotation))
+    np.testing.assert_allclose(rotation, expected_rotation, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(matches, expected_matches)
+    np.testing.assert_allclose(match_sq, expected_sq, rtol=0, atol=1e-14)
+    return np.count_nonzero(matches >= 0)
+
+
+def test_refine_links_kernel_matches_the_numpy_refinement_on_random_links():
+    """Links of random snapshots; each scored hypothesis is the true rotation give or take an error, some
+    far off; some links get no hypothesis at all."""
+    rng = np.random.default_rng(9)
+    matched = 0
+    for n in (3, 10, 25):
+        for _ in range(20):
+            vectors, turn = _random_snapshots(rng, 5, n)
+            links = np.array([[0, 1], [1, 2], [2, 3], [3, 4], [0, 2], [1, 3]])
+            per_link = rng.integers(0, 9, len(links))
+            link = np.repeat(np.arange(len(links)), per_link)
+            sa, sb = links[link, 0], links[link, 1]
+            error = rotation_from_rotvec(rng.normal(0, 2e-3, (len(link), 3)) * rng.choice([1, 30], (len(link), 1)))
+            hyp_r = error @ turn[sb] @ np.swapaxes(turn[sa], 1, 2)
+            score = scores_reference(hyp_r, sa, sb, vectors, 0.01)
+            matched += _assert_same_refinement((hyp_r, score, link, links, vectors, 0.005, 4))
+    assert matched > 500
+
+
+def test_refine_links_kernel_matches_the_numpy_refinement_on_real_links(recorded_calls):
+    assert len(recorded_calls["refine_links"]) >= 9
+    assert sum(_assert_same_refinement(args) for args in recorded_calls["refine_links"]) > 500
+
+
+# --- the numpy re-solve of each snapshot's rotation into the common frame, before the kernel ----------
+
+def refine_to_common_reference(vectors, snap, label, to_common):
+    n_snap = len(to_common)
+    sizes = np.bincount(label[label >= 0]) if np.any(label >= 0) else np.zeros(0, dtype=int)
+    size = np.where(label >= 0, sizes[np.maximum(label, 0)] if len(sizes) else 0, 0)
+    in_track = size >= 2
+    if not np.any(in_track):
+        return to_common
+    common = np.matmul(to_common[snap], vectors[:, :, None])[:, :, 0]
+    live = np.where(in_track, label, -1)
+    sums = np.zeros((int(live.max()) + 1, 3))
+    np.add.at(sums, live[live >= 0], common[live >= 0])
+    means = _normalized(sums[label[in_track]])
+    rows = snap[in_track]
+    counts = np.bincount(rows, minlength=n_snap)
+    slots = np.arange(len(rows)) - np.repeat(np.cumsum(counts) - counts, counts)
+    width = int(counts.max())
+    body = np.zeros((n_snap, width, 3))
+    ref = np.zeros((n_snap, width, 3))
+    weight = np.zeros((n_snap, width))
+    body[rows, slots] = means
+    ref[rows, slots] = vectors[in_track]
+    weight[rows, slots] = 1.0
+    refined = solve_wahba(body, ref, weight)
+    return np.where((counts >= 2)[:, None, None], refined, to_common)
+
+
+def test_refine_to_common_kernel_matches_the_numpy_re_solve_on_random_tracks():
+    """Stars seen from turned snapshots, rotations into the common frame a little off; labels with one
+    sighting, unlabelled sources, and snapshots with fewer than two tracked sources (kept as they are)."""
+    rng = np.random.default_rng(13)
+    kept = 0
+    for _ in range(200):
+        n_snap, n_stars = int(rng.integers(2, 8)), int(rng.integers(1, 15))
+        sky = _normalized(np.column_stack([rng.normal(0, 0.1, (n_stars, 2)), np.ones(n_stars)]))
+        turn = rotation_from_rotvec(rng.normal(0, 0.03, (n_snap, 3)))
+        seen = rng.random((n_snap, n_stars)) < 0.7
+        snap, star = np.nonzero(seen)
+        vectors = _normalized(np.einsum("kij,kj->ki", turn[snap], sky[star]) + rng.normal(0, 1e-4, (len(snap), 3)))
+        label = np.where(rng.random(len(snap)) < 0.9, star, -1)
+        to_common = rotation_from_rotvec(rng.normal(0, 1e-3, (n_snap, 3))) @ np.swapaxes(turn, 1, 2)
+        refined = linking._refine_to_common(vectors, snap, label, to_common)
+        expected = refine_to_common_reference(vectors, snap, label, to_common)
+        np.testing.assert_allclose(refined, expected, rtol=0, atol=1e-12)
+        kept += int(np.sum(np.all(refined == to_common, axis=(1, 2))))
+        assert np.abs(refined - to_common).max() > 1e-6 or np.all(refined == to_common)
+    assert kept > 20  # snapshots with too few tracked sources were among them
+
+
+def test_refine_to_common_kernel_matches_the_numpy_re_solve_on_real_tracks(recorded_calls):
+    assert len(recorded_calls["refine_to_common"]) >= 18
+    for args in recorded_calls["refine_to_common"]:
+        np.testing.assert_allclose(linking._refine_to_common(*args), refine_to_common_reference(*args),
+                                   rtol=0, atol=1e-12)

@@ -73,11 +73,10 @@ import math
 
 import numpy as np
 
-from app.attitude import solve_wahba
 from app.compiled import njit, warm_up_with
 from app.extraction.assignment import min_cost_assignment
 from app.extraction.model import GHOST, HOT_PIXEL, OUTLIER, Extraction, ExtractionParameters, Track
-from app.extraction.motion import estimate_pair_rotations, expand_ranges
+from app.extraction.motion import estimate_pair_rotations, expand_ranges, wahba_rotation
 from app.extraction.pattern import carried_tracks, seed_pattern, tracks_pattern
 from app.telemetry.model import Sequence
 
@@ -125,8 +124,9 @@ def _brightest_sources(valid: np.ndarray, brightness: np.ndarray, k: int) -> np.
 
 def _accepted_links(links: np.ndarray, result) -> dict:
     """{(a, b): (R, matches, number of matches)} of the links that got a rotation."""
-    return {(int(a), int(b)): (result.rotation[k], result.matches[k], int(result.n_inliers[k]))
-            for k, (a, b) in enumerate(links) if np.isfinite(result.rotation[k, 0, 0])}
+    ok = np.flatnonzero(np.isfinite(result.rotation[:, 0, 0]))
+    return {(a, b): (result.rotation[k], result.matches[k], n)
+            for k, (a, b), n in zip(ok, links[ok].tolist(), result.n_inliers[ok].tolist())}
 
 
 def _chain_motions(vectors: np.ndarray, brightness: np.ndarray, valid: np.ndarray, chord_px: float,
@@ -296,33 +296,43 @@ def _rejoin_components(camera, vectors: np.ndarray, brightness: np.ndarray, snap
         groups = relabel[groups]
 
 
+@njit
 def _refine_to_common(vectors: np.ndarray, snap: np.ndarray, label: np.ndarray,
                       to_common: np.ndarray) -> np.ndarray:
     """Each snapshot's rotation into the common frame re-solved against track means (Wahba).
 
     Only labels with two or more sightings count; snapshots with fewer than
-    two such sightings keep their rotation.
+    two such sightings keep their rotation.  A track's mean is the normalised
+    sum of its sightings carried into the common frame (``A_s v``); snapshot
+    s's new rotation is the R minimising sum |mean - R v| over its sightings
+    (:func:`app.extraction.motion.wahba_rotation`).
     """
-    n_snap = len(to_common)
-    size = _track_sizes(label)
-    in_track = size >= 2
-    if not np.any(in_track):
-        return to_common
-    common = _rotate(to_common[snap], vectors)
-    sums = _track_sums(np.where(in_track, label, -1), common)
-    means = _normalized(sums[label[in_track]])
-    rows = snap[in_track]  # nondecreasing: sources are flattened snapshot by snapshot
-    counts = np.bincount(rows, minlength=n_snap)
-    slots = np.arange(len(rows)) - np.repeat(np.cumsum(counts) - counts, counts)
-    width = int(counts.max())
-    body = np.zeros((n_snap, width, 3))
-    ref = np.zeros((n_snap, width, 3))
-    weight = np.zeros((n_snap, width))
-    body[rows, slots] = means
-    ref[rows, slots] = vectors[in_track]
-    weight[rows, slots] = 1.0
-    refined = solve_wahba(body, ref, weight)
-    return np.where((counts >= 2)[:, None, None], refined, to_common)
+    n_snap = to_common.shape[0]
+    size = np.zeros(label.shape[0], dtype=np.int64)  # labels are below the number of sources
+    for i in range(label.shape[0]):
+        if label[i] >= 0:
+            size[label[i]] += 1
+    sums = np.zeros((label.shape[0], 3))
+    for i in range(label.shape[0]):
+        if label[i] >= 0 and size[label[i]] >= 2:
+            A = to_common[snap[i]]
+            for r in range(3):
+                sums[label[i], r] += A[r, 0] * vectors[i, 0] + A[r, 1] * vectors[i, 1] + A[r, 2] * vectors[i, 2]
+    profile = np.zeros((n_snap, 3, 3))
+    count = np.zeros(n_snap, dtype=np.int64)
+    for i in range(label.shape[0]):
+        if label[i] >= 0 and size[label[i]] >= 2:
+            x, y, z = sums[label[i]]
+            mean = sums[label[i]] / np.sqrt(x * x + y * y + z * z)
+            for r in range(3):
+                for c in range(3):
+                    profile[snap[i], r, c] += mean[r] * vectors[i, c]
+            count[snap[i]] += 1
+    refined = to_common.copy()
+    for s in range(n_snap):
+        if count[s] >= 2:
+            refined[s] = wahba_rotation(profile[s])
+    return refined
 
 
 def _same_pixel_pairs(xy: np.ndarray, snap: np.ndarray, tol: float,
@@ -469,9 +479,10 @@ def _associate_kernel(common, comp, usable, bounds, max_cost):
 
 @warm_up_with
 def _warm_up_association() -> None:
-    """Compile :func:`_associate_kernel` for the arrays :func:`_associate` passes."""
+    """Compile :func:`_associate_kernel` and :func:`_refine_to_common` for the arrays extraction passes."""
     common = np.array([[0.0, 0.0, 1.0], [0.0, 0.001, 1.0], [0.0, 0.0, 1.0], [0.001, 0.0, 1.0]])
     _associate(common, np.array([0, 0, 1, 1]), np.zeros(4, dtype=int), np.ones(4, dtype=bool), 0.01)
+    _refine_to_common(common, np.array([0, 0, 1, 1]), np.array([0, 1, 0, 1]), np.tile(np.eye(3), (2, 1, 1)))
 
 
 def _track_sizes(label: np.ndarray) -> np.ndarray:
@@ -720,22 +731,20 @@ def _verdicts(sequence: Sequence, snap: np.ndarray, index: np.ndarray, label: np
     in_track = np.flatnonzero(track_id >= 0)
     by_track = in_track[np.argsort(track_id[in_track], kind="stable")]  # stable: snapshot order kept
     sizes = np.bincount(track_id[in_track], minlength=len(old_ids))
-    split = np.cumsum(sizes)[:-1]
+    ends = np.cumsum(sizes).tolist()
     mean_brightness = np.bincount(track_id[in_track], brightness[in_track], len(old_ids)) / np.maximum(sizes, 1)
-    tracks = tuple(Track(id=tid, snapshots=s_, source_indices=i_, xy=xy_, mean_brightness=float(b_))
-                   for tid, (s_, i_, xy_, b_) in enumerate(zip(np.split(snap[by_track], split),
-                                                              np.split(index[by_track], split),
-                                                              np.split(xy[by_track], split),
-                                                              mean_brightness)))
+    snaps, indices, points = snap[by_track], index[by_track], xy[by_track]
+    tracks = tuple(Track(id=tid, snapshots=snaps[start:end], source_indices=indices[start:end], xy=points[start:end],
+                         mean_brightness=b)
+                   for tid, (start, end, b) in enumerate(zip([0] + ends[:-1], ends, mean_brightness.tolist())))
 
     reason = np.full(len(label), GHOST, dtype=object)
     reason[outlier] = OUTLIER
     reason[hot] = HOT_PIXEL
     reason[track_id >= 0] = None
-    bounds = np.searchsorted(snap, np.arange(len(sequence.snapshots) + 1))
-    track_of_source, rejection = [], []
-    for s, snapshot in enumerate(sequence.snapshots):
-        # every source of a snapshot is in the flattened list, in input order
-        track_of_source.append(track_id[bounds[s]:bounds[s + 1]].copy())
-        rejection.append(tuple(reason[bounds[s]:bounds[s + 1]]))
-    return tracks, tuple(track_of_source), tuple(rejection)
+    bounds = np.searchsorted(snap, np.arange(len(sequence.snapshots) + 1)).tolist()
+    reasons = reason.tolist()
+    # every source of a snapshot is in the flattened list, in input order
+    track_of_source = tuple(track_id[start:end].copy() for start, end in zip(bounds[:-1], bounds[1:]))
+    rejection = tuple(tuple(reasons[start:end]) for start, end in zip(bounds[:-1], bounds[1:]))
+    return tracks, track_of_source, rejection

@@ -3,7 +3,7 @@
 Between two snapshots the satellite has turned, so the stars of snapshot
 ``a`` reappear in snapshot ``b`` rotated by one rotation ``R`` (``v_b = R
 v_a`` for camera-frame unit vectors), while ghosts and hot pixels do not
-follow it.  ``R`` is found by a vectorised RANSAC:
+follow it.  ``R`` is found by RANSAC:
 
 1. *Hypotheses.*  A rotation preserves angles, so a pair of sources
    (a1, a2) of snapshot a can only be a pair of stars (b1, b2) of snapshot
@@ -18,13 +18,16 @@ follow it.  ``R`` is found by a vectorised RANSAC:
    b (a truncated quadratic, MSAC: near misses count less than exact hits,
    which breaks ties between hypotheses with the same inlier count).
 3. *Refine.*  The few best hypotheses of each pair are refined by Wahba's
-   problem (SVD, :func:`app.attitude.solve_wahba`'s method, batched) on
-   mutual nearest neighbours within the fit gate; the refined one whose
+   problem (SVD, :func:`wahba_rotation`) on mutual nearest neighbours
+   within the fit gate; the refined one whose
    matches fit best wins and is refined once more (with three or four common stars a wrong
    hypothesis plus one chance match can tie in inlier count, never in fit).
 
-Everything is done for all snapshot pairs in a handful of numpy calls, no
-Python loop over hypotheses or pairs.  Chords stand in for angles: they
+The hypotheses of all snapshot pairs are found in a handful of numpy calls
+(the pairs' chords sorted together); scoring and refinement, a few
+arithmetic operations per source pair, are compiled loops over the
+hypotheses (:func:`_scores`, :func:`_refine_links`), where numpy would pay
+its call overhead for every small array.  Chords stand in for angles: they
 are monotonic in the angle, accurate for small angles and need no arccos.
 
 **Bounded work.**  Scoring costs (hypotheses) x (sources of a) x (sources
@@ -36,8 +39,7 @@ the identification search caps its work, each link scores at most
 those of the brightest sources first (a star is more often bright than a
 ghost, and the seed, too, starts from the brightest stars).  Below the cap
 nothing is dropped or reordered, so ordinary telemetry extracts exactly as
-without it; and the scoring, a compiled loop (:func:`_scores`), holds
-nothing but the scores in memory.
+without it; and the scoring holds nothing but the scores in memory.
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ import numpy as np
 
 from scipy.special import gammaln
 
-from app.attitude import rotation_from_pair, solve_wahba
+from app.attitude import rotation_from_pair
 from app.compiled import njit, warm_up_with
 
 #: Slot width separating the chords of different snapshot pairs in one
@@ -142,8 +144,8 @@ def _brightest_first(group: np.ndarray, rank: np.ndarray, count: np.ndarray, cap
     order), whole while they fit; the one that crosses the cap is cut short
     and the rest get 0.  A group whose total fits keeps everything.
     """
-    if len(group) == 0:
-        return count
+    if len(group) == 0 or np.all(np.bincount(group, count) <= cap[:group.max() + 1]):
+        return count  # every group fits (ordinary telemetry): nothing to sort
     order = np.lexsort((np.arange(len(group)), rank, group))
     counts = count[order]
     ends = np.cumsum(counts)
@@ -155,25 +157,6 @@ def _brightest_first(group: np.ndarray, rank: np.ndarray, count: np.ndarray, cap
     result = np.empty_like(count)
     result[order] = kept
     return result
-
-
-def _nearest_chord_sq(rotation: np.ndarray, va: np.ndarray, vb: np.ndarray) -> np.ndarray:
-    """(H, Na, Nb) squared chords |R v_a - v_b|^2 = 2 - 2 (R v_a).v_b.
-
-    Zero padding rows come out at 2 (a right angle), beyond every gate.
-    """
-    pred = np.matmul(va, np.swapaxes(rotation, -1, -2))  # (H, Na, 3) = (R v_a)^T
-    return 2.0 - 2.0 * np.matmul(pred, np.swapaxes(vb, -1, -2))
-
-
-def _mutual_matches(d2: np.ndarray, gate_sq: float) -> tuple[np.ndarray, np.ndarray]:
-    """Mutual nearest neighbours within the gate: (match index in b per a, mask)."""
-    nearest_b = np.argmin(d2, axis=2)  # (L, Na)
-    nearest_a = np.argmin(d2, axis=1)  # (L, Nb)
-    back = np.take_along_axis(nearest_a, nearest_b, axis=1)
-    best = np.take_along_axis(d2, nearest_b[..., None], axis=2)[..., 0]
-    mutual = (back == np.arange(d2.shape[1])) & (best < gate_sq)
-    return nearest_b, mutual
 
 
 def false_alarms(n_hypotheses, n_a, n_b, n_inliers, radius_sq, field_area) -> np.ndarray:
@@ -194,14 +177,6 @@ def false_alarms(n_hypotheses, n_a, n_b, n_inliers, radius_sq, field_area) -> np
                  - gammaln(np.maximum(np.asarray(n_a) - 2 - extra, 0) + 1.0))
     with np.errstate(divide="ignore"):
         return np.asarray(n_hypotheses) * np.exp(log_binom + extra * np.log(p))
-
-
-def _refit(rotation: np.ndarray, va: np.ndarray, vb: np.ndarray, gate: float) -> np.ndarray:
-    """One Wahba re-solve of each rotation on its mutual matches within the gate (kept if < 2)."""
-    d2 = _nearest_chord_sq(rotation, va, vb)
-    match, mutual = _mutual_matches(d2, gate**2)
-    refined = solve_wahba(np.take_along_axis(vb, match[..., None], axis=1), va, mutual.astype(float))
-    return np.where((mutual.sum(axis=1) >= 2)[:, None, None], refined, rotation)
 
 
 @njit
@@ -231,6 +206,109 @@ def _scores(rotation, va_index, vb_index, vectors, score_gate):
             total += max(0.0, 1.0 - (2.0 - 2.0 * best) / gate_sq)
         score[h] = total
     return score
+
+
+@njit
+def _mutual_matches(rotation, va, vb, gate_sq):
+    """Mutual nearest neighbours within the gate of ``rotation @ va[i]`` and ``vb[j]``.
+
+    Returns (N,) the source of b matched to each source of a (-1: none) and (N,) the squared chord of each
+    match (0 elsewhere).  Chords come as ``2 - 2 (R v_a).v_b``; zero padding rows are at 2 (a right angle),
+    beyond every gate.  Ties go to the first source, as numpy's argmin gives them.
+    """
+    n_a, n_b = va.shape[0], vb.shape[0]
+    d2 = np.empty((n_a, n_b))
+    for i in range(n_a):
+        p0 = rotation[0, 0] * va[i, 0] + rotation[0, 1] * va[i, 1] + rotation[0, 2] * va[i, 2]
+        p1 = rotation[1, 0] * va[i, 0] + rotation[1, 1] * va[i, 1] + rotation[1, 2] * va[i, 2]
+        p2 = rotation[2, 0] * va[i, 0] + rotation[2, 1] * va[i, 1] + rotation[2, 2] * va[i, 2]
+        for j in range(n_b):
+            d2[i, j] = 2.0 - 2.0 * (p0 * vb[j, 0] + p1 * vb[j, 1] + p2 * vb[j, 2])
+    match = np.full(n_a, -1)
+    match_sq = np.zeros(n_a)
+    for i in range(n_a):
+        j = np.argmin(d2[i])
+        if np.argmin(d2[:, j]) == i and d2[i, j] < gate_sq:
+            match[i] = j
+            match_sq[i] = d2[i, j]
+    return match, match_sq
+
+
+@njit
+def _refit(rotation, va, vb, gate_sq):
+    """``rotation`` re-solved by Wahba's problem on its mutual matches within the gate (kept with fewer than
+    two): :func:`wahba_rotation` of B = sum_i v_b(i) v_a(i)^T."""
+    match, _ = _mutual_matches(rotation, va, vb, gate_sq)
+    B = np.zeros((3, 3))
+    for i in range(va.shape[0]):
+        if match[i] >= 0:
+            for r in range(3):
+                for c in range(3):
+                    B[r, c] += vb[match[i], r] * va[i, c]
+    if np.sum(match >= 0) < 2:
+        return rotation
+    return wahba_rotation(B)
+
+
+@njit
+def wahba_rotation(B):
+    """The rotation R minimising sum_i |b_i - R a_i|^2 from its attitude profile B = sum_i b_i a_i^T.
+
+    With B = U S V^T, R = U diag(1, 1, det U V^T) V^T (:func:`app.attitude.solve_wahba`'s SVD method):
+    where U V^T is a reflection, the axis of the smallest singular value is flipped.
+    """
+    U, _, Vt = np.linalg.svd(B)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        for r in range(3):
+            for c in range(3):
+                R[r, c] -= 2.0 * U[r, 2] * Vt[2, c]
+    return R
+
+
+@njit
+def _refine_links(hypotheses, score, link, links, vectors, fit_gate, n_refine):
+    """Each link's best rotation from its scored hypotheses (module docstring, step 3), and its matches.
+
+    ``hypotheses`` (H, 3, 3) are grouped by ``link``; link l relates snapshot ``links[l, 0]`` to ``links[l, 1]``.
+    The ``n_refine`` best scored of a link (the first on ties) are refined once (:func:`_refit`); the one
+    whose mutual matches fit best (truncated quadratic sum_i max(0, 1 - d_i^2 / g^2)) wins, the first on
+    ties, and is refined once more.  Returns (L, 3, 3) rotations (NaN for a link without hypotheses),
+    (L, N) matches of the winner (-1: none) and (L, N) their squared chords (0 elsewhere).
+    """
+    n = vectors.shape[1]
+    gate_sq = fit_gate * fit_gate
+    n_links = links.shape[0]
+    rotation = np.full((n_links, 3, 3), np.nan)
+    matches = np.full((n_links, n), -1)
+    match_sq = np.zeros((n_links, n))
+    start = 0
+    while start < link.shape[0]:
+        lk = link[start]
+        stop = start
+        while stop < link.shape[0] and link[stop] == lk:
+            stop += 1
+        va, vb = vectors[links[lk, 0]], vectors[links[lk, 1]]
+        taken = np.zeros(stop - start, dtype=np.bool_)
+        best_fit, winner = -np.inf, np.empty((3, 3))
+        for _ in range(min(n_refine, stop - start)):
+            pick = -1  # the best score not yet refined, the first on ties
+            for h in range(stop - start):
+                if not taken[h] and (pick < 0 or score[start + h] > score[start + pick]):
+                    pick = h
+            taken[pick] = True
+            r = _refit(hypotheses[start + pick], va, vb, gate_sq)
+            match, d2 = _mutual_matches(r, va, vb, gate_sq)
+            fit = 0.0
+            for i in range(n):
+                if match[i] >= 0:
+                    fit += 1.0 - d2[i] / gate_sq
+            if fit > best_fit:
+                best_fit, winner = fit, r
+        rotation[lk] = _refit(winner, va, vb, gate_sq)
+        matches[lk], match_sq[lk] = _mutual_matches(rotation[lk], va, vb, gate_sq)
+        start = stop
+    return rotation, matches, match_sq
 
 
 def estimate_pair_rotations(vectors: np.ndarray, hypothesis_sources: np.ndarray, links: np.ndarray, *,
@@ -265,9 +343,9 @@ def estimate_pair_rotations(vectors: np.ndarray, hypothesis_sources: np.ndarray,
     hyp_vectors = np.take_along_axis(padded, np.where(hypothesis_sources < 0, vectors.shape[1],
                                                       hypothesis_sources)[..., None], axis=1)
     chords, pi, pj = _pair_chords(hyp_vectors)
+    n_sources = (np.abs(vectors).sum(axis=2) > 0).sum(axis=1)  # zero rows are padding
     cap = None
     if max_work is not None:
-        n_sources = (np.abs(vectors).sum(axis=2) > 0).sum(axis=1)  # zero rows are padding
         cost = np.maximum(1, n_sources[links[:, 0]] * n_sources[links[:, 1]])
         cap = np.maximum(min_hypotheses, max_work // cost)
     link, a1, a2, b1, b2 = _hypotheses(chords, pi, pj, links, pair_tol, min_baseline, cap)
@@ -278,48 +356,27 @@ def estimate_pair_rotations(vectors: np.ndarray, hypothesis_sources: np.ndarray,
     hyp_r = rotation_from_pair(hyp_vectors[sb, b1], hyp_vectors[sb, b2],
                                hyp_vectors[sa, a1], hyp_vectors[sa, a2])
     score = _scores(hyp_r, sa, sb, vectors, score_gate)
-
-    # the best few hypotheses per link: sort by (link, -score), keep each group's head
-    order = np.lexsort((-score, link))
-    sorted_link = link[order]
-    group_start = np.flatnonzero(np.r_[True, sorted_link[1:] != sorted_link[:-1]])
-    rank = np.arange(len(order)) - np.repeat(group_start, np.diff(np.r_[group_start, len(order)]))
-    keep = order[rank < n_refine]
-    found = link[keep]
-    va, vb = vectors[links[found, 0]], vectors[links[found, 1]]
-    r = _refit(hyp_r[keep], va, vb, fit_gate)
-    # among a link's refined candidates the one whose matches fit best wins
-    # (truncated quadratic again): a chance match that made a wrong
-    # hypothesis tie in inliers leaves a visibly larger residual
-    d2 = _nearest_chord_sq(r, va, vb)
-    match, mutual = _mutual_matches(d2, fit_gate**2)
-    best_d2 = np.take_along_axis(d2, match[..., None], axis=2)[..., 0]
-    fit_score = np.where(mutual, 1.0 - best_d2 / fit_gate**2, 0.0).sum(axis=1)
-    order = np.lexsort((-fit_score, found))
-    winner = order[np.r_[True, found[order][1:] != found[order][:-1]]]
-    found, va, vb = found[winner], va[winner], vb[winner]
-    r = _refit(r[winner], va, vb, fit_gate)
-
-    d2 = _nearest_chord_sq(r, va, vb)
-    match, mutual = _mutual_matches(d2, fit_gate**2)
-    count = mutual.sum(axis=1)
-    best = np.take_along_axis(d2, match[..., None], axis=2)[..., 0]
-    radius_sq = np.maximum(np.where(mutual, best, 0.0).max(axis=1), min_radius**2)
+    # among a link's refined candidates the one whose matches fit best wins (truncated quadratic again):
+    # a chance match that made a wrong hypothesis tie in inliers leaves a visibly larger residual
+    refined, match, match_sq = _refine_links(hyp_r, score, link, links, vectors, fit_gate, n_refine)
+    found = np.flatnonzero(np.isfinite(refined[:, 0, 0]))
+    count = (match[found] >= 0).sum(axis=1)
+    radius_sq = np.maximum(match_sq[found].max(axis=1), min_radius**2)
     n_hyp = np.bincount(link, minlength=n_links)[found]
-    n_a = (np.abs(va).sum(axis=2) > 0).sum(axis=1)
-    n_b = (np.abs(vb).sum(axis=2) > 0).sum(axis=1)
-    nfa = false_alarms(n_hyp, n_a, n_b, count, radius_sq, field_area)
-    ok = (count >= min_inliers) & (nfa <= max_false_alarms)
-    rotation[found[ok]] = r[ok]
+    nfa = false_alarms(n_hyp, n_sources[links[found, 0]], n_sources[links[found, 1]], count, radius_sq,
+                       field_area)
+    ok = found[(count >= min_inliers) & (nfa <= max_false_alarms)]
+    rotation[ok] = refined[ok]
     n_inliers[found] = count
     matches = np.full((n_links, vectors.shape[1]), -1, dtype=int)
-    matches[found[ok]] = np.where(mutual[ok], match[ok], -1)
-    inlier_sq = best[ok][mutual[ok]]
+    matches[ok] = match[ok]
+    inlier_sq = match_sq[ok][match[ok] >= 0]
     return PairRotations(rotation, n_inliers, matches, inlier_sq)
 
 
 @warm_up_with
 def _warm_up_motion() -> None:
-    """Compile :func:`_scores` for the arrays :func:`estimate_pair_rotations` passes."""
+    """Compile :func:`_scores` and :func:`_refine_links` for the arrays :func:`estimate_pair_rotations` passes."""
     vectors = np.array([[[0.0, 0.0, 1.0], [0.0, 0.01, 1.0]], [[0.0, 0.0, 1.0], [0.01, 0.0, 1.0]]])
     _scores(np.eye(3)[None], np.array([0]), np.array([1]), vectors, 0.01)
+    _refine_links(np.eye(3)[None], np.ones(1), np.array([0]), np.array([[0, 1]]), vectors, 0.01, 4)

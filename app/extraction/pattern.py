@@ -72,8 +72,11 @@ def tracks_pattern(camera: Camera, extraction_motion: np.ndarray, tracks: Sequen
 
 def seed_pattern(camera: Camera, reference: int, tracks: SequenceOf[Track], noise_px: float) -> Pattern:
     """The seed's pattern: the reference snapshot's tracked sources where they were seen."""
-    rows = [(t, int(np.flatnonzero(t.snapshots == reference)[0])) for t in tracks
-            if np.any(t.snapshots == reference)]
+    rows = []
+    for t in tracks:
+        seen_in = t.snapshots.tolist()  # a track has one sighting per snapshot at most
+        if reference in seen_in:
+            rows.append((t, seen_in.index(reference)))
     if not rows:
         return Pattern.empty()
     xy = np.array([t.xy[k] for t, k in rows])
@@ -90,7 +93,8 @@ def carried_tracks(tracks: SequenceOf[Track], motion: np.ndarray) -> list[Track]
     (Extraction knows the motion of every snapshot linked to the reference
     and of no other, so one sighting decides for the whole track.)
     """
-    return [t for t in tracks if np.all(np.isfinite(motion[t.snapshots[0]]))]
+    known = np.isfinite(motion).all(axis=(1, 2)).tolist()
+    return [t for t in tracks if known[t.snapshots[0]]]
 
 
 def describe_track_ids(ids) -> str:
