@@ -12,9 +12,9 @@ pattern.
 
 **Kernels first, while the server answers.**  Every worker, bulk ones too
 (an extraction needs them), loads the compiled kernels
-(:func:`app.compiled.warm_up`: 0.2-0.3 s from their cache; the first start
-after an install compiles them, 20-25 s of CPU shared among the workers)
-before it says it is ready, and takes no job before: a job is timed from
+(:func:`app.compiled.warm_up`: 0.2-0.3 s from their cache; on the first
+start after an install one worker compiles them, 20-25 s, and the others
+load what it wrote) before it says it is ready, and takes no job before: a job is timed from
 when it is sent, and compiling inside it would run it past its hard limit.
 The server does not wait for them: :attr:`ComputePool.kernels_ready` is a
 future done once every lane has a ready worker (one log line says so,
@@ -94,7 +94,7 @@ RESTART_BACKOFF_S = (0.5, 30.0)
 #: same stop reached the server (Ctrl-C in a terminal, a service manager), which is shutting down meanwhile.
 STOPPED_WHILE_STARTING_S = 5.0
 #: How long a request waits for :attr:`ComputePool.kernels_ready` at most, seconds: a first start compiles for
-#: 20-25 s of CPU on two cores (the catalogue index, when it is built, is the server's before it answers).
+#: 20-25 s on a quiet core, 30-40 s measured on two busy ones.
 WARM_UP_TIMEOUT_S = 180.0
 #: The modules whose import registers every compiled kernel's warm-up (:func:`app.compiled.warm_up_with`).
 KERNEL_MODULES = ("app.identification",)
