@@ -212,6 +212,33 @@ def test_the_cell_map_answers_as_a_bounded_tree_query_at_any_epoch(sky, year):
     assert np.array_equal(nearest, stars)
 
 
+def test_the_brightest_star_within_reach_is_the_trees_from_any_larger_cell_map(sky):
+    """``brightest_within`` on a cell map of a larger radius (the one a search made already) names the star the
+    KD-tree's four nearest within the tolerance name: the brightest of them, the nearest of equals."""
+    from app.identification.verify import NEIGHBOURS_LOOKED_AT, StarField, brightest_within, chord
+
+    t = datetime(2026, 3, 1, 5, tzinfo=timezone.utc)
+    field = sky.field(t, 6.5)
+    rng = np.random.default_rng(11)
+    # Points near stars, and near the tight groups where four nearest and the magnitudes both matter.
+    near = field.vectors[rng.integers(0, len(field.vectors), 20000)] + rng.normal(scale=0.002, size=(20000, 3))
+    points = near / np.linalg.norm(near, axis=1, keepdims=True)
+    field.cells(0.0047)  # a search's map, larger than the tolerances below
+    tree_only = StarField(vectors=field.vectors, rows=field.rows, tree=field.tree, mag=field.mag)
+    for tolerance in (0.0007, 0.0021, 0.0047):
+        assert field.cells(tolerance, make=False) is not None
+        by_cells = brightest_within(points, field, tolerance)
+        by_tree = brightest_within(points, tree_only, tolerance)
+        assert np.array_equal(by_cells, by_tree)
+        assert (by_cells >= 0).sum() > 1000
+        # ... and the tree's answer is what it says: within reach, the brightest of the nearest four.
+        named = np.flatnonzero(by_tree >= 0)[:200]
+        d, rows = field.tree.query(points[named], k=NEIGHBOURS_LOOKED_AT, distance_upper_bound=float(chord(tolerance)))
+        for i, row in zip(named, rows):
+            reach = row[row < len(field.vectors)]
+            assert field.mag[by_tree[i]] == field.mag[reach].min()
+
+
 def test_cell_maps_are_kept_on_disk_and_a_damaged_one_is_made_again(sky, tmp_path, monkeypatch):
     from app.identification import Sky
     from app.identification.cells import NearStarCells

@@ -216,6 +216,16 @@ class NearStarCells:
         return _nearest_within_kernel(points, np.ascontiguousarray(star_vectors, dtype=float), float(bound_chord),
                                       *self.kernel_arrays())
 
+    def brightest_within(self, points: np.ndarray, star_vectors: np.ndarray, mag: np.ndarray, bound_chord: float,
+                         neighbours: int) -> np.ndarray:
+        """(N,) the brightest (smallest ``mag``) of the ``neighbours`` stars nearest each point within
+        ``bound_chord`` (<= the radius's chord), the nearest of equals; -1 where none is that close: a
+        KD-tree's ``query(points, k=neighbours, distance_upper_bound=...)`` then the brightest of those."""
+        points = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
+        return _brightest_within_kernel(points, np.ascontiguousarray(star_vectors, dtype=float),
+                                        np.ascontiguousarray(mag, dtype=float), float(bound_chord), int(neighbours),
+                                        *self.kernel_arrays())
+
     def kernel_arrays(self) -> tuple:
         """The map as the compiled kernels take it: (cells per edge, words, word ranks, first, stars)."""
         return (self.cells_per_edge, self._words, self._word_rank, self._first, self._stars)
@@ -300,6 +310,45 @@ def nearest_star(x, y, z, star_vectors, G, words, word_rank, first, stars):
 
 
 @njit
+def _brightest_within_kernel(points, star_vectors, mag, bound, neighbours, G, words, word_rank, first, stars):
+    """See :meth:`NearStarCells.brightest_within`: the listed stars of each point's cell within ``bound``,
+    the ``neighbours`` nearest kept in order (an insertion into a short sorted list), the brightest of them."""
+    n = points.shape[0]
+    out = np.full(n, -1, dtype=np.int64)
+    near_d2 = np.empty(neighbours)
+    near_star = np.empty(neighbours, dtype=np.int64)
+    for i in range(n):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        c = _cell(x, y, z, G)
+        word = words[c >> 6]
+        if (word >> np.uint64(c & 63)) & np.uint64(1) == 0:
+            continue
+        rank = word_rank[c >> 6] + _popcount64(word & ((np.uint64(1) << np.uint64(c & 63)) - np.uint64(1)))
+        count = 0
+        for k in range(first[rank], first[rank + 1]):
+            s = np.int64(stars[k])
+            dx, dy, dz = x - star_vectors[s, 0], y - star_vectors[s, 1], z - star_vectors[s, 2]
+            d2 = (dx * dx + dy * dy) + dz * dz
+            if np.sqrt(d2) > bound:
+                continue
+            j = min(count, neighbours - 1)
+            if count == neighbours and d2 >= near_d2[j]:
+                continue
+            while j > 0 and near_d2[j - 1] > d2:
+                near_d2[j], near_star[j] = near_d2[j - 1], near_star[j - 1]
+                j -= 1
+            near_d2[j], near_star[j] = d2, s
+            count = min(count + 1, neighbours)
+        if count:
+            best = 0
+            for j in range(1, count):
+                if mag[near_star[j]] < mag[near_star[best]]:
+                    best = j
+            out[i] = near_star[best]
+    return out
+
+
+@njit
 def _nearest_within_kernel(points, star_vectors, bound, G, words, word_rank, first, stars):
     return _nearest_chords(points, star_vectors, bound, G, words, word_rank, first, stars)
 
@@ -343,4 +392,5 @@ def _warm_up_cells() -> None:
     stars = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     cells = NearStarCells.build(stars, 0.01)
     cells.nearest_within(stars, stars, 0.01)
+    cells.brightest_within(stars, stars, np.zeros(2), 0.01, 4)
     check_kernel(np.eye(3)[None], stars, np.array([0.01]), stars, 0.01, *cells.kernel_arrays())

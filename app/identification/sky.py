@@ -125,7 +125,7 @@ class Sky:
             static = (abs(julian_year(t) - self.index.epoch_jyear) <= MAX_YEARS
                       and (velocity_km_s is None or is_mean_place(velocity_km_s)
                            or float(np.linalg.norm(velocity_km_s)) <= MAX_SPACECRAFT_SPEED_KM_S))
-            cells = (lambda radius: self.near_star_cells(n, radius)) if static else None
+            cells = (lambda radius, make=True: self.near_star_cells(n, radius, make)) if static else None
             self._fields[key] = StarField.from_vectors(vectors, np.arange(n), cells=cells,
                                                        alone_within=self.alone_within()[:n] if static else None,
                                                        mag=self.index.mag[:n])
@@ -133,8 +133,9 @@ class Sky:
                 self._fields.popitem(last=False)
         return self._fields[key]
 
-    def near_star_cells(self, n: int, radius_rad: float) -> NearStarCells | None:
-        """A cell map of the ``n`` brightest stars for a radius of at least ``radius_rad`` (cached).
+    def near_star_cells(self, n: int, radius_rad: float, make: bool = True) -> NearStarCells | None:
+        """A cell map of the ``n`` brightest stars for a radius of at least ``radius_rad`` (cached); with
+        ``make`` False, the smallest one this process has already that is at least that large, or None.
 
         One map serves every observation time within :data:`MAX_YEARS` of
         the index epoch (see :mod:`app.identification.cells`).  A map made
@@ -148,6 +149,9 @@ class Sky:
         """
         if not 0 < radius_rad <= 0.1:  # wider than any check tolerance: the tree alone
             return None
+        if not make:
+            large_enough = [m for (k, _), m in self._cells.items() if k == n and m.radius_rad >= radius_rad]
+            return min(large_enough, key=lambda m: m.radius_rad) if large_enough else None
         fitting = [m for (k, _), m in self._cells.items() if k == n and radius_rad <= m.radius_rad <= 2 * radius_rad]
         if fitting:
             return min(fitting, key=lambda m: m.radius_rad)

@@ -27,6 +27,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import weakref
 from dataclasses import dataclass
@@ -48,8 +49,9 @@ class StarField:
     vectors: np.ndarray  # (n, 3) apparent places, ICRS axes
     rows: np.ndarray  # (n,) catalogue/index rows of these stars
     tree: cKDTree
-    #: ``cells(radius)``: a :class:`app.identification.cells.NearStarCells` of these stars for at least
-    #: that radius (None: none fits; then every point asks the tree).
+    #: ``cells(radius, make=True)``: a :class:`app.identification.cells.NearStarCells` of these stars for at
+    #: least that radius (None: none fits, or none made yet when ``make`` is False; then every point asks the
+    #: tree).
     cells: Callable[[float], object | None] | None = None
     #: (n,) chord within which a point's nearest star is certainly that star (half its distance to the
     #: nearest other one, at any epoch), or None.
@@ -86,10 +88,16 @@ def brightest_within(directions: np.ndarray, field: StarField, tolerance_rad: fl
     k = min(NEIGHBOURS_LOOKED_AT, len(field.vectors))
     if len(directions) == 0 or k == 0:
         return np.full(len(directions), -1, dtype=int)
-    _, near = field.tree.query(directions, k=k, distance_upper_bound=float(chord(tolerance_rad)))
+    brightness = field.mag if field.mag is not None else np.zeros(len(field.vectors))
+    bound = float(chord(tolerance_rad))
+    # The sky's cell map of any radius as large (a larger one lists more stars, each measured): a compiled
+    # look-up of a few stars, where the tree's query costs ~0.1 ms of call overhead (several a solve).
+    cells = field.cells(tolerance_rad, make=False) if field.cells is not None else None
+    if cells is not None:
+        return cells.brightest_within(directions, field.vectors, brightness, bound, k)
+    _, near = field.tree.query(directions, k=k, distance_upper_bound=bound)
     near = near.reshape(len(directions), k)
     within = near < len(field.vectors)  # the tree marks "none" with n, and lists the nearest first
-    brightness = field.mag if field.mag is not None else np.zeros(len(field.vectors))
     mags = np.where(within, brightness[np.minimum(near, len(field.vectors) - 1)], np.inf)
     pick = np.argmin(mags, axis=1)  # the first of equals: the nearest
     return np.where(within[:, 0], near[np.arange(len(near)), pick], -1)
@@ -139,8 +147,8 @@ class Refined:
     residual_rad: np.ndarray  # (m,) angle to the matched star (nan if none)
     nearest_rad: np.ndarray  # (m,) angle to the nearest star, matched or not
 
-    @property
-    def n_matched(self) -> int:
+    @functools.cached_property
+    def n_matched(self) -> int:  # asked for each found candidate after every hypothesis a search considers
         return int((self.star_of_point >= 0).sum())
 
 
