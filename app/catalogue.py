@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from app.compiled import njit, warm_up_with
+
 log = logging.getLogger(__name__)
 
 
@@ -115,18 +117,16 @@ class Catalogue:
     def mean_vectors(self, epoch_jyear: float = 2000.0) -> np.ndarray:
         """Unit vectors at ``epoch_jyear`` with proper motion applied (linear on the tangent plane)."""
         v0, motion = self._catalogue_epoch_geometry
-        v = v0 + (epoch_jyear - HIP2_EPOCH_JYEAR) * motion
-        return v / np.linalg.norm(v, axis=1, keepdims=True)
+        return _places(v0, motion, float(epoch_jyear - HIP2_EPOCH_JYEAR), np.zeros(3), False)
 
     def apparent_vectors(self, t: datetime, velocity_km_s=None) -> np.ndarray:
         """Directions seen by an observer at UTC ``t`` (proper motion + aberration); with
         ``velocity_km_s`` :data:`MEAN_PLACE`, the mean places at ``t`` (proper motion only)."""
-        v = self.mean_vectors(julian_year(t))
         if is_mean_place(velocity_km_s):
-            return v
+            return self.mean_vectors(julian_year(t))
+        v0, motion = self._catalogue_epoch_geometry
         beta = observer_velocity_km_s(t, velocity_km_s) / SPEED_OF_LIGHT_KM_S
-        v = v + beta[None, :]
-        return v / np.linalg.norm(v, axis=1, keepdims=True)
+        return _places(v0, motion, float(julian_year(t) - HIP2_EPOCH_JYEAR), beta, True)
 
     def index_of_hip(self) -> dict[int, int]:
         """Row of each HIP number (one dict per catalogue, shared: do not modify)."""
@@ -135,6 +135,31 @@ class Catalogue:
     @functools.cached_property
     def _row_of_hip(self) -> dict[int, int]:
         return {int(h): i for i, h in enumerate(self.hip)}
+
+
+@njit
+def _places(v0, motion, years, beta, aberrate):
+    """Unit vectors ``normalize(v0 + years motion)`` (proper motion), then, when ``aberrate``,
+    ``normalize(u + beta)`` (aberration, ``beta`` = v/c): one pass over the stars, where numpy made four
+    temporaries of the whole catalogue (0.6 ms for the 8,000 stars of a search's sky, every new hour)."""
+    out = np.empty_like(v0)
+    for i in range(v0.shape[0]):
+        x = v0[i, 0] + years * motion[i, 0]
+        y = v0[i, 1] + years * motion[i, 1]
+        z = v0[i, 2] + years * motion[i, 2]
+        norm = np.sqrt((x * x + y * y) + z * z)
+        x, y, z = x / norm, y / norm, z / norm
+        if aberrate:
+            x, y, z = x + beta[0], y + beta[1], z + beta[2]
+            norm = np.sqrt((x * x + y * y) + z * z)
+            x, y, z = x / norm, y / norm, z / norm
+        out[i, 0], out[i, 1], out[i, 2] = x, y, z
+    return out
+
+
+@warm_up_with
+def _warm_up_places() -> None:
+    _places(np.eye(3), np.zeros((3, 3)), 1.0, np.zeros(3), True)
 
 
 #: The ``velocity_km_s`` that asks for no aberration at all: the mean (astrometric) place, the star's
