@@ -177,8 +177,9 @@ def image_centre_radec(candidate: Candidate, pattern: Pattern, declared, t, sky:
     them with the attitude (focal length, k1, and the principal point with a
     weak prior of :data:`PRINCIPAL_POINT_PRIOR_FRACTION` of the width; least
     squares in pixels, :func:`app.camera_fit.fit_attitude_and_camera`), and
-    the stars matched again through the fit, twice.  With fewer stars, the
-    centre is seen through the candidate's own camera.
+    the stars matched again through the fit, twice (once, when the fit matches
+    the stars it was fitted on).  With fewer stars, the centre is seen through
+    the candidate's own camera.
     """
     from app.camera_fit import fit_attitude_and_camera
 
@@ -195,11 +196,15 @@ def image_centre_radec(candidate: Candidate, pattern: Pattern, declared, t, sky:
     spread = PRINCIPAL_POINT_PRIOR_FRACTION * camera.width
     priors = {**default_priors(camera, names), "cx": (camera.cx, spread), "cy": (camera.cy, spread)}
     fitted_camera, fitted_rotation = camera, rotation
+    fitted_on = None
     for _ in range(2):
         stars = stars_at(xy, fitted_camera, fitted_rotation, field, tolerance_px * fitted_camera.pixel_scale_rad)
         ok = claimed_once(stars)
         if np.count_nonzero(ok) < MIN_STARS_FOR_FREE_CENTRE:
             break
+        if fitted_on is not None and np.array_equal(np.where(ok, stars, -1), fitted_on):
+            break  # the fit matched the stars it was fitted on: fitting them again ends where it began
+        fitted_on = np.where(ok, stars, -1)
         try:
             free = fit_attitude_and_camera(xy[ok], field.vectors[stars[ok]], fitted_rotation, camera,
                                            max(float(np.median(sigma[ok])), 0.05), fit=names, priors=priors)
