@@ -30,9 +30,9 @@ def wahba_covariance(body: np.ndarray, sigma_rad: np.ndarray) -> np.ndarray:
     w = 1.0 / np.asarray(sigma_rad, dtype=float) ** 2
     if body.ndim == 1:
         body, w = body.reshape(-1, 3), w.reshape(-1)
+    if body.ndim == 2:  # one attitude (a candidate asks for one at a time): a product, not an einsum's parse
+        return _inverse_3x3((w.sum() * np.eye(3) - (body.T * w) @ body).tolist())
     info = w.sum(axis=-1)[..., None, None] * np.eye(3) - np.einsum("...n,...ni,...nj->...ij", w, body, body)
-    if info.ndim == 2:
-        return _inverse_3x3(info.tolist())
     # The inverse by cofactors, stack-wide (numpy's inverse raises for the whole stack on one
     # singular matrix; a 3x3 adjugate is also cheaper than its call overhead).
     a, b, c = info[..., 0, 0], info[..., 0, 1], info[..., 0, 2]
@@ -59,9 +59,9 @@ def cross_boresight_and_roll_sigma(cov: np.ndarray) -> tuple[float, float]:
 def _inverse_3x3(m: list[list[float]]) -> np.ndarray:
     """:func:`wahba_covariance`'s inverse of one information matrix, in Python floats.
 
-    The same IEEE operations in the same order as the stack-wide code (so
-    the same bits), without a dozen numpy calls on nine numbers: a candidate
-    asks for one covariance at a time.
+    The same IEEE operations in the same order as the stack-wide code,
+    without a dozen numpy calls on nine numbers: a candidate asks for one
+    covariance at a time.
     """
     (a, b, c), (d, e, f), (g, h, i) = m
     adjugate = [[e * i - f * h, c * h - b * i, b * f - c * e],
