@@ -203,6 +203,10 @@ def test_the_cell_map_answers_as_a_bounded_tree_query_at_any_epoch(sky, year):
         d, _ = field.tree.query(points, k=1, distance_upper_bound=bound)
         assert np.array_equal(cells.nearest_within(points, field.vectors, bound), d)
         assert not (np.isfinite(d) & ~cells.maybe_near(points)).any()
+    # The nearest star however far, through the stars' places at the index epoch: the tree's chords.
+    assert field.epoch_places is not None
+    some = points[::40]
+    assert np.array_equal(field.nearest_chords(some), field.tree.query(some, k=1)[0])
     # Each edge star is the nearest star of every point closer to it than alone_within.
     stars = rng.integers(0, len(field.vectors), 3000)
     offset = rng.normal(size=(3000, 3))
@@ -224,7 +228,7 @@ def test_the_brightest_star_within_reach_is_the_trees_from_any_larger_cell_map(s
     near = field.vectors[rng.integers(0, len(field.vectors), 20000)] + rng.normal(scale=0.002, size=(20000, 3))
     points = near / np.linalg.norm(near, axis=1, keepdims=True)
     field.cells(0.0047)  # a search's map, larger than the tolerances below
-    tree_only = StarField(vectors=field.vectors, rows=field.rows, tree=field.tree, mag=field.mag)
+    tree_only = StarField(vectors=field.vectors, rows=field.rows, mag=field.mag)
     for tolerance in (0.0007, 0.0021, 0.0047):
         assert field.cells(tolerance, make=False) is not None
         by_cells = brightest_within(points, field, tolerance)

@@ -61,6 +61,7 @@ class Sky:
         self._apparent: OrderedDict[tuple, np.ndarray] = OrderedDict()
         self._row_of_hip = self.catalogue.index_of_hip()
         self._cells: dict[tuple[int, int], NearStarCells] = {}
+        self._epoch_trees: dict[int, cKDTree] = {}
         self._motion_margins = None
         self._alone_within = None
         self._digest = None
@@ -128,10 +129,19 @@ class Sky:
             cells = (lambda radius, make=True: self.near_star_cells(n, radius, make)) if static else None
             self._fields[key] = StarField.from_vectors(vectors, np.arange(n), cells=cells,
                                                        alone_within=self.alone_within()[:n] if static else None,
-                                                       mag=self.index.mag[:n])
+                                                       mag=self.index.mag[:n],
+                                                       epoch_places=self._epoch_places(n, vectors))
             while len(self._fields) > 32:
                 self._fields.popitem(last=False)
         return self._fields[key]
+
+    def _epoch_places(self, n: int, vectors: np.ndarray) -> tuple[cKDTree, float]:
+        """A KD-tree of the ``n`` brightest stars at the index's epoch (made once per process) and the
+        largest chord between a star's place there and in ``vectors`` (see :meth:`StarField.nearest_chords`)."""
+        if n not in self._epoch_trees:
+            self._epoch_trees[n] = cKDTree(self.index.vectors[:n], balanced_tree=False, compact_nodes=False)
+        shift = float(np.sqrt(np.max(np.sum((vectors - self.index.vectors[:n]) ** 2, axis=1)))) if n else 0.0
+        return self._epoch_trees[n], shift * (1 + 1e-9)
 
     def near_star_cells(self, n: int, radius_rad: float, make: bool = True) -> NearStarCells | None:
         """A cell map of the ``n`` brightest stars for a radius of at least ``radius_rad`` (cached); with
