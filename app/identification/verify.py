@@ -89,17 +89,27 @@ class StarField:
         if self.epoch_places is None or len(points) == 0:
             return self.tree.query(points, k=1)[0].reshape(len(points))
         tree, shift = self.epoch_places
-        d0, _ = tree.query(points, k=1)
-        out = np.empty(len(points))
-        for i, near in enumerate(tree.query_ball_point(points, d0 + 2 * shift + 1e-12)):
-            diff = points[i] - self.vectors[near]
-            out[i] = np.sqrt(np.min((diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1]) + diff[:, 2] * diff[:, 2]))
+        k = min(EPOCH_NEIGHBOURS, len(self.vectors))
+        d, near = tree.query(points, k=k)
+        d, near = d.reshape(len(points), k), near.reshape(len(points), k)
+        diff = points[:, None, :] - self.vectors[near]
+        out = np.sqrt(np.min((diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]) + diff[..., 2] * diff[..., 2],
+                             axis=1))
+        # Where a star beyond the k nearest at the epoch could still be within d0 + 2 shift: all of those.
+        for i in np.flatnonzero((d[:, -1] <= d[:, 0] + 2 * shift) & (k < len(self.vectors))).tolist():
+            ball = tree.query_ball_point(points[i], d[i, 0] + 2 * shift + 1e-12)
+            far = points[i] - self.vectors[ball]
+            out[i] = np.sqrt(np.min((far[:, 0] * far[:, 0] + far[:, 1] * far[:, 1]) + far[:, 2] * far[:, 2]))
         return out
 
     @property
     def density_per_sr(self) -> float:
         return len(self.vectors) / (4 * np.pi)
 
+
+#: :meth:`StarField.nearest_chords` measures this many nearest stars at the index epoch for each point (the
+#: nearest now is nearly always among them: stars move by ~0.1 deg at most in a century, they lie degrees apart).
+EPOCH_NEIGHBOURS = 4
 
 #: How many stars within a match distance are compared (more than two within a few pixels is rare).
 NEIGHBOURS_LOOKED_AT = 4
