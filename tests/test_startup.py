@@ -25,6 +25,7 @@ from app.bench.server import free_port
 from app.config import Settings
 from app.storage import Storage
 from app.workflow import AppContext
+from app.workflow.archive import LARGE_UPLOAD_BYTES
 from app.workflow.compute import KERNEL_MODULES, ComputePool
 
 #: The search time-out of this test's server, seconds: short, so that waiting three times longer shows that a
@@ -92,8 +93,10 @@ def test_the_server_answers_while_its_workers_load_their_kernels_and_searches_wa
             assert api.get("/").status_code == 200 and "<html" in api.get("/").text.lower()
             assert api.get("/api/sequences").json()["total"] == 0
 
-            # An upload followed by its search, sent now: both wait for the kernels, past their time-out.
-            data = (sample_dir / "04-big-dipper.json").read_bytes()
+            # An upload followed by its search, sent now: both wait for the kernels, past their time-out.  Made
+            # large with trailing blanks, the upload is parsed on the bulk lane before its extraction: two
+            # computations of one request, the second as unhurried by the wait as the first.
+            data = (sample_dir / "04-big-dipper.json").read_bytes() + b" " * LARGE_UPLOAD_BYTES
 
             def upload_and_search() -> tuple[httpx.Response, httpx.Response | None]:
                 upload = api.post("/api/sequences?filename=04-big-dipper.json", content=data,

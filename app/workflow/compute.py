@@ -304,6 +304,8 @@ class ComputePool:
         #: once, so that a waiter giving up (an asyncio wrapper cancelled) cannot cancel it for everyone.
         self.kernels_ready: Future = Future()
         self.kernels_ready.set_running_or_notify_cancel()
+        #: When :attr:`kernels_ready` was done (``time.monotonic()``); None before.
+        self.ready_at: float | None = None
         self.processes = max(0, int(processes))
         self._threads = max(1, threads)
         self._sky = sky
@@ -392,6 +394,7 @@ class ComputePool:
         said = f"; {describe(report)}" if report else ""
         log.log(logging.WARNING if report and report["compiled"] else logging.INFO,
                 "compute ready %.1f s after start (%s)%s", time.monotonic() - self._started, where, said)
+        self.ready_at = time.monotonic()
         self.kernels_ready.set_result(report)
 
     def _lanes_ready(self) -> None:

@@ -40,14 +40,18 @@ START_MARGIN_FRACTION = 0.2
 
 @dataclass(frozen=True)
 class Deadline:
-    """When a request's computation must be done (``done_by``) and may still start (``start_by``), monotonic."""
+    """When a request's computation must be done (``done_by``) and may still start (``start_by``), counted from
+    ``since`` (its arrival); monotonic."""
 
+    since: float
     done_by: float
     start_by: float
 
-    def later(self, seconds: float) -> "Deadline":
-        """The same deadlines ``seconds`` later (the time spent waiting for the compute pool's kernels)."""
-        return Deadline(done_by=self.done_by + seconds, start_by=self.start_by + seconds)
+    def counted_from(self, moment: float) -> "Deadline":
+        """The same deadlines counted from ``moment`` instead, if that is later (when the compute pool's kernels
+        were ready, for a request that arrived before): every computation of the request gets the same shift."""
+        shift = max(0.0, moment - self.since)
+        return Deadline(since=self.since + shift, done_by=self.done_by + shift, start_by=self.start_by + shift)
 
 #: Path parameters are database integers.
 ID_LIMITS = {"ge": 1, "le": MAX_ID}
@@ -191,9 +195,10 @@ def work_deadline(ctx: AppContext) -> Deadline:
     request's body is in; a little of it is kept for storing the result, and
     a job that has not started a little before its end is not started at all.
     """
-    timeout = ctx.settings.search_timeout_s
-    done_by = time.monotonic() + timeout - min(STORE_RESERVE_S, STORE_RESERVE_FRACTION * timeout)
-    return Deadline(done_by=done_by, start_by=done_by - min(START_MARGIN_S, START_MARGIN_FRACTION * timeout))
+    timeout, now = ctx.settings.search_timeout_s, time.monotonic()
+    done_by = now + timeout - min(STORE_RESERVE_S, STORE_RESERVE_FRACTION * timeout)
+    return Deadline(since=now, done_by=done_by,
+                    start_by=done_by - min(START_MARGIN_S, START_MARGIN_FRACTION * timeout))
 
 
 def busy(ctx: AppContext, what: str) -> ApiError:
@@ -202,8 +207,8 @@ def busy(ctx: AppContext, what: str) -> ApiError:
                     headers={"Retry-After": "1"})
 
 
-async def wait_for_kernels(ctx: AppContext, what: str) -> float:
-    """Wait until the compute pool's workers have their compiled kernels; the seconds waited (0 once they have).
+async def wait_for_kernels(ctx: AppContext, what: str) -> None:
+    """Wait until the compute pool's workers have their compiled kernels (at once once they have).
 
     Only the first seconds after a start wait (0.3 s; 20-25 s on the first
     start after an install, which compiles them); the rest of the server
@@ -212,7 +217,7 @@ async def wait_for_kernels(ctx: AppContext, what: str) -> float:
     """
     ready = ctx.compute.kernels_ready
     if ready.done() and ready.exception() is None:
-        return 0.0
+        return
     t0 = time.monotonic()
     try:
         # The pool's future is marked running: a cancelled wrapper (a client gone) cannot cancel it for others.
@@ -221,7 +226,6 @@ async def wait_for_kernels(ctx: AppContext, what: str) -> float:
         raise ApiError(503, f"{what} was not done: the server's compute workers are not ready (they load, on a "
                             f"first start compile, their kernels; waited {time.monotonic() - t0:.0f} s). Nothing "
                             "was stored; try again.", headers={"Retry-After": "10"}) from None
-    return time.monotonic() - t0
 
 
 async def compute_within(ctx: AppContext, deadline: Deadline, what: str, fn: Callable, *args,
@@ -231,10 +235,12 @@ async def compute_within(ctx: AppContext, deadline: Deadline, what: str, fn: Cal
     A job still queued at ``deadline.start_by`` is never started (the pool
     drops it), so a burst of requests that time out does not leave the
     workers busy with answers nobody waits for.  The deadlines count from
-    when the pool's kernels are ready (:func:`wait_for_kernels`): a request
-    sent while a first start compiles them waits, it is not timed out.
+    when the pool's kernels were ready (:func:`wait_for_kernels`), if that
+    was after the request arrived: a request sent while a first start
+    compiles them waits, it is not timed out.
     """
-    deadline = deadline.later(await wait_for_kernels(ctx, what))
+    await wait_for_kernels(ctx, what)
+    deadline = deadline.counted_from(ctx.compute.ready_at)
     future = ctx.compute.submit_within(fn, *args, lane=lane, deadline=deadline.start_by)
     try:
         # wrap_future passes a cancellation on to the pool's future: a queued job is dropped.
