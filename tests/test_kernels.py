@@ -373,3 +373,52 @@ def test_the_compiled_rotation_from_pair_is_the_numpy_triads():
     assert np.abs(np.einsum("nij,nj->ni", R, np.cross(r1, r2)) @ normal
                   - np.linalg.norm(np.cross(r1, r2), axis=1) * np.linalg.norm(normal)).max() < 1e-12
     np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-13)
+
+
+# --- the sequence fit's Gauss-Newton, as numpy computed it before its kernel ---------------------------------
+
+def _numpy_left_jacobian(phi: np.ndarray) -> np.ndarray:
+    t = np.linalg.norm(phi, axis=1)
+    small = t < 1e-6
+    ts = np.where(small, 1.0, t)
+    a = np.where(small, 0.5 - t ** 2 / 24, (1 - np.cos(ts)) / ts ** 2)
+    b = np.where(small, 1 / 6 - t ** 2 / 120, (ts - np.sin(ts)) / ts ** 3)
+    K = np.zeros((len(phi), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -phi[:, 2], phi[:, 1], -phi[:, 0]
+    K -= np.swapaxes(K, 1, 2)
+    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
+
+
+def _numpy_residuals_and_jacobian(R_obs, dt, W, R0, c, w):
+    from scipy.spatial.transform import Rotation
+
+    phi = -w[None, :] * dt[:, None]
+    turn = Rotation.from_rotvec(phi).as_matrix()
+    pred = turn @ (Rotation.from_rotvec(c).as_matrix() @ R0)
+    r = Rotation.from_matrix(R_obs @ np.swapaxes(pred, 1, 2)).as_rotvec()
+    J = np.concatenate([-turn, dt[:, None, None] * _numpy_left_jacobian(phi)], axis=2)
+    return np.einsum("sij,sj->si", W, r).reshape(-1), np.einsum("sij,sjk->sik", W, J).reshape(-1, 6)
+
+
+@pytest.mark.parametrize("turn", [1e-9, 1e-3, 0.3, 3.0])
+def test_the_compiled_sequence_fit_steps_are_numpys(turn):
+    """Residuals (rotation vectors of the misfit, up to turns near 180 deg) and Jacobian of the sequence fit."""
+    from scipy.spatial.transform import Rotation
+
+    from app.attitude.sequence import _residuals_and_jacobian, left_jacobian
+
+    rng = np.random.default_rng(int(turn * 1e9) % 1000)
+    S = 12
+    R0 = Rotation.random(random_state=1).as_matrix()
+    w = rng.normal(size=3) * turn / 20
+    dt = np.linspace(-10, 10, S)
+    R_obs = Rotation.from_rotvec(rng.normal(size=(S, 3)) * turn).as_matrix() @ R0
+    W = np.linalg.cholesky(np.linalg.inv(np.stack([np.diag(rng.uniform(1e-9, 1e-8, 3)) for _ in range(S)])))
+    W = np.ascontiguousarray(np.swapaxes(W, 1, 2))
+    c = rng.normal(size=3) * 1e-4
+    f, J = _residuals_and_jacobian(R_obs, dt, W, R0, c, w)
+    f0, J0 = _numpy_residuals_and_jacobian(R_obs, dt, W, R0, c, w)
+    assert np.allclose(f, f0, rtol=1e-9, atol=1e-9 * np.abs(f0).max())
+    assert np.allclose(J, J0, rtol=1e-12, atol=1e-12 * np.abs(J0).max())
+    phi = rng.normal(size=(6, 3)) * turn
+    assert np.allclose(left_jacobian(phi), _numpy_left_jacobian(phi), rtol=1e-13, atol=1e-15)

@@ -29,6 +29,7 @@ import numpy as np
 
 from app.attitude.rotations import propagate, rotation_from_rotvec, rotvec_from_rotation, solve_wahba
 from app.attitude.wahba import wahba_covariance
+from app.compiled import njit, warm_up_with
 
 
 @dataclass(frozen=True, eq=False)
@@ -123,39 +124,16 @@ def fit_constant_rate(snaps: list[SnapshotAttitude], R0: np.ndarray, rate_guess:
 
 def _fit_once(snaps: list[SnapshotAttitude], R0: np.ndarray, rate_guess: np.ndarray | None,
               iterations: int) -> tuple[SequenceFit | None, np.ndarray]:
-    """One Gauss-Newton fit of ``(c, w)``; also each snapshot's chi-square.
-
-    The Jacobian of ``r_i`` for small residuals: ``dr_i/dc = -exp(-[w]x dt_i)``
-    (``c`` stays tiny) and ``dr_i/dw = dt_i J_l(-w dt_i)``, with ``J_l`` the
-    left Jacobian of SO(3): turns of several degrees over a sequence would
-    otherwise slow Gauss-Newton's convergence to a linear crawl.
-    """
+    """One Gauss-Newton fit of ``(c, w)`` (:func:`_gauss_newton`); also each snapshot's chi-square."""
     if len(snaps) < 2 or len({round(s.dt_s, 9) for s in snaps}) < 2:
         return None, np.zeros(0)
     R_obs = np.stack([s.rotation for s in snaps])
     dt = np.array([s.dt_s for s in snaps])
     # Whitening: W_i^T W_i = P_i^-1, so |W_i r_i|^2 = r_i^T P_i^-1 r_i.
-    W = np.swapaxes(np.linalg.cholesky(np.linalg.inv(np.stack([s.covariance for s in snaps]))), 1, 2)
-    c = np.zeros(3)
-    w = np.zeros(3) if rate_guess is None else np.asarray(rate_guess, dtype=float).copy()
-
-    def residuals_and_jacobian(c, w):
-        phi = -w[None, :] * dt[:, None]
-        # Rodrigues and its inverse in numpy (app.attitude.rotations): scipy's Rotation objects cost more
-        # than the arithmetic here, and Gauss-Newton asks for them every iteration.
-        turn = rotation_from_rotvec(phi)  # (S, 3, 3)
-        pred = turn @ (rotation_from_rotvec(c) @ R0)
-        r = rotvec_from_rotation(R_obs @ np.swapaxes(pred, 1, 2))  # (S, 3)
-        J = np.concatenate([-turn, dt[:, None, None] * left_jacobian(phi)], axis=2)  # (S, 3, 6)
-        return np.einsum("sij,sj->si", W, r).reshape(-1), np.einsum("sij,sjk->sik", W, J).reshape(-1, 6)
-
-    for _ in range(iterations):
-        f, J = residuals_and_jacobian(c, w)
-        delta, *_ = np.linalg.lstsq(J, -f, rcond=None)
-        c, w = c + delta[:3], w + delta[3:]
-        if np.max(np.abs(delta)) < CONVERGED_STEP:
-            break
-    f, J = residuals_and_jacobian(c, w)
+    W = np.ascontiguousarray(np.swapaxes(np.linalg.cholesky(np.linalg.inv(np.stack([s.covariance for s in snaps]))),
+                                         1, 2))
+    w0 = np.zeros(3) if rate_guess is None else np.asarray(rate_guess, dtype=float)
+    c, w, f, J = _gauss_newton(R_obs, dt, W, np.ascontiguousarray(R0, dtype=float), w0, iterations, CONVERGED_STEP)
     dof = max(1, len(f) - 6)
     chi2_red = float(f @ f / dof)
     try:
@@ -168,20 +146,115 @@ def _fit_once(snaps: list[SnapshotAttitude], R0: np.ndarray, rate_guess: np.ndar
     return fit, (f.reshape(-1, 3) ** 2).sum(axis=1)
 
 
+# --- the compiled Gauss-Newton ------------------------------------------------------------------
+
+@njit
+def _exp(x, y, z):
+    """``exp([phi]x)`` of one rotation vector (Rodrigues, as :func:`app.attitude.rotations.rotation_from_rotvec`)."""
+    t = np.sqrt(x * x + y * y + z * z)
+    h = np.sin(t / 2) / (t / 2) if t > 0 else 1.0
+    a, b, c = h * np.cos(t / 2), 0.5 * h * h, np.cos(t)
+    R = np.empty((3, 3))
+    R[0, 0], R[0, 1], R[0, 2] = c + b * x * x, b * x * y - a * z, b * x * z + a * y
+    R[1, 0], R[1, 1], R[1, 2] = b * x * y + a * z, c + b * y * y, b * y * z - a * x
+    R[2, 0], R[2, 1], R[2, 2] = b * x * z - a * y, b * y * z + a * x, c + b * z * z
+    return R
+
+
+@njit
+def _log(R):
+    """``log(R)``, the rotation vector of one rotation matrix, at any angle: through its unit quaternion
+    (Shepperd's choice of the largest component, so no division loses accuracy), ``2 atan2(|v|, s) v/|v|``."""
+    trace = R[0, 0] + R[1, 1] + R[2, 2]
+    if trace >= R[0, 0] and trace >= R[1, 1] and trace >= R[2, 2]:
+        s = np.sqrt(1.0 + trace) / 2
+        x, y, z = (R[2, 1] - R[1, 2]) / (4 * s), (R[0, 2] - R[2, 0]) / (4 * s), (R[1, 0] - R[0, 1]) / (4 * s)
+    elif R[0, 0] >= R[1, 1] and R[0, 0] >= R[2, 2]:
+        x = np.sqrt(1.0 + 2 * R[0, 0] - trace) / 2
+        s, y, z = (R[2, 1] - R[1, 2]) / (4 * x), (R[0, 1] + R[1, 0]) / (4 * x), (R[0, 2] + R[2, 0]) / (4 * x)
+    elif R[1, 1] >= R[2, 2]:
+        y = np.sqrt(1.0 + 2 * R[1, 1] - trace) / 2
+        s, x, z = (R[0, 2] - R[2, 0]) / (4 * y), (R[0, 1] + R[1, 0]) / (4 * y), (R[1, 2] + R[2, 1]) / (4 * y)
+    else:
+        z = np.sqrt(1.0 + 2 * R[2, 2] - trace) / 2
+        s, x, y = (R[1, 0] - R[0, 1]) / (4 * z), (R[0, 2] + R[2, 0]) / (4 * z), (R[1, 2] + R[2, 1]) / (4 * z)
+    if s < 0:
+        s, x, y, z = -s, -x, -y, -z
+    v = np.sqrt(x * x + y * y + z * z)
+    out = np.zeros(3)
+    if v > 0:
+        k = 2.0 * np.arctan2(v, s) / v
+        out[0], out[1], out[2] = k * x, k * y, k * z
+    return out
+
+
+@njit
+def _left_jacobian(x, y, z):
+    """The left Jacobian of SO(3) at one rotation vector (see :func:`left_jacobian`)."""
+    t = np.sqrt(x * x + y * y + z * z)
+    if t < 1e-6:
+        a, b = 0.5 - t * t / 24, 1 / 6 - t * t / 120
+    else:
+        a, b = (1 - np.cos(t)) / (t * t), (t - np.sin(t)) / (t * t * t)
+    K = np.zeros((3, 3))
+    K[0, 1], K[0, 2], K[1, 2] = -z, y, -x
+    K[1, 0], K[2, 0], K[2, 1] = z, -y, x
+    J = a * K + b * (K @ K)
+    for i in range(3):
+        J[i, i] += 1.0
+    return J
+
+
+@njit
+def _residuals_and_jacobian(R_obs, dt, W, R0, c, w):
+    """Whitened residuals (3S,) ``W_i log(R_i R(t_i)^T)`` and their Jacobian (3S, 6) in ``(c, w)``:
+    ``dr_i/dc = -exp(-[w]x dt_i)`` (``c`` stays tiny) and ``dr_i/dw = dt_i J_l(-w dt_i)``."""
+    S = dt.shape[0]
+    f = np.empty(3 * S)
+    J = np.empty((3 * S, 6))
+    base = _exp(c[0], c[1], c[2]) @ R0
+    for i in range(S):
+        px, py, pz = -w[0] * dt[i], -w[1] * dt[i], -w[2] * dt[i]
+        turn = _exp(px, py, pz)
+        r = _log(R_obs[i] @ (turn @ base).T)
+        raw = np.empty((3, 6))
+        raw[:, :3] = -turn
+        raw[:, 3:] = dt[i] * _left_jacobian(px, py, pz)
+        f[3 * i:3 * i + 3] = W[i] @ r
+        J[3 * i:3 * i + 3] = W[i] @ raw
+    return f, J
+
+
+@njit
+def _gauss_newton(R_obs, dt, W, R0, w0, iterations, converged):
+    """``(c, w, f, J)``: Gauss-Newton from ``(0, w0)``, stopping once a step moves both by less than
+    ``converged``; the residuals and Jacobian at the end.  The left Jacobian keeps turns of several degrees
+    over a sequence from slowing it to a linear crawl."""
+    c = np.zeros(3)
+    w = w0.copy()
+    for _ in range(iterations):
+        f, J = _residuals_and_jacobian(R_obs, dt, W, R0, c, w)
+        delta = np.linalg.lstsq(J, -f)[0]
+        c += delta[:3]
+        w += delta[3:]
+        if np.max(np.abs(delta)) < converged:
+            break
+    f, J = _residuals_and_jacobian(R_obs, dt, W, R0, c, w)
+    return c, w, f, J
+
+
+@warm_up_with
+def _warm_up_gauss_newton() -> None:
+    R = np.stack([np.eye(3), np.eye(3)])
+    _gauss_newton(R, np.array([0.0, 1.0]), np.stack([np.eye(3), np.eye(3)]) * 1e3, np.eye(3), np.zeros(3), 2, 1e-10)
+
+
 def left_jacobian(phi: np.ndarray) -> np.ndarray:
     """(S, 3, 3) left Jacobians of SO(3) at rotation vectors ``phi`` (S, 3):
     ``exp(phi + d) ~ exp([J_l(phi) d]x) exp(phi)``, with
     ``J_l = I + (1 - cos t)/t^2 [phi]x + (t - sin t)/t^3 [phi]x^2``, t = |phi|.
     """
-    t = np.linalg.norm(phi, axis=1)
-    small = t < 1e-6
-    ts = np.where(small, 1.0, t)
-    a = np.where(small, 0.5 - t ** 2 / 24, (1 - np.cos(ts)) / ts ** 2)
-    b = np.where(small, 1 / 6 - t ** 2 / 120, (ts - np.sin(ts)) / ts ** 3)
-    K = np.zeros((len(phi), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -phi[:, 2], phi[:, 1], -phi[:, 0]
-    K -= np.swapaxes(K, 1, 2)
-    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
+    return np.stack([_left_jacobian(*map(float, p)) for p in np.asarray(phi, dtype=float).reshape(-1, 3)])
 
 
 def rate_from_motion(motion: np.ndarray, dt_s: np.ndarray) -> np.ndarray | None:
