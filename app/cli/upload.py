@@ -391,10 +391,15 @@ def run(args: argparse.Namespace) -> int:
     interactive = sys.stderr.isatty()
     end = "\r" if interactive else "\n"
     try:
-        max_bytes = server_health(args.server, args.token, args.timeout).get("max_upload_bytes")
+        health = server_health(args.server, args.token, args.timeout)
     except ServerUnreachable as exc:
         print(f"upload: {exc}", file=sys.stderr)
         return 1
+    max_bytes = health.get("max_upload_bytes")
+    if health.get("compute_ready") is False:
+        print(f"upload: the server is still loading its compiled kernels (its first start after an install compiles "
+              f"them, about a minute): the first files wait for them, each for at most --timeout "
+              f"({args.timeout:g} s)", file=sys.stderr)
     counts = {"created": 0, "duplicate": 0, "refused": len(special), "unsearched": 0}
     for k, item in enumerate(files):
         path = item.label if isinstance(item, FramePass) else item
