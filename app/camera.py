@@ -27,12 +27,48 @@ from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
+from app.compiled import njit, warm_up_with
+
 #: Focal length uncertainty (fraction) assumed when a camera declares none:
 #: lab calibrations give ~1 %, thermal drift and lens replacements a few %.
 DEFAULT_FOCAL_LENGTH_TOLERANCE = 0.05
 #: Most Newton steps of the undistortion (it converges to rounding in 3-5 wherever the distortion
 #: keeps the radius increasing, which any usable lens does across its sensor).
 _UNDISTORT_STEPS = 8
+
+
+@njit
+def _pixels_to_vectors(xy, f, cx, cy, k1, k2):
+    """:meth:`Camera.pixels_to_vectors`, one point at a time (a dozen numpy calls on a few points cost a
+    search ~0.1 ms each time a pattern is seen through new optics).
+
+    The distortion is radial: ``rho (1 + k1 rho^2 + k2 rho^4) = rho_d`` is solved for the undistorted
+    radius by Newton's method (quadratic convergence: 3-5 steps to rounding where a fixed-point iteration
+    needed 20, and never converged for strong distortion), then ``(a_d, b_d)`` scaled by ``rho / rho_d``.
+    """
+    out = np.empty((xy.shape[0], 3))
+    for i in range(xy.shape[0]):
+        a = (xy[i, 0] - cx) / f
+        b = (xy[i, 1] - cy) / f
+        if k1 != 0.0 or k2 != 0.0:
+            rho_d = np.hypot(a, b)
+            rho = rho_d
+            for _ in range(_UNDISTORT_STEPS):
+                r2 = rho * rho
+                step = (rho * (1.0 + k1 * r2 + k2 * r2 * r2) - rho_d) / (1.0 + 3.0 * k1 * r2 + 5.0 * k2 * r2 * r2)
+                rho -= step
+                if not abs(step) > 1e-15 * rho:
+                    break
+            scale = rho / rho_d if rho_d > 0 else 1.0
+            a, b = a * scale, b * scale
+        norm = np.sqrt((a * a + b * b) + 1.0)
+        out[i, 0], out[i, 1], out[i, 2] = a / norm, b / norm, 1.0 / norm
+    return out
+
+
+@warm_up_with
+def _warm_up_pixels() -> None:
+    _pixels_to_vectors(np.zeros((1, 2)), 100.0, 1.0, 1.0, 0.1, 0.0)
 
 
 @dataclass(frozen=True)
@@ -154,32 +190,11 @@ class Camera:
         d = 1.0 + self.k1 * r2 + self.k2 * r2 * r2
         return a * d, b * d
 
-    def _undistort(self, ad: np.ndarray, bd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        if self.k1 == 0.0 and self.k2 == 0.0:
-            return ad, bd
-        # The distortion is radial: solve rho (1 + k1 rho^2 + k2 rho^4) = rho_d for the undistorted radius by
-        # Newton's method (quadratic convergence: 3-5 steps to rounding where a fixed-point iteration needed
-        # 20, and never converged for strong distortion), then scale (ad, bd) by rho / rho_d.
-        k1, k2 = self.k1, self.k2
-        rho_d = np.hypot(ad, bd)
-        rho = rho_d.copy()
-        for _ in range(_UNDISTORT_STEPS):
-            r2 = rho * rho
-            step = (rho * (1.0 + k1 * r2 + k2 * r2 * r2) - rho_d) / (1.0 + 3.0 * k1 * r2 + 5.0 * k2 * r2 * r2)
-            rho -= step
-            if not np.any(np.abs(step) > 1e-15 * rho):
-                break
-        scale = np.divide(rho, rho_d, out=np.ones_like(rho), where=rho_d > 0)
-        return ad * scale, bd * scale
-
     def pixels_to_vectors(self, xy: np.ndarray) -> np.ndarray:
         """(N, 2) pixel coordinates -> (N, 3) unit vectors in the camera frame."""
-        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
-        ad = (xy[:, 0] - self.cx) / self.focal_length_px
-        bd = (xy[:, 1] - self.cy) / self.focal_length_px
-        a, b = self._undistort(ad, bd)
-        v = np.column_stack([a, b, np.ones_like(a)])
-        return v / np.linalg.norm(v, axis=1, keepdims=True)
+        xy = np.ascontiguousarray(xy, dtype=float).reshape(-1, 2)
+        return _pixels_to_vectors(xy, float(self.focal_length_px), float(self.cx), float(self.cy), float(self.k1),
+                                  float(self.k2))
 
     def vectors_to_pixels(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, 3) camera-frame vectors -> ((N, 2) pixels, (N,) in-front mask).

@@ -422,3 +422,39 @@ def test_the_compiled_sequence_fit_steps_are_numpys(turn):
     assert np.allclose(J, J0, rtol=1e-12, atol=1e-12 * np.abs(J0).max())
     phi = rng.normal(size=(6, 3)) * turn
     assert np.allclose(left_jacobian(phi), _numpy_left_jacobian(phi), rtol=1e-13, atol=1e-15)
+
+
+# --- pixels to camera-frame vectors, as numpy computed them before the kernel ---------------------------------
+
+def _numpy_pixels_to_vectors(camera, xy):
+    ad = (xy[:, 0] - camera.cx) / camera.focal_length_px
+    bd = (xy[:, 1] - camera.cy) / camera.focal_length_px
+    if camera.k1 != 0.0 or camera.k2 != 0.0:
+        k1, k2 = camera.k1, camera.k2
+        rho_d = np.hypot(ad, bd)
+        rho = rho_d.copy()
+        for _ in range(8):
+            r2 = rho * rho
+            step = (rho * (1.0 + k1 * r2 + k2 * r2 * r2) - rho_d) / (1.0 + 3.0 * k1 * r2 + 5.0 * k2 * r2 * r2)
+            rho -= step
+            if not np.any(np.abs(step) > 1e-15 * rho):
+                break
+        scale = np.divide(rho, rho_d, out=np.ones_like(rho), where=rho_d > 0)
+        ad, bd = ad * scale, bd * scale
+    v = np.column_stack([ad, bd, np.ones_like(ad)])
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("k1, k2", [(0.0, 0.0), (0.05, 0.0), (-0.2, 0.0), (0.1, -0.05)])
+def test_the_compiled_pixels_to_vectors_is_numpys(k1, k2):
+    """The centre pixel, the corners and random pixels, with and without radial distortion (and back)."""
+    from dataclasses import replace
+
+    from app.camera import CAMERAS
+
+    camera = replace(CAMERAS["tubsat-752x582-20deg"], k1=k1, k2=k2)
+    rng = np.random.default_rng(3)
+    xy = np.vstack([[[camera.cx, camera.cy], [0, 0], [751, 581]], rng.uniform([0, 0], [751, 581], size=(200, 2))])
+    v = camera.pixels_to_vectors(xy)
+    assert np.allclose(v, _numpy_pixels_to_vectors(camera, xy), rtol=0, atol=1e-15)
+    assert np.allclose(camera.vectors_to_pixels(v)[0], xy, rtol=0, atol=1e-9)
