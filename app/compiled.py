@@ -18,9 +18,9 @@ before numba is first imported.
 Compiling.  Each kernel module registers a warm-up (:func:`warm_up_with`: a
 call of each kernel on tiny inputs of the types the program uses).
 :func:`warm_up` runs them all once per process and says in ONE log line
-whether it compiled (the first run after an install: 20-25 s of CPU for
-seven warm-ups, measured 2026-11-25) or loaded the cache (0.2-0.3 s, most
-of it numba setting itself up on its first kernel).
+whether it compiled (the first run after an install: 32-36 s of CPU for
+the 49 kernels of 2026-11-25, more with each new one) or loaded the cache
+(0.2-0.3 s, most of it numba setting itself up for its first kernel).
 :func:`app.identification.identify` warms up before its search's clock
 starts; a server's compute pool (:mod:`app.workflow.compute`) warms up in
 its workers, or in a thread of its own, while the server answers.

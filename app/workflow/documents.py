@@ -642,7 +642,7 @@ class HealthDocument(Document):
     search_timeout_s: float
     search_workers: str
     compute_ready: bool = Field(description="false while the searches' workers load their compiled kernels "
-                                            "(0.3 s; the first start after an install compiles them, 20-25 s): "
+                                            "(a second; the first start after an install compiles them, 30-60 s): "
                                             "searches and uploads sent meanwhile wait for them, and their time-out "
                                             "counts from then")
 
