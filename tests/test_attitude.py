@@ -108,3 +108,35 @@ def test_left_jacobian_matches_finite_differences():
         # exp(phi + d) exp(phi)^T ~ exp([J_l d]x): its rotation vector / h is column k of J_l.
         moved = Rotation.from_rotvec(phi + step) * Rotation.from_rotvec(phi).inv()
         assert np.allclose(moved.as_rotvec() / h, J[:, :, k], atol=1e-6)
+
+
+@pytest.mark.parametrize("kind", ["random", "rank 2", "rank 1", "zero", "narrow field"])
+def test_the_jacobi_svd_is_an_svd_and_lapacks_where_that_is_well_defined(kind):
+    """U S V^T = B with U, V orthonormal and S descending (LAPACK's singular values), also for the
+    rank-deficient matrices Wahba's problem meets (two stars; one); and Wahba's rotation from it."""
+    from scipy.spatial.transform import Rotation
+
+    from app.attitude.rotations import svd_3x3
+
+    rng = np.random.default_rng(len(kind))
+    for _ in range(200):
+        if kind == "random":
+            B = rng.normal(size=(3, 3))
+        elif kind == "rank 2":
+            B = np.outer(rng.normal(size=3), rng.normal(size=3)) + np.outer(rng.normal(size=3), rng.normal(size=3))
+        elif kind == "rank 1":
+            B = np.outer(rng.normal(size=3), rng.normal(size=3))
+        elif kind == "zero":
+            B = np.zeros((3, 3))
+        else:  # a profile matrix of stars 0.5 deg apart, seen through a random rotation
+            ref = np.column_stack([rng.normal(scale=0.01, size=(6, 2)), np.ones(6)])
+            ref /= np.linalg.norm(ref, axis=1, keepdims=True)
+            truth = Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix()
+            B = (ref @ truth.T).T @ ref
+        U, S, Vt = svd_3x3(B)
+        assert np.allclose(U @ U.T, np.eye(3), atol=1e-14) and np.allclose(Vt @ Vt.T, np.eye(3), atol=1e-14)
+        assert np.all(np.diff(S) <= 0) and np.allclose(S, np.linalg.svd(B)[1], atol=1e-13)
+        assert np.allclose(U @ np.diag(S) @ Vt, B, atol=1e-13)
+        if kind == "narrow field":
+            R = U @ np.diag([1, 1, np.linalg.det(U) * np.linalg.det(Vt)]) @ Vt
+            assert np.allclose(R, truth, atol=1e-11)

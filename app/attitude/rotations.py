@@ -164,6 +164,80 @@ def _rotations_from_pairs(b1, b2, r1, r2):
     return out
 
 
+@njit
+def svd_3x3(B):
+    """``(U, S, V^T)`` of a 3 x 3 matrix, singular values descending: one-sided Jacobi.
+
+    Why not LAPACK's.  Wahba's problem is solved a few hundred times a
+    search (refinements, their subset and leave-one-out fits, the
+    extraction's link fits), and LAPACK's SVD costs ~2.7 us a call from
+    compiled code where these plane rotations take ~1 us.  One-sided Jacobi
+    also has high *relative* accuracy (Demmel & Veselic 1992): the singular
+    vectors of the small singular values, which fix a narrow field's roll,
+    come out as accurate as the data allow (against a 40-digit SVD: 5e-13
+    where LAPACK's gave 1.2e-11, on patterns 0.2 deg across).
+
+    Columns ``p, q`` of ``W = B V`` are rotated until orthogonal, ``V``
+    accumulating the rotations; then ``S_k = |W_k|`` and ``U_k = W_k / S_k``.
+    A rank-deficient ``B`` gets ``U`` completed to an orthonormal basis.
+    """
+    W = B.copy()
+    V = np.eye(3)
+    for _sweep in range(12):
+        rotated = False
+        for p, q in ((0, 1), (0, 2), (1, 2)):
+            a = W[0, p] * W[0, p] + W[1, p] * W[1, p] + W[2, p] * W[2, p]
+            b = W[0, q] * W[0, q] + W[1, q] * W[1, q] + W[2, q] * W[2, q]
+            g = W[0, p] * W[0, q] + W[1, p] * W[1, q] + W[2, p] * W[2, q]
+            if g == 0.0 or abs(g) <= 1e-17 * np.sqrt(a * b):
+                continue
+            rotated = True
+            zeta = (b - a) / (2.0 * g)
+            t = (1.0 if zeta >= 0 else -1.0) / (abs(zeta) + np.sqrt(1.0 + zeta * zeta))
+            c = 1.0 / np.sqrt(1.0 + t * t)
+            s = c * t
+            for r in range(3):
+                wp, wq = W[r, p], W[r, q]
+                W[r, p], W[r, q] = c * wp - s * wq, s * wp + c * wq
+                vp, vq = V[r, p], V[r, q]
+                V[r, p], V[r, q] = c * vp - s * vq, s * vp + c * vq
+        if not rotated:
+            break
+    norms = np.empty(3)
+    for k in range(3):
+        norms[k] = np.sqrt(W[0, k] * W[0, k] + W[1, k] * W[1, k] + W[2, k] * W[2, k])
+    order = np.argsort(-norms)
+    U, S, Vt = np.zeros((3, 3)), np.empty(3), np.empty((3, 3))
+    for j in range(3):
+        k = order[j]
+        S[j] = norms[k]
+        for r in range(3):
+            Vt[j, r] = V[r, k]
+            if norms[k] > 0:
+                U[r, j] = W[r, k] / norms[k]
+    if not S[0] > 0:
+        U[0, 0] = 1.0
+    if not S[1] > 0:  # any unit vector square to U_0: from the axis least along it
+        e = np.zeros(3)
+        e[np.argmin(np.abs(U[:, 0]))] = 1.0
+        d = U[0, 0] * e[0] + U[1, 0] * e[1] + U[2, 0] * e[2]
+        for r in range(3):
+            U[r, 1] = e[r] - d * U[r, 0]
+        n = np.sqrt(U[0, 1] * U[0, 1] + U[1, 1] * U[1, 1] + U[2, 1] * U[2, 1])
+        for r in range(3):
+            U[r, 1] /= n
+    if not S[2] > 0:
+        U[0, 2] = U[1, 0] * U[2, 1] - U[2, 0] * U[1, 1]
+        U[1, 2] = U[2, 0] * U[0, 1] - U[0, 0] * U[2, 1]
+        U[2, 2] = U[0, 0] * U[1, 1] - U[1, 0] * U[0, 1]
+    return U, S, Vt
+
+
+@warm_up_with
+def _warm_up_svd() -> None:
+    svd_3x3(np.eye(3))
+
+
 @warm_up_with
 def _warm_up_pairs() -> None:
     """Compile :func:`_rotations_from_pairs` for the stacks the searches pass."""

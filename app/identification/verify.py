@@ -38,6 +38,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import bdtrc, chdtr  # binomial survival, chi-square CDF (scipy.stats' are 30x slower per call)
 
+from app.attitude.rotations import svd_3x3
 from app.compiled import njit, warm_up_with
 from app.identification.cells import NearStarCells, check_kernel, nearest_star
 
@@ -311,7 +312,7 @@ def _rotation_from_svd(B, sign_from_factors):
     """Wahba's optimum ``U diag(1, 1, d) V^T`` from the SVD of B: ``d`` is det U det V when
     ``sign_from_factors``, else the sign of det(U V^T) (:func:`app.attitude.solve_wahba`'s test); the same
     number either way (both are +-1), two ways of writing it kept from the numpy code."""
-    U, _, Vt = np.linalg.svd(B)
+    U, _, Vt = svd_3x3(B)
     R = np.zeros((3, 3))
     for r in range(3):
         for c in range(3):
