@@ -182,10 +182,12 @@ def svd_3x3(B):
     A rank-deficient ``B`` gets ``U`` completed to an orthonormal basis.
     """
     W = B.copy()
-    V = np.eye(3)
+    V = np.zeros((3, 3))
+    V[0, 0], V[1, 1], V[2, 2] = 1.0, 1.0, 1.0
     for _sweep in range(12):
         rotated = False
-        for p, q in ((0, 1), (0, 2), (1, 2)):
+        for pair in range(3):
+            p, q = (0, 1) if pair == 0 else ((0, 2) if pair == 1 else (1, 2))
             a = W[0, p] * W[0, p] + W[1, p] * W[1, p] + W[2, p] * W[2, p]
             b = W[0, q] * W[0, q] + W[1, q] * W[1, q] + W[2, q] * W[2, q]
             g = W[0, p] * W[0, q] + W[1, p] * W[1, q] + W[2, p] * W[2, q]
@@ -206,7 +208,13 @@ def svd_3x3(B):
     norms = np.empty(3)
     for k in range(3):
         norms[k] = np.sqrt(W[0, k] * W[0, k] + W[1, k] * W[1, k] + W[2, k] * W[2, k])
-    order = np.argsort(-norms)
+    # Descending order of three numbers, written out (a sort costs seconds of compilation, a first run's).
+    order = np.empty(3, dtype=np.int64)
+    first = 0 if norms[0] >= norms[1] and norms[0] >= norms[2] else (1 if norms[1] >= norms[2] else 2)
+    last = 2 if norms[2] < norms[0] and norms[2] < norms[1] else (1 if norms[1] < norms[0] else 0)
+    if first == last:  # all three equal
+        first, last = 0, 2
+    order[0], order[1], order[2] = first, 3 - first - last, last
     U, S, Vt = np.zeros((3, 3)), np.empty(3), np.empty((3, 3))
     for j in range(3):
         k = order[j]
@@ -218,11 +226,12 @@ def svd_3x3(B):
     if not S[0] > 0:
         U[0, 0] = 1.0
     if not S[1] > 0:  # any unit vector square to U_0: from the axis least along it
-        e = np.zeros(3)
-        e[np.argmin(np.abs(U[:, 0]))] = 1.0
-        d = U[0, 0] * e[0] + U[1, 0] * e[1] + U[2, 0] * e[2]
+        axis = 0
+        for r in range(1, 3):
+            if abs(U[r, 0]) < abs(U[axis, 0]):
+                axis = r
         for r in range(3):
-            U[r, 1] = e[r] - d * U[r, 0]
+            U[r, 1] = (1.0 if r == axis else 0.0) - U[axis, 0] * U[r, 0]
         n = np.sqrt(U[0, 1] * U[0, 1] + U[1, 1] * U[1, 1] + U[2, 1] * U[2, 1])
         for r in range(3):
             U[r, 1] /= n

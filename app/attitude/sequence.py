@@ -199,10 +199,23 @@ def _left_jacobian(x, y, z):
     K = np.zeros((3, 3))
     K[0, 1], K[0, 2], K[1, 2] = -z, y, -x
     K[1, 0], K[2, 0], K[2, 1] = z, -y, x
-    J = a * K + b * (K @ K)
+    KK = _mul(K, K)
+    J = np.empty((3, 3))
     for i in range(3):
-        J[i, i] += 1.0
+        for j in range(3):
+            J[i, j] = a * K[i, j] + b * KK[i, j] + (1.0 if i == j else 0.0)
     return J
+
+
+@njit
+def _mul(A, B):
+    """A B of two 3 x 3 matrices (written out: numba's matrix product and array expressions cost seconds of
+    compilation, the first run after an install)."""
+    C = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            C[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+    return C
 
 
 @njit
@@ -212,17 +225,65 @@ def _residuals_and_jacobian(R_obs, dt, W, R0, c, w):
     S = dt.shape[0]
     f = np.empty(3 * S)
     J = np.empty((3 * S, 6))
-    base = _exp(c[0], c[1], c[2]) @ R0
+    base = _mul(_exp(c[0], c[1], c[2]), R0)
     for i in range(S):
         px, py, pz = -w[0] * dt[i], -w[1] * dt[i], -w[2] * dt[i]
         turn = _exp(px, py, pz)
-        r = _log(R_obs[i] @ (turn @ base).T)
-        raw = np.empty((3, 6))
-        raw[:, :3] = -turn
-        raw[:, 3:] = dt[i] * _left_jacobian(px, py, pz)
-        f[3 * i:3 * i + 3] = W[i] @ r
-        J[3 * i:3 * i + 3] = W[i] @ raw
+        pred = _mul(turn, base)
+        misfit = np.empty((3, 3))
+        for r in range(3):
+            for k in range(3):
+                misfit[r, k] = R_obs[i, r, 0] * pred[k, 0] + R_obs[i, r, 1] * pred[k, 1] + R_obs[i, r, 2] * pred[k, 2]
+        r = _log(misfit)
+        jl = _left_jacobian(px, py, pz)
+        for a in range(3):
+            f[3 * i + a] = W[i, a, 0] * r[0] + W[i, a, 1] * r[1] + W[i, a, 2] * r[2]
+            for k in range(3):
+                J[3 * i + a, k] = -(W[i, a, 0] * turn[0, k] + W[i, a, 1] * turn[1, k] + W[i, a, 2] * turn[2, k])
+                J[3 * i + a, 3 + k] = dt[i] * (W[i, a, 0] * jl[0, k] + W[i, a, 1] * jl[1, k] + W[i, a, 2] * jl[2, k])
     return f, J
+
+
+@njit
+def _normal_step(f, J):
+    """The Gauss-Newton step ``delta`` solving ``J^T J delta = -J^T f`` (6 unknowns) by Cholesky, the normal
+    matrix first scaled to a unit diagonal (its columns mix radians and radians per second)."""
+    n = 6
+    N = np.zeros((n, n))
+    g = np.zeros(n)
+    for row in range(J.shape[0]):
+        for a in range(n):
+            g[a] -= J[row, a] * f[row]
+            for b in range(a + 1):
+                N[a, b] += J[row, a] * J[row, b]
+    scale = np.empty(n)
+    for a in range(n):
+        scale[a] = 1.0 / np.sqrt(N[a, a]) if N[a, a] > 0 else 1.0
+    L = np.zeros((n, n))
+    for a in range(n):
+        for b in range(a + 1):
+            total = N[a, b] * scale[a] * scale[b]
+            for k in range(b):
+                total -= L[a, k] * L[b, k]
+            if a == b:
+                L[a, a] = np.sqrt(total) if total > 0 else np.nan
+            else:
+                L[a, b] = total / L[b, b]
+    y = np.empty(n)
+    for a in range(n):
+        total = g[a] * scale[a]
+        for k in range(a):
+            total -= L[a, k] * y[k]
+        y[a] = total / L[a, a]
+    delta = np.empty(n)
+    for a in range(n - 1, -1, -1):
+        total = y[a]
+        for k in range(a + 1, n):
+            total -= L[k, a] * delta[k]
+        delta[a] = total / L[a, a]
+    for a in range(n):
+        delta[a] *= scale[a]
+    return delta
 
 
 @njit
@@ -234,10 +295,17 @@ def _gauss_newton(R_obs, dt, W, R0, w0, iterations, converged):
     w = w0.copy()
     for _ in range(iterations):
         f, J = _residuals_and_jacobian(R_obs, dt, W, R0, c, w)
-        delta = np.linalg.lstsq(J, -f)[0]
-        c += delta[:3]
-        w += delta[3:]
-        if np.max(np.abs(delta)) < converged:
+        delta = _normal_step(f, J)
+        largest = 0.0
+        for k in range(6):
+            if not abs(delta[k]) <= largest:  # nan too
+                largest = abs(delta[k])
+        if not largest < np.inf:  # nan or inf: a singular normal matrix (the caller's inverse says so)
+            break
+        for k in range(3):
+            c[k] += delta[k]
+            w[k] += delta[3 + k]
+        if largest < converged:
             break
     f, J = _residuals_and_jacobian(R_obs, dt, W, R0, c, w)
     return c, w, f, J
