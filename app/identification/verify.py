@@ -411,7 +411,9 @@ def _assign_kernel(ang, idx, tol):
 def _consensus_kernel(body, ref, w, subsets):
     """:func:`consensus_subset` of one set of n (4-7) points: the agreeing points of the best subset's fit."""
     n = body.shape[0]
-    sigma = 1.0 / np.sqrt(w)
+    sigma = np.empty(n)
+    for i in range(n):
+        sigma[i] = 1.0 / np.sqrt(w[i])
     best_count, best_chi2, best = -1, np.inf, np.zeros(n, dtype=np.bool_)
     agree = np.zeros(n, dtype=np.bool_)
     for k in range(subsets.shape[0]):
@@ -465,15 +467,17 @@ def _count(star):
 
 
 @njit
-def _gather(pattern_vectors, star_vectors, weights, star, use):
-    """(body, ref, w) of the points where ``use``: their directions, their stars' and their weights."""
+def _gather(pattern_vectors, star_vectors, weights, star):
+    """(body, ref, w) of the points matched to a star (``star >= 0``): their directions, their stars' and
+    their weights.  (Loops, not array expressions, here and in the kernels below: numba compiles an array
+    expression's broadcasting in seconds, on the first run after an install.)"""
     n = 0
-    for i in range(use.shape[0]):
-        n += use[i]
+    for i in range(star.shape[0]):
+        n += star[i] >= 0
     body, ref, w = np.empty((n, 3)), np.empty((n, 3)), np.empty(n)
     k = 0
-    for i in range(use.shape[0]):
-        if use[i]:
+    for i in range(star.shape[0]):
+        if star[i] >= 0:
             for c in range(3):
                 body[k, c] = pattern_vectors[i, c]
                 ref[k, c] = star_vectors[star[i], c]
@@ -491,9 +495,9 @@ def _refine_kernel(R0, pattern_vectors, weights, star_vectors, final_tol, start,
     expressions (the first run's compilation)."""
     m = pattern_vectors.shape[0]
     R = R0.copy()
-    fitted = -np.ones(m, dtype=np.int64)
-    star = -np.ones(m, dtype=np.int64)
-    resid = np.nan * np.ones(m)
+    fitted = np.full(m, -1, dtype=np.int64)
+    star = np.full(m, -1, dtype=np.int64)
+    resid = np.full(m, np.nan)
     have_final = False
     tol = np.empty(m)
     for it in range(iterations):
@@ -519,7 +523,7 @@ def _refine_kernel(R0, pattern_vectors, weights, star_vectors, final_tol, start,
                     go = False
         if not go:
             break
-        body, ref, w = _gather(pattern_vectors, star_vectors, weights, s, s >= 0)
+        body, ref, w = _gather(pattern_vectors, star_vectors, weights, s)
         R = _wahba_kernel(body, ref, w)
         fitted = s
     nearest, idx = _look_up(R, pattern_vectors, bound, star_vectors, cells)
@@ -530,7 +534,7 @@ def _refine_kernel(R0, pattern_vectors, weights, star_vectors, final_tol, start,
         near, _ = _assign_kernel(nearest, idx, 2 * final_tol)
         n = _count(near)
         if 3 <= n <= SMALL_SET:
-            body, ref, w = _gather(pattern_vectors, star_vectors, weights, near, near >= 0)
+            body, ref, w = _gather(pattern_vectors, star_vectors, weights, near)
             agree = np.ones(n, dtype=np.bool_)
             if n > 3:
                 agree = _consensus_kernel(body, ref, w, subset_masks[subset_start[n]:subset_start[n + 1]])
@@ -550,12 +554,14 @@ def _refine_kernel(R0, pattern_vectors, weights, star_vectors, final_tol, start,
                 resid[i] = f_resid[i] if star[i] >= 0 else np.nan
     if _count(star) > SMALL_SET:
         # Judge each point by the fit of the others: an outlier cannot hide by pulling the fit.
-        sigma = 1.0 / np.sqrt(weights)
+        sigma = np.empty(m)
+        for i in range(m):
+            sigma[i] = 1.0 / np.sqrt(weights[i])
         for _ in range(max(1, m // 3)):
             n = _count(star)
             if n <= SMALL_SET:
                 break
-            body, ref, w = _gather(pattern_vectors, star_vectors, weights, star, star >= 0)
+            body, ref, w = _gather(pattern_vectors, star_vectors, weights, star)
             loo = _loo_kernel(body, ref, w)
             # The lower quartile: outliers pull the fit, inflating the others' residuals and the median.
             robust = _lower_quartile(loo) / RAYLEIGH_QUARTILE
@@ -570,7 +576,7 @@ def _refine_kernel(R0, pattern_vectors, weights, star_vectors, final_tol, start,
                 break
             star = star.copy()
             star[worst_point] = -1
-            body, ref, w = _gather(pattern_vectors, star_vectors, weights, star, star >= 0)
+            body, ref, w = _gather(pattern_vectors, star_vectors, weights, star)
             R = _wahba_kernel(body, ref, w)
             nearest, idx = _look_up(R, pattern_vectors, bound, star_vectors, cells)
             fresh, f_resid = _assign_kernel(nearest, idx, final_tol)
