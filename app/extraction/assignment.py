@@ -29,15 +29,19 @@ def min_cost_assignment(cost):
 
     ``min(n_rows, n_cols)`` pairs, each row and column at most once, as
     ``scipy.optimize.linear_sum_assignment`` returns them.  Costs must be
-    finite.
+    finite.  (Plain loops, no numpy calls: each numpy function in a kernel
+    adds a second or more to the first run's compilation.)
     """
     transposed = cost.shape[1] < cost.shape[0]
-    c = cost.T.copy() if transposed else cost
-    n_rows, n_cols = c.shape
+    n_rows, n_cols = min(cost.shape), max(cost.shape)
+    c = np.empty((n_rows, n_cols))
+    for i in range(n_rows):
+        for j in range(n_cols):
+            c[i, j] = cost[j, i] if transposed else cost[i, j]
     u = np.zeros(n_rows)
     v = np.zeros(n_cols)
     path_cost = np.empty(n_cols)
-    previous_row = np.full(n_cols, -1)
+    previous_row = np.empty(n_cols, dtype=np.int64)
     col_of_row = np.full(n_rows, -1)
     row_of_col = np.full(n_cols, -1)
     row_seen = np.zeros(n_rows, dtype=np.bool_)
@@ -47,10 +51,11 @@ def min_cost_assignment(cost):
         # Dijkstra from new_row over the reduced costs, until a free column is reached
         for k in range(n_cols):
             remaining[k] = n_cols - 1 - k
+            path_cost[k] = np.inf
+            col_seen[k] = False
+        for i in range(n_rows):
+            row_seen[i] = False
         n_remaining = n_cols
-        row_seen[:] = False
-        col_seen[:] = False
-        path_cost[:] = np.inf
         shortest = 0.0
         i = new_row
         sink = -1
@@ -92,10 +97,19 @@ def min_cost_assignment(cost):
             col_of_row[i], j = j, col_of_row[i]
             if i == new_row:
                 break
+    rows = np.empty(n_rows, dtype=np.int64)
+    cols = np.empty(n_rows, dtype=np.int64)
     if not transposed:
-        return np.arange(n_rows), col_of_row
-    order = np.argsort(col_of_row)  # rows of the transposed problem are the columns: sort by the original rows
-    return col_of_row[order], order
+        for i in range(n_rows):
+            rows[i], cols[i] = i, col_of_row[i]
+        return rows, cols
+    # the transposed problem's rows are the columns: list the pairs by the original rows
+    k = 0
+    for j in range(n_cols):
+        if row_of_col[j] >= 0:
+            rows[k], cols[k] = j, row_of_col[j]
+            k += 1
+    return rows, cols
 
 
 @warm_up_with

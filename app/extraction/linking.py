@@ -76,7 +76,7 @@ import numpy as np
 from app.compiled import njit, warm_up_with
 from app.extraction.assignment import min_cost_assignment
 from app.extraction.model import GHOST, HOT_PIXEL, OUTLIER, Extraction, ExtractionParameters, Track
-from app.extraction.motion import estimate_pair_rotations, expand_ranges, wahba_rotation
+from app.extraction.motion import estimate_pair_rotations, expand_ranges, wahba_rotations
 from app.extraction.pattern import carried_tracks, seed_pattern, tracks_pattern
 from app.telemetry.model import Sequence
 
@@ -174,14 +174,23 @@ def _linked_groups(used_links, flat_of: np.ndarray, n_sources: int) -> np.ndarra
     """(M,) group label joining the sources matched by the used links transitively.
 
     Every snapshot has at most one used link from an earlier snapshot, so
-    copying labels forward link by link (in order of the later snapshot)
-    joins exactly the chains of matches.
+    every source has at most one matched source in an earlier snapshot, its
+    parent: a group is a chain of parents, labelled by its first source.
+    Parents are followed to the first by pointer jumping (each round doubles
+    the distance, so 16 snapshots take four rounds).
     """
-    label = np.arange(n_sources)
-    for a, b, matches in used_links:
-        k = np.flatnonzero(matches >= 0)
-        label[flat_of[b, matches[k]]] = label[flat_of[a, k]]
-    return label
+    parent = np.arange(n_sources)
+    if used_links:
+        a = np.array([link[0] for link in used_links])
+        b = np.array([link[1] for link in used_links])
+        matches = np.array([link[2] for link in used_links])
+        row, k = np.nonzero(matches >= 0)
+        parent[flat_of[b[row], matches[row, k]]] = flat_of[a[row], k]
+    while True:
+        further = parent[parent]
+        if np.array_equal(further, parent):
+            return parent
+        parent = further
 
 
 def _nearest_snapshots(component: np.ndarray, main: int) -> list[tuple[int, int, int]]:
@@ -296,43 +305,49 @@ def _rejoin_components(camera, vectors: np.ndarray, brightness: np.ndarray, snap
         groups = relabel[groups]
 
 
-@njit
 def _refine_to_common(vectors: np.ndarray, snap: np.ndarray, label: np.ndarray,
                       to_common: np.ndarray) -> np.ndarray:
     """Each snapshot's rotation into the common frame re-solved against track means (Wahba).
 
     Only labels with two or more sightings count; snapshots with fewer than
-    two such sightings keep their rotation.  A track's mean is the normalised
-    sum of its sightings carried into the common frame (``A_s v``); snapshot
-    s's new rotation is the R minimising sum |mean - R v| over its sightings
-    (:func:`app.extraction.motion.wahba_rotation`).
+    two such sightings keep their rotation.  Snapshot s's new rotation is the
+    R minimising sum |mean - R v|^2 over its sightings v
+    (:func:`app.extraction.motion.wahba_rotations`).
     """
-    n_snap = to_common.shape[0]
-    size = np.zeros(label.shape[0], dtype=np.int64)  # labels are below the number of sources
-    for i in range(label.shape[0]):
+    profiles, counts = _snapshot_profiles(vectors, snap, label, to_common)
+    return np.where((counts >= 2)[:, None, None], wahba_rotations(profiles), to_common)
+
+
+@njit
+def _snapshot_profiles(vectors, snap, label, to_common):
+    """Each snapshot's attitude profile against the track means, B_s = sum mean v^T over its sightings v in
+    a track of two or more, and the number of those sightings.
+
+    A track's mean is the normalised sum of its sightings carried into the common frame (``A_s v``).
+    Labels are below the number of sources.
+    """
+    m = label.shape[0]
+    size = np.zeros(m, dtype=np.int64)
+    for i in range(m):
         if label[i] >= 0:
             size[label[i]] += 1
-    sums = np.zeros((label.shape[0], 3))
-    for i in range(label.shape[0]):
+    sums = np.zeros((m, 3))
+    for i in range(m):
         if label[i] >= 0 and size[label[i]] >= 2:
             A = to_common[snap[i]]
             for r in range(3):
                 sums[label[i], r] += A[r, 0] * vectors[i, 0] + A[r, 1] * vectors[i, 1] + A[r, 2] * vectors[i, 2]
-    profile = np.zeros((n_snap, 3, 3))
-    count = np.zeros(n_snap, dtype=np.int64)
-    for i in range(label.shape[0]):
+    profiles = np.zeros((to_common.shape[0], 3, 3))
+    counts = np.zeros(to_common.shape[0], dtype=np.int64)
+    for i in range(m):
         if label[i] >= 0 and size[label[i]] >= 2:
-            x, y, z = sums[label[i]]
-            mean = sums[label[i]] / np.sqrt(x * x + y * y + z * z)
+            t = label[i]
+            norm = np.sqrt(sums[t, 0] * sums[t, 0] + sums[t, 1] * sums[t, 1] + sums[t, 2] * sums[t, 2])
             for r in range(3):
                 for c in range(3):
-                    profile[snap[i], r, c] += mean[r] * vectors[i, c]
-            count[snap[i]] += 1
-    refined = to_common.copy()
-    for s in range(n_snap):
-        if count[s] >= 2:
-            refined[s] = wahba_rotation(profile[s])
-    return refined
+                    profiles[snap[i], r, c] += sums[t, r] / norm * vectors[i, c]
+            counts[snap[i]] += 1
+    return profiles, counts
 
 
 def _same_pixel_pairs(xy: np.ndarray, snap: np.ndarray, tol: float,
@@ -420,10 +435,11 @@ def _associate_kernel(common, comp, usable, bounds, max_cost):
     """:func:`_associate`'s labels; snapshot s's sources are ``bounds[s]:bounds[s + 1]``.
 
     Each usable source of a snapshot goes to the track of its component whose mean direction is nearest
-    (least 1 - cos), within ``max_cost``; where two sources want one track the optimal one-to-one
-    assignment (:func:`min_cost_assignment`, pairs beyond the gate costing :data:`_TOO_FAR`) decides.  A
-    track's mean is the normalised sum of its sightings, updated after each snapshot.  The rest start
-    new tracks, numbered in order.
+    (least 1 - cos, the first on ties), within ``max_cost``; where two sources want one track the optimal
+    one-to-one assignment (:func:`min_cost_assignment`, pairs beyond the gate costing :data:`_TOO_FAR`)
+    decides.  A track's mean is the normalised sum of its sightings, updated after each snapshot.  The
+    rest start new tracks, numbered in order.  (Plain loops: each numpy function in a kernel adds to the
+    first run's compilation.)
     """
     m = common.shape[0]
     label = np.full(m, -1)
@@ -431,47 +447,65 @@ def _associate_kernel(common, comp, usable, bounds, max_cost):
     means = np.zeros((m, 3))
     track_comp = np.full(m, -1)
     n_tracks = 0
-    for s in range(len(bounds) - 1):
-        idx = np.arange(bounds[s], bounds[s + 1])[usable[bounds[s]:bounds[s + 1]]]
-        if len(idx) == 0:
+    idx = np.empty(m, dtype=np.int64)
+    candidates = np.empty(m, dtype=np.int64)
+    for s in range(bounds.shape[0] - 1):
+        n = 0
+        for i in range(bounds[s], bounds[s + 1]):
+            if usable[i]:
+                idx[n] = i
+                n += 1
+        if n == 0:
             continue
-        candidates = np.flatnonzero(track_comp[:n_tracks] == comp[idx[0]])
-        if len(candidates):
-            cost = np.empty((len(idx), len(candidates)))
-            for r in range(len(idx)):
-                for k in range(len(candidates)):
+        n_cand = 0
+        for t in range(n_tracks):
+            if track_comp[t] == comp[idx[0]]:
+                candidates[n_cand] = t
+                n_cand += 1
+        if n_cand:
+            cost = np.empty((n, n_cand))
+            for r in range(n):
+                for k in range(n_cand):
                     t = candidates[k]
                     cost[r, k] = 1.0 - (common[idx[r], 0] * means[t, 0] + common[idx[r], 1] * means[t, 1]
                                         + common[idx[r], 2] * means[t, 2])
-            col = np.full(len(idx), -1)
-            wanted = np.zeros(len(candidates), dtype=np.int64)
+            col = np.full(n, -1)
+            wanted = np.zeros(n_cand, dtype=np.int64)
             conflict = False
-            for r in range(len(idx)):
-                nearest = np.argmin(cost[r])
+            for r in range(n):
+                nearest = 0
+                for k in range(1, n_cand):
+                    if cost[r, k] < cost[r, nearest]:
+                        nearest = k
                 if cost[r, nearest] <= max_cost:
                     col[r] = nearest
                     wanted[nearest] += 1
-                    conflict |= wanted[nearest] > 1
+                    conflict = conflict or wanted[nearest] > 1
             if conflict:
                 # two sources want one track: the optimal one-to-one assignment decides
-                col[:] = -1
-                far = np.where(cost > max_cost, _TOO_FAR, cost)
-                rows, cols = min_cost_assignment(far)
-                for k in range(len(rows)):
-                    if far[rows[k], cols[k]] < _TOO_FAR:
+                for r in range(n):
+                    col[r] = -1
+                    for k in range(n_cand):
+                        if cost[r, k] > max_cost:
+                            cost[r, k] = _TOO_FAR
+                rows, cols = min_cost_assignment(cost)
+                for k in range(rows.shape[0]):
+                    if cost[rows[k], cols[k]] < _TOO_FAR:
                         col[rows[k]] = cols[k]
-            for r in range(len(idx)):
+            for r in range(n):
                 if col[r] >= 0:
                     t = candidates[col[r]]
                     label[idx[r]] = t
-                    sums[t] += common[idx[r]]
-                    means[t] = sums[t] / np.sqrt(sums[t, 0] * sums[t, 0] + sums[t, 1] * sums[t, 1]
-                                                 + sums[t, 2] * sums[t, 2])
-        for r in range(len(idx)):
+                    for d in range(3):
+                        sums[t, d] += common[idx[r], d]
+                    norm = np.sqrt(sums[t, 0] * sums[t, 0] + sums[t, 1] * sums[t, 1] + sums[t, 2] * sums[t, 2])
+                    for d in range(3):
+                        means[t, d] = sums[t, d] / norm
+        for r in range(n):
             if label[idx[r]] < 0:
                 label[idx[r]] = n_tracks
-                sums[n_tracks] = common[idx[r]]
-                means[n_tracks] = common[idx[r]]
+                for d in range(3):
+                    sums[n_tracks, d] = means[n_tracks, d] = common[idx[r], d]
                 track_comp[n_tracks] = comp[idx[r]]
                 n_tracks += 1
     return label
@@ -479,10 +513,10 @@ def _associate_kernel(common, comp, usable, bounds, max_cost):
 
 @warm_up_with
 def _warm_up_association() -> None:
-    """Compile :func:`_associate_kernel` and :func:`_refine_to_common` for the arrays extraction passes."""
+    """Compile :func:`_associate_kernel` and :func:`_snapshot_profiles` for the arrays extraction passes."""
     common = np.array([[0.0, 0.0, 1.0], [0.0, 0.001, 1.0], [0.0, 0.0, 1.0], [0.001, 0.0, 1.0]])
     _associate(common, np.array([0, 0, 1, 1]), np.zeros(4, dtype=int), np.ones(4, dtype=bool), 0.01)
-    _refine_to_common(common, np.array([0, 0, 1, 1]), np.array([0, 1, 0, 1]), np.tile(np.eye(3), (2, 1, 1)))
+    _snapshot_profiles(common, np.array([0, 0, 1, 1]), np.array([0, 1, 0, 1]), np.tile(np.eye(3), (2, 1, 1)))
 
 
 def _track_sizes(label: np.ndarray) -> np.ndarray:
@@ -495,9 +529,10 @@ def _track_sizes(label: np.ndarray) -> np.ndarray:
 
 def _track_sums(label: np.ndarray, vectors: np.ndarray) -> np.ndarray:
     """(T, 3) sum of the vectors of each label (rows of unused labels are 0)."""
-    sums = np.zeros((int(label.max(initial=-1)) + 1, 3))
-    np.add.at(sums, label[label >= 0], vectors[label >= 0])
-    return sums
+    live = label >= 0
+    n = int(label.max(initial=-1)) + 1
+    # per coordinate, as np.add.at would add them (in order) but without its overhead
+    return np.column_stack([np.bincount(label[live], vectors[live, k], n) for k in range(3)]).reshape(n, 3)
 
 
 def _outliers(common: np.ndarray, label: np.ndarray, sigma_chord: float, p: ExtractionParameters,
@@ -535,7 +570,7 @@ def _noise_sigma_px(residual_sq_px: np.ndarray, dof_factor: np.ndarray, p: Extra
     middle = len(scaled) // 2  # the upper median: np.median's overhead is most of the cost here
     # Squared chords computed as 2 - 2 cos can come out a rounding error below zero (exact matches).
     sigma = math.sqrt(max(0.0, float(np.partition(scaled, middle)[middle])) / _CHI2_2_MEDIAN)
-    return float(np.clip(sigma, p.sigma_min_px, p.sigma_max_px))
+    return min(max(sigma, p.sigma_min_px), p.sigma_max_px)
 
 
 def _max_sky_motion_px(camera, motion: np.ndarray, members: np.ndarray) -> float:

@@ -18,16 +18,17 @@ follow it.  ``R`` is found by RANSAC:
    b (a truncated quadratic, MSAC: near misses count less than exact hits,
    which breaks ties between hypotheses with the same inlier count).
 3. *Refine.*  The few best hypotheses of each pair are refined by Wahba's
-   problem (SVD, :func:`wahba_rotation`) on mutual nearest neighbours
-   within the fit gate; the refined one whose
+   problem (:func:`wahba_rotations`) on mutual nearest neighbours within
+   the fit gate; the refined one whose
    matches fit best wins and is refined once more (with three or four common stars a wrong
    hypothesis plus one chance match can tie in inlier count, never in fit).
 
-The hypotheses of all snapshot pairs are found in a handful of numpy calls
-(the pairs' chords sorted together); scoring and refinement, a few
-arithmetic operations per source pair, are compiled loops over the
-hypotheses (:func:`_scores`, :func:`_refine_links`), where numpy would pay
-its call overhead for every small array.  Chords stand in for angles: they
+Everything is done for all snapshot pairs at once, no Python loop over
+hypotheses or pairs: the hypotheses in a handful of numpy calls (the
+pairs' chords sorted together), the scores and the mutual matches, a few
+arithmetic operations per source pair, in compiled loops over the
+hypotheses (:func:`_scores`, :func:`_mutual_matches`), where numpy made and
+scanned (hypotheses x sources x sources) arrays of chords.  Chords stand in for angles: they
 are monotonic in the angle, accurate for small angles and need no arccos.
 
 **Bounded work.**  Scoring costs (hypotheses) x (sources of a) x (sources
@@ -44,6 +45,7 @@ without it; and the scoring holds nothing but the scores in memory.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -77,8 +79,16 @@ def _pair_chords(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     ``v`` is (S, K, 3), NaN-padded; returns (S, P) chords (NaN for padding)
     and the (P,) index arrays i < j.
     """
-    i, j = np.triu_indices(v.shape[1], 1)
+    i, j = _pairs_of(v.shape[1])
     return np.linalg.norm(v[:, i] - v[:, j], axis=-1), i, j
+
+
+@functools.lru_cache(maxsize=8)
+def _pairs_of(k: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.triu_indices(k, 1)``, made once per k (its cost is most of :func:`_pair_chords` for 20 points)."""
+    i, j = np.triu_indices(k, 1)
+    i.flags.writeable = j.flags.writeable = False
+    return i, j
 
 
 def expand_ranges(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -209,106 +219,116 @@ def _scores(rotation, va_index, vb_index, vectors, score_gate):
 
 
 @njit
-def _mutual_matches(rotation, va, vb, gate_sq):
-    """Mutual nearest neighbours within the gate of ``rotation @ va[i]`` and ``vb[j]``.
+def _mutual_matches(rotation, va_index, vb_index, vectors, gate_sq):
+    """Mutual nearest neighbours within the gate of ``rotation[h] @ v_a`` and ``v_b``, for each hypothesis h
+    relating snapshot ``va_index[h]`` to ``vb_index[h]``.
 
-    Returns (N,) the source of b matched to each source of a (-1: none) and (N,) the squared chord of each
-    match (0 elsewhere).  Chords come as ``2 - 2 (R v_a).v_b``; zero padding rows are at 2 (a right angle),
-    beyond every gate.  Ties go to the first source, as numpy's argmin gives them.
+    Returns (H, N) the source of b matched to each source of a (-1: none) and (H, N) the squared chord of
+    each match (0 elsewhere).  Chords come as ``2 - 2 (R v_a).v_b``; zero padding rows are at 2 (a right
+    angle), beyond every gate.  Ties go to the first source, as numpy's argmin gives them.
     """
-    n_a, n_b = va.shape[0], vb.shape[0]
-    d2 = np.empty((n_a, n_b))
-    for i in range(n_a):
-        p0 = rotation[0, 0] * va[i, 0] + rotation[0, 1] * va[i, 1] + rotation[0, 2] * va[i, 2]
-        p1 = rotation[1, 0] * va[i, 0] + rotation[1, 1] * va[i, 1] + rotation[1, 2] * va[i, 2]
-        p2 = rotation[2, 0] * va[i, 0] + rotation[2, 1] * va[i, 1] + rotation[2, 2] * va[i, 2]
-        for j in range(n_b):
-            d2[i, j] = 2.0 - 2.0 * (p0 * vb[j, 0] + p1 * vb[j, 1] + p2 * vb[j, 2])
-    match = np.full(n_a, -1)
-    match_sq = np.zeros(n_a)
-    for i in range(n_a):
-        j = np.argmin(d2[i])
-        if np.argmin(d2[:, j]) == i and d2[i, j] < gate_sq:
-            match[i] = j
-            match_sq[i] = d2[i, j]
+    n = vectors.shape[1]
+    match = np.full((rotation.shape[0], n), -1)
+    match_sq = np.zeros((rotation.shape[0], n))
+    d2 = np.empty((n, n))
+    for h in range(rotation.shape[0]):
+        R, va, vb = rotation[h], vectors[va_index[h]], vectors[vb_index[h]]
+        for i in range(n):
+            p0 = R[0, 0] * va[i, 0] + R[0, 1] * va[i, 1] + R[0, 2] * va[i, 2]
+            p1 = R[1, 0] * va[i, 0] + R[1, 1] * va[i, 1] + R[1, 2] * va[i, 2]
+            p2 = R[2, 0] * va[i, 0] + R[2, 1] * va[i, 1] + R[2, 2] * va[i, 2]
+            for j in range(n):
+                d2[i, j] = 2.0 - 2.0 * (p0 * vb[j, 0] + p1 * vb[j, 1] + p2 * vb[j, 2])
+        for i in range(n):
+            j = 0  # a's nearest in b
+            for k in range(1, n):
+                if d2[i, k] < d2[i, j]:
+                    j = k
+            back = 0  # that one's nearest in a
+            for k in range(1, n):
+                if d2[k, j] < d2[back, j]:
+                    back = k
+            if back == i and d2[i, j] < gate_sq:
+                match[h, i] = j
+                match_sq[h, i] = d2[i, j]
     return match, match_sq
 
 
-@njit
-def _refit(rotation, va, vb, gate_sq):
-    """``rotation`` re-solved by Wahba's problem on its mutual matches within the gate (kept with fewer than
-    two): :func:`wahba_rotation` of B = sum_i v_b(i) v_a(i)^T."""
-    match, _ = _mutual_matches(rotation, va, vb, gate_sq)
-    B = np.zeros((3, 3))
-    for i in range(va.shape[0]):
-        if match[i] >= 0:
-            for r in range(3):
-                for c in range(3):
-                    B[r, c] += vb[match[i], r] * va[i, c]
-    if np.sum(match >= 0) < 2:
-        return rotation
-    return wahba_rotation(B)
+def _refit(rotation: np.ndarray, va_index: np.ndarray, vb_index: np.ndarray, vectors: np.ndarray,
+           gate: float) -> np.ndarray:
+    """One Wahba re-solve of each rotation on its mutual matches within the gate (kept with fewer than two)."""
+    match, _ = _mutual_matches(rotation, va_index, vb_index, vectors, gate**2)
+    matched = match >= 0
+    body = np.where(matched[..., None], np.take_along_axis(vectors[vb_index], np.maximum(match, 0)[..., None], axis=1), 0.0)
+    refined = wahba_rotations(np.swapaxes(body, 1, 2) @ vectors[va_index])
+    return np.where((matched.sum(axis=1) >= 2)[:, None, None], refined, rotation)
 
 
 @njit
-def wahba_rotation(B):
-    """The rotation R minimising sum_i |b_i - R a_i|^2 from its attitude profile B = sum_i b_i a_i^T.
+def wahba_rotations(profiles):
+    """(K, 3, 3) rotations R minimising sum_i |b_i - R a_i|^2, from attitude profiles B = sum_i b_i a_i^T.
 
-    With B = U S V^T, R = U diag(1, 1, det U V^T) V^T (:func:`app.attitude.solve_wahba`'s SVD method):
-    where U V^T is a reflection, the axis of the smallest singular value is flipped.
+    Davenport's q method: the optimal rotation's quaternion (q, q4) is the eigenvector of the largest
+    eigenvalue of the symmetric K = [[B + B^T - tr(B) I, z], [z^T, tr(B)]], z = (B23 - B32, B31 - B13,
+    B12 - B21); then R = (q4^2 - q.q) I + 2 q q^T - 2 q4 [q x].  The eigenvector comes from cyclic Jacobi
+    rotations of the 4x4 K (converged to 1e-16 of its norm in a few sweeps).  The optimum over rotations,
+    as the SVD method of :func:`app.attitude.solve_wahba` finds it (the two agree to rounding where the
+    optimum is well defined, and to ~1e-11 where two close vectors leave a turn about them barely
+    determined), at about a microsecond a problem where LAPACK's SVD of a 3x3 takes four or five.
     """
-    U, _, Vt = np.linalg.svd(B)
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
+    out = np.empty((profiles.shape[0], 3, 3))
+    K = np.empty((4, 4))
+    V = np.empty((4, 4))
+    for k in range(profiles.shape[0]):
+        B = profiles[k]
+        trace = B[0, 0] + B[1, 1] + B[2, 2]
         for r in range(3):
             for c in range(3):
-                R[r, c] -= 2.0 * U[r, 2] * Vt[2, c]
-    return R
-
-
-@njit
-def _refine_links(hypotheses, score, link, links, vectors, fit_gate, n_refine):
-    """Each link's best rotation from its scored hypotheses (module docstring, step 3), and its matches.
-
-    ``hypotheses`` (H, 3, 3) are grouped by ``link``; link l relates snapshot ``links[l, 0]`` to ``links[l, 1]``.
-    The ``n_refine`` best scored of a link (the first on ties) are refined once (:func:`_refit`); the one
-    whose mutual matches fit best (truncated quadratic sum_i max(0, 1 - d_i^2 / g^2)) wins, the first on
-    ties, and is refined once more.  Returns (L, 3, 3) rotations (NaN for a link without hypotheses),
-    (L, N) matches of the winner (-1: none) and (L, N) their squared chords (0 elsewhere).
-    """
-    n = vectors.shape[1]
-    gate_sq = fit_gate * fit_gate
-    n_links = links.shape[0]
-    rotation = np.full((n_links, 3, 3), np.nan)
-    matches = np.full((n_links, n), -1)
-    match_sq = np.zeros((n_links, n))
-    start = 0
-    while start < link.shape[0]:
-        lk = link[start]
-        stop = start
-        while stop < link.shape[0] and link[stop] == lk:
-            stop += 1
-        va, vb = vectors[links[lk, 0]], vectors[links[lk, 1]]
-        taken = np.zeros(stop - start, dtype=np.bool_)
-        best_fit, winner = -np.inf, np.empty((3, 3))
-        for _ in range(min(n_refine, stop - start)):
-            pick = -1  # the best score not yet refined, the first on ties
-            for h in range(stop - start):
-                if not taken[h] and (pick < 0 or score[start + h] > score[start + pick]):
-                    pick = h
-            taken[pick] = True
-            r = _refit(hypotheses[start + pick], va, vb, gate_sq)
-            match, d2 = _mutual_matches(r, va, vb, gate_sq)
-            fit = 0.0
-            for i in range(n):
-                if match[i] >= 0:
-                    fit += 1.0 - d2[i] / gate_sq
-            if fit > best_fit:
-                best_fit, winner = fit, r
-        rotation[lk] = _refit(winner, va, vb, gate_sq)
-        matches[lk], match_sq[lk] = _mutual_matches(rotation[lk], va, vb, gate_sq)
-        start = stop
-    return rotation, matches, match_sq
+                K[r, c] = B[r, c] + B[c, r] - (trace if r == c else 0.0)
+        K[0, 3] = K[3, 0] = B[1, 2] - B[2, 1]
+        K[1, 3] = K[3, 1] = B[2, 0] - B[0, 2]
+        K[2, 3] = K[3, 2] = B[0, 1] - B[1, 0]
+        K[3, 3] = trace
+        scale = 0.0
+        for r in range(4):
+            for c in range(4):
+                scale += K[r, c] * K[r, c]
+                V[r, c] = 1.0 if r == c else 0.0
+        for _ in range(16):
+            off = 0.0
+            for p in range(3):
+                for q in range(p + 1, 4):
+                    off += K[p, q] * K[p, q]
+            if off <= 1e-32 * scale:
+                break
+            for p in range(3):
+                for q in range(p + 1, 4):
+                    if K[p, q] == 0.0:
+                        continue
+                    # the rotation in the (p, q) plane that zeroes K[p, q]
+                    theta = (K[q, q] - K[p, p]) / (2.0 * K[p, q])
+                    t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+                    c = 1.0 / np.sqrt(t * t + 1.0)
+                    s = t * c
+                    for r in range(4):
+                        K[r, p], K[r, q] = c * K[r, p] - s * K[r, q], s * K[r, p] + c * K[r, q]
+                    for r in range(4):
+                        K[p, r], K[q, r] = c * K[p, r] - s * K[q, r], s * K[p, r] + c * K[q, r]
+                    for r in range(4):
+                        V[r, p], V[r, q] = c * V[r, p] - s * V[r, q], s * V[r, p] + c * V[r, q]
+        best = 0
+        for j in range(1, 4):
+            if K[j, j] > K[best, best]:
+                best = j
+        q1, q2, q3, q4 = V[0, best], V[1, best], V[2, best], V[3, best]
+        R = out[k]
+        R[0, 0] = q4 * q4 + q1 * q1 - q2 * q2 - q3 * q3
+        R[1, 1] = q4 * q4 - q1 * q1 + q2 * q2 - q3 * q3
+        R[2, 2] = q4 * q4 - q1 * q1 - q2 * q2 + q3 * q3
+        R[0, 1], R[1, 0] = 2.0 * (q1 * q2 + q3 * q4), 2.0 * (q1 * q2 - q3 * q4)
+        R[0, 2], R[2, 0] = 2.0 * (q1 * q3 - q2 * q4), 2.0 * (q1 * q3 + q2 * q4)
+        R[1, 2], R[2, 1] = 2.0 * (q2 * q3 + q1 * q4), 2.0 * (q2 * q3 - q1 * q4)
+    return out
 
 
 def estimate_pair_rotations(vectors: np.ndarray, hypothesis_sources: np.ndarray, links: np.ndarray, *,
@@ -353,30 +373,46 @@ def estimate_pair_rotations(vectors: np.ndarray, hypothesis_sources: np.ndarray,
         return PairRotations(rotation, n_inliers, np.full((n_links, vectors.shape[1]), -1), np.zeros(0))
 
     sa, sb = links[link, 0], links[link, 1]
-    hyp_r = rotation_from_pair(hyp_vectors[sb, b1], hyp_vectors[sb, b2],
-                               hyp_vectors[sa, a1], hyp_vectors[sa, a2])
+    flat = hyp_vectors.reshape(-1, 3)  # hyp_vectors[s, i] is flat[s K + i]
+    k = hyp_vectors.shape[1]
+    hyp_r = rotation_from_pair(flat[sb * k + b1], flat[sb * k + b2], flat[sa * k + a1], flat[sa * k + a2])
     score = _scores(hyp_r, sa, sb, vectors, score_gate)
-    # among a link's refined candidates the one whose matches fit best wins (truncated quadratic again):
-    # a chance match that made a wrong hypothesis tie in inliers leaves a visibly larger residual
-    refined, match, match_sq = _refine_links(hyp_r, score, link, links, vectors, fit_gate, n_refine)
-    found = np.flatnonzero(np.isfinite(refined[:, 0, 0]))
-    count = (match[found] >= 0).sum(axis=1)
-    radius_sq = np.maximum(match_sq[found].max(axis=1), min_radius**2)
+
+    # the best few hypotheses per link: sort by (link, -score), keep each group's head
+    order = np.lexsort((-score, link))
+    sorted_link = link[order]
+    rank = np.arange(len(order)) - np.searchsorted(sorted_link, sorted_link)  # place within its link
+    keep = order[rank < n_refine]
+    found = link[keep]
+    r = _refit(hyp_r[keep], sa[keep], sb[keep], vectors, fit_gate)
+    # among a link's refined candidates the one whose matches fit best wins
+    # (truncated quadratic again): a chance match that made a wrong
+    # hypothesis tie in inliers leaves a visibly larger residual
+    match, match_sq = _mutual_matches(r, sa[keep], sb[keep], vectors, fit_gate**2)
+    fit_score = np.where(match >= 0, 1.0 - match_sq / fit_gate**2, 0.0).sum(axis=1)
+    order = np.lexsort((-fit_score, found))
+    winner = order[np.r_[True, found[order][1:] != found[order][:-1]]]
+    found, sa, sb = found[winner], sa[keep][winner], sb[keep][winner]
+    r = _refit(r[winner], sa, sb, vectors, fit_gate)
+
+    match, match_sq = _mutual_matches(r, sa, sb, vectors, fit_gate**2)
+    count = (match >= 0).sum(axis=1)
+    radius_sq = np.maximum(match_sq.max(axis=1), min_radius**2)
     n_hyp = np.bincount(link, minlength=n_links)[found]
-    nfa = false_alarms(n_hyp, n_sources[links[found, 0]], n_sources[links[found, 1]], count, radius_sq,
-                       field_area)
-    ok = found[(count >= min_inliers) & (nfa <= max_false_alarms)]
-    rotation[ok] = refined[ok]
+    nfa = false_alarms(n_hyp, n_sources[sa], n_sources[sb], count, radius_sq, field_area)
+    ok = (count >= min_inliers) & (nfa <= max_false_alarms)
+    rotation[found[ok]] = r[ok]
     n_inliers[found] = count
     matches = np.full((n_links, vectors.shape[1]), -1, dtype=int)
-    matches[ok] = match[ok]
+    matches[found[ok]] = match[ok]
     inlier_sq = match_sq[ok][match[ok] >= 0]
     return PairRotations(rotation, n_inliers, matches, inlier_sq)
 
 
 @warm_up_with
 def _warm_up_motion() -> None:
-    """Compile :func:`_scores` and :func:`_refine_links` for the arrays :func:`estimate_pair_rotations` passes."""
+    """Compile :func:`_scores`, :func:`_mutual_matches` and :func:`wahba_rotations` for the arrays :func:`estimate_pair_rotations` passes."""
     vectors = np.array([[[0.0, 0.0, 1.0], [0.0, 0.01, 1.0]], [[0.0, 0.0, 1.0], [0.01, 0.0, 1.0]]])
     _scores(np.eye(3)[None], np.array([0]), np.array([1]), vectors, 0.01)
-    _refine_links(np.eye(3)[None], np.ones(1), np.array([0]), np.array([[0, 1]]), vectors, 0.01, 4)
+    _mutual_matches(np.eye(3)[None], np.array([0]), np.array([1]), vectors, 0.01)
+    wahba_rotations(np.eye(3)[None])
