@@ -362,6 +362,23 @@ def _stars_from(observations: Sequence) -> tuple[_Stars, np.ndarray, list]:
     return stars, np.array(rotations), labels
 
 
+def _one_observation(xy, star_vectors, rotation, sigma_px) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_stars_from`'s checks and unit vectors for one observation, without its bookkeeping of many
+    (a search fits one snapshot's optics several times a solve)."""
+    xy = np.ascontiguousarray(xy, dtype=float).reshape(-1, 2)
+    vectors = np.asarray(star_vectors, dtype=float).reshape(-1, 3)
+    if len(xy) != len(vectors):
+        raise ValueError(f"observation 0: {len(xy)} pixel positions but {len(vectors)} star vectors")
+    if len(xy) == 0:
+        raise ValueError("observation 0: no stars")
+    if not (math.isfinite(sigma_px) and sigma_px > 0):
+        raise ValueError(f"observation 0: sigma_px must be > 0, got {sigma_px!r}")
+    if not (np.isfinite(xy).all() and np.isfinite(vectors).all()):
+        raise ValueError("observation 0: pixel positions and star vectors must be finite")
+    vectors = vectors / np.sqrt((vectors * vectors).sum(axis=1))[:, None]
+    return xy, vectors, np.ascontiguousarray(rotation, dtype=float).reshape(3, 3)
+
+
 def _camera_frame(stars: _Stars, rotations: np.ndarray) -> np.ndarray:
     v = np.einsum("nij,nj->ni", rotations[stars.owner], stars.vectors)
     if np.any(v[:, 2] <= 1e-6):
@@ -781,8 +798,8 @@ def fit_attitude_and_camera(xy: np.ndarray, star_vectors: np.ndarray, rotation0:
     """
     names = parameter_names(parameters_for(len(np.atleast_2d(xy))) if fit is None else fit)
     priors = default_priors(camera, names) if priors is None else dict(priors)
-    stars, rotations, _ = _stars_from([Observation(xy, star_vectors, rotation0, sigma_px)])
-    n = len(stars.xy)
+    xy, vectors, rotation0 = _one_observation(xy, star_vectors, rotation0, sigma_px)
+    n = len(xy)
     n_priors = sum(1 for key in priors if ALIASES.get(key, key) in names)
     dof = 2 * n + n_priors - 3 - len(names)
     if 2 * n < 3 + len(names) - n_priors or n < 2:
@@ -790,7 +807,7 @@ def fit_attitude_and_camera(xy: np.ndarray, star_vectors: np.ndarray, rotation0:
     prior_mean, prior_precision = _prior_arrays(priors, names)
     optics = camera.optics()
     status, stage, rotation, values, chi2, _, covariance, rms_px = _fit_one_kernel(
-        stars.xy, stars.vectors, 1.0 / float(sigma_px), rotations[0],
+        xy, vectors, 1.0 / float(sigma_px), rotation0,
         np.array([optics[name] for name in PARAMETERS]), np.array([_OPTICS_INDEX[name] for name in names]),
         prior_mean, prior_precision)
     if status:
