@@ -16,7 +16,6 @@ from app.attitude import solve_wahba
 from app.attitude.rotations import rotation_from_rotvec
 from app.camera import CAMERAS
 from app.extraction import extract, linking, motion
-from app.extraction.assignment import min_cost_assignment
 from app.simulate import simulate_sequence
 
 
@@ -106,31 +105,6 @@ def test_association_kernel_matches_the_numpy_loop_on_random_sequences():
         conflicts += n
         np.testing.assert_array_equal(linking._associate(common, snap, comp, usable, gate), expected)
     assert conflicts > 50  # the optimal assignment was needed often, not only the nearest tracks
-
-
-@pytest.mark.parametrize("shape", [(1, 1), (3, 3), (2, 5), (5, 2), (7, 4), (4, 7)])
-def test_min_cost_assignment_gives_scipys_pairs(shape):
-    """Random costs, costs with many ties (small integers), and gated costs (most at one large value)."""
-    rng = np.random.default_rng(shape)
-    for k in range(300):
-        if k % 3 == 0:
-            cost = rng.random(shape)
-        elif k % 3 == 1:
-            cost = rng.integers(0, 3, shape).astype(float)
-        else:
-            cost = np.where(rng.random(shape) < 0.6, 10.0, rng.random(shape) * 1e-4)
-        rows, cols = min_cost_assignment(cost)
-        expected_rows, expected_cols = linear_sum_assignment(cost)
-        np.testing.assert_array_equal(rows, expected_rows)
-        np.testing.assert_array_equal(cols, expected_cols)
-
-
-def test_min_cost_assignment_finds_the_optimum_a_greedy_choice_misses():
-    # Row 0's cheapest column is 0, but giving it to row 1 (which has no other good column) is cheaper overall.
-    cost = np.array([[1.0, 2.0], [1.5, 9.0]])
-    rows, cols = min_cost_assignment(cost)
-    assert list(zip(rows, cols)) == [(0, 1), (1, 0)]
-    assert cost[rows, cols].sum() == 3.5
 
 
 # --- the numpy scoring of rotation hypotheses, as it was before the kernel ------------------------------
@@ -361,3 +335,39 @@ def test_refine_to_common_matches_the_numpy_re_solve_on_real_tracks(recorded_cal
     for args in recorded_calls["refine_to_common"]:
         np.testing.assert_allclose(linking._refine_to_common(*args), refine_to_common_reference(*args),
                                    rtol=0, atol=1e-12)
+
+
+# --- the warm-up compiles what extraction calls ----------------------------------------------------------
+
+def test_extraction_calls_its_kernels_only_with_the_types_the_warm_up_compiled(monkeypatch):
+    """A kernel called with other argument types (a strided array, another integer type) than its warm-up's
+    compiles again, for a second or more, in the middle of a search.  The argument types of every call of
+    every extraction kernel, while extracting sequences of six scenarios (single snapshots, ghosts, the
+    Earth, sparse fields), with and without known hot pixels, must be among those the warm-ups passed."""
+    import numba
+
+    kernels = [(motion, "_scores"), (motion, "_mutual_matches"), (motion, "wahba_rotations"),
+               (linking, "wahba_rotations"), (linking, "_associate_kernel"), (linking, "_snapshot_profiles")]
+    seen = {"warm-up": set(), "extraction": set()}
+    phase = ["warm-up"]
+
+    def recorder(name, kernel):
+        def record(*args):
+            seen[phase[0]].add((name, tuple(numba.typeof(a) for a in args)))
+            return kernel(*args)
+        return record
+
+    for module, name in kernels:
+        monkeypatch.setattr(module, name, recorder(name.removeprefix("_"), getattr(module, name)))
+    motion._warm_up_motion()
+    linking._warm_up_association()
+    phase[0] = "extraction"
+    rng = np.random.default_rng(8)
+    for scenario in ("nominal", "ghosts3", "single", "sparse", "earth", "planet"):
+        for camera in CAMERAS.values():
+            sequence = simulate_sequence(rng, camera, scenario)[0]
+            extract(sequence)
+            extract(sequence, known_hot=[np.arange(s.n_sources) % 5 == 0 for s in sequence.snapshots])
+    called = {name for name, _ in seen["extraction"]}
+    assert called == {"scores", "mutual_matches", "wahba_rotations", "associate_kernel", "snapshot_profiles"}
+    assert seen["extraction"] <= seen["warm-up"], seen["extraction"] - seen["warm-up"]

@@ -36,11 +36,10 @@ The steps of :func:`extract`:
    (identification then finds it matches no star).
 5. **Association.**  In the common frame a star is a fixed direction.
    Snapshots are visited in order; each one's sources are assigned to the
-   existing tracks' mean directions by the optimal one-to-one assignment
-   (:mod:`app.extraction.assignment`, scipy's ``linear_sum_assignment``
-   method) on the angular distance, within the link gate (when every
-   source's nearest track is a different one that is already the optimum);
-   the rest start new tracks.  A
+   existing tracks' mean directions by ``linear_sum_assignment`` on the
+   angular distance, within the link gate (when every source's nearest
+   track is a different one that is already the optimum); the rest start
+   new tracks.  A
    star missing from some snapshots simply rejoins its track later.  The
    rotations are then re-solved once more against these fuller tracks.
 6. **Outliers.**  A sighting farther from the mean of its track's other
@@ -74,7 +73,6 @@ import math
 import numpy as np
 
 from app.compiled import njit, warm_up_with
-from app.extraction.assignment import min_cost_assignment
 from app.extraction.model import GHOST, HOT_PIXEL, OUTLIER, Extraction, ExtractionParameters, Track
 from app.extraction.motion import estimate_pair_rotations, expand_ranges, wahba_rotations
 from app.extraction.pattern import carried_tracks, seed_pattern, tracks_pattern
@@ -420,10 +418,27 @@ def _associate(common: np.ndarray, snap: np.ndarray, comp: np.ndarray, usable: n
     """(M,) track label per flattened source (-1 unusable), snapshots visited in order.
 
     Costs are 1 - cos(angle) = chord^2 / 2, monotonic in the angle.  The loop over snapshots, with the
-    tracks' means updated after each, is :func:`_associate_kernel`.
+    tracks' means updated after each, is :func:`_associate_kernel`.  Where two sources of a snapshot want
+    one track it stops and hands back that snapshot's costs; the optimal one-to-one assignment decides
+    (scipy's ``linear_sum_assignment``, pairs beyond the gate costing more than any within it), and the
+    kernel goes on from that snapshot with the pairs it chose.
     """
+    m = len(snap)
     bounds = np.searchsorted(snap, np.arange(snap.max(initial=-1) + 2))
-    return _associate_kernel(common, comp, usable, bounds, gate_chord**2 / 2.0)
+    max_cost = gate_chord**2 / 2.0
+    label, sums, means, track_comp = np.full(m, -1), np.zeros((m, 3)), np.zeros((m, 3)), np.full(m, -1)
+    start, settled, chosen = 0, False, np.full((0, 2), -1)
+    while True:
+        start, cost = _associate_kernel(common, comp, usable, bounds, max_cost, label, sums, means, track_comp,
+                                        start, settled, chosen)
+        if start < 0:
+            return label
+        # Imported here: scipy.optimize costs ~0.1 s at start-up and few sequences come here.
+        from scipy.optimize import linear_sum_assignment
+
+        rows, cols = linear_sum_assignment(np.where(cost > max_cost, _TOO_FAR, cost))
+        within = cost[rows, cols] <= max_cost
+        settled, chosen = True, np.column_stack([rows[within], cols[within]])
 
 
 #: Cost of a source-track pair beyond the gate in the assignment: more than any pair within it (<= 2).
@@ -431,25 +446,28 @@ _TOO_FAR = 10.0
 
 
 @njit
-def _associate_kernel(common, comp, usable, bounds, max_cost):
-    """:func:`_associate`'s labels; snapshot s's sources are ``bounds[s]:bounds[s + 1]``.
+def _associate_kernel(common, comp, usable, bounds, max_cost, label, sums, means, track_comp, start, settled,
+                      chosen):
+    """:func:`_associate`'s loop from snapshot ``start`` on; snapshot s's sources are ``bounds[s]:bounds[s + 1]``.
 
     Each usable source of a snapshot goes to the track of its component whose mean direction is nearest
-    (least 1 - cos, the first on ties), within ``max_cost``; where two sources want one track the optimal
-    one-to-one assignment (:func:`min_cost_assignment`, pairs beyond the gate costing :data:`_TOO_FAR`)
-    decides.  A track's mean is the normalised sum of its sightings, updated after each snapshot.  The
-    rest start new tracks, numbered in order.  (Plain loops: each numpy function in a kernel adds to the
-    first run's compilation.)
+    (least 1 - cos, the first on ties), within ``max_cost``; a source that starts no track starts a new one,
+    numbered in order.  A track's mean is the normalised sum of its sightings, updated after each snapshot.
+    ``label`` (per source), ``sums`` and ``means`` (per track, (M, 3)) and ``track_comp`` (each track's
+    component, -1 past the last track) carry the tracks from call to call.  Where two sources want one
+    track the kernel stops: it returns the snapshot and its (sources x candidate tracks) costs, and is
+    called again from that snapshot, ``settled``, with ``chosen``: the (source, candidate) pairs to take
+    there, numbered as the rows and columns of those costs (usable sources and the tracks of their
+    component, in order).  Returns (-1, empty) at the end.
+    (Plain loops: each numpy function in a kernel adds to the first run's compilation.)
     """
     m = common.shape[0]
-    label = np.full(m, -1)
-    sums = np.zeros((m, 3))
-    means = np.zeros((m, 3))
-    track_comp = np.full(m, -1)
     n_tracks = 0
+    while n_tracks < m and track_comp[n_tracks] >= 0:
+        n_tracks += 1
     idx = np.empty(m, dtype=np.int64)
     candidates = np.empty(m, dtype=np.int64)
-    for s in range(bounds.shape[0] - 1):
+    for s in range(start, bounds.shape[0] - 1):
         n = 0
         for i in range(bounds[s], bounds[s + 1]):
             if usable[i]:
@@ -470,28 +488,21 @@ def _associate_kernel(common, comp, usable, bounds, max_cost):
                     cost[r, k] = 1.0 - (common[idx[r], 0] * means[t, 0] + common[idx[r], 1] * means[t, 1]
                                         + common[idx[r], 2] * means[t, 2])
             col = np.full(n, -1)
-            wanted = np.zeros(n_cand, dtype=np.int64)
-            conflict = False
-            for r in range(n):
-                nearest = 0
-                for k in range(1, n_cand):
-                    if cost[r, k] < cost[r, nearest]:
-                        nearest = k
-                if cost[r, nearest] <= max_cost:
-                    col[r] = nearest
-                    wanted[nearest] += 1
-                    conflict = conflict or wanted[nearest] > 1
-            if conflict:
-                # two sources want one track: the optimal one-to-one assignment decides
+            if settled and s == start:
+                for k in range(chosen.shape[0]):
+                    col[chosen[k, 0]] = chosen[k, 1]
+            else:
+                wanted = np.zeros(n_cand, dtype=np.int64)
                 for r in range(n):
-                    col[r] = -1
-                    for k in range(n_cand):
-                        if cost[r, k] > max_cost:
-                            cost[r, k] = _TOO_FAR
-                rows, cols = min_cost_assignment(cost)
-                for k in range(rows.shape[0]):
-                    if cost[rows[k], cols[k]] < _TOO_FAR:
-                        col[rows[k]] = cols[k]
+                    nearest = 0
+                    for k in range(1, n_cand):
+                        if cost[r, k] < cost[r, nearest]:
+                            nearest = k
+                    if cost[r, nearest] <= max_cost:
+                        col[r] = nearest
+                        wanted[nearest] += 1
+                        if wanted[nearest] > 1:
+                            return s, cost  # two sources want one track: the caller settles it
             for r in range(n):
                 if col[r] >= 0:
                     t = candidates[col[r]]
@@ -508,12 +519,13 @@ def _associate_kernel(common, comp, usable, bounds, max_cost):
                     sums[n_tracks, d] = means[n_tracks, d] = common[idx[r], d]
                 track_comp[n_tracks] = comp[idx[r]]
                 n_tracks += 1
-    return label
+    return -1, np.empty((0, 0))
 
 
 @warm_up_with
 def _warm_up_association() -> None:
-    """Compile :func:`_associate_kernel` and :func:`_snapshot_profiles` for the arrays extraction passes."""
+    """Compile :func:`_associate_kernel` and :func:`_snapshot_profiles` for the arrays extraction passes (the
+    second snapshot's two sources want the same track)."""
     common = np.array([[0.0, 0.0, 1.0], [0.0, 0.001, 1.0], [0.0, 0.0, 1.0], [0.001, 0.0, 1.0]])
     _associate(common, np.array([0, 0, 1, 1]), np.zeros(4, dtype=int), np.ones(4, dtype=bool), 0.01)
     _snapshot_profiles(common, np.array([0, 0, 1, 1]), np.array([0, 1, 0, 1]), np.tile(np.eye(3), (2, 1, 1)))
@@ -663,7 +675,8 @@ def _extract(sequence: Sequence, p: ExtractionParameters, known_hot: tuple[np.nd
     n_snap = len(sequence.snapshots)
     chord_px = 1.0 / camera.focal_length_px  # chord of one pixel near the centre
     xy_pad, bright_pad, valid = _padded(sequence)
-    snap, index = np.nonzero(valid)  # flattened sources, snapshot by snapshot
+    # flattened sources, snapshot by snapshot (contiguous copies: the kernels are compiled for those)
+    snap, index = (np.ascontiguousarray(k) for k in np.nonzero(valid))
     xy = xy_pad[snap, index]
     vectors = camera.pixels_to_vectors(xy)
     vectors_pad = np.full(xy_pad.shape[:2] + (3,), np.nan)
