@@ -231,10 +231,13 @@ def _random_hypotheses(rng, n, h=300):
 
 
 def _assert_same_matches(rotation, va, vb, vectors, gate_sq):
-    match, match_sq = motion._mutual_matches(rotation, va, vb, vectors, gate_sq)
+    match, match_sq, profiles = motion._mutual_matches(rotation, va, vb, vectors, gate_sq)
     expected_match, expected_sq = mutual_matches_reference(rotation, va, vb, vectors, gate_sq)
     np.testing.assert_array_equal(match, expected_match)
     np.testing.assert_allclose(match_sq, expected_sq, rtol=0, atol=1e-15)
+    # the profile solve_wahba forms from the matches: B = (w v_b)^T v_a
+    body = np.take_along_axis(vectors[vb], np.maximum(match, 0)[..., None], axis=1) * (match >= 0)[..., None]
+    np.testing.assert_allclose(profiles, np.swapaxes(body, 1, 2) @ vectors[va], rtol=0, atol=1e-14)
     return np.count_nonzero(match >= 0)
 
 

@@ -80,7 +80,9 @@ def _pair_chords(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     and the (P,) index arrays i < j.
     """
     i, j = _pairs_of(v.shape[1])
-    return np.linalg.norm(v[:, i] - v[:, j], axis=-1), i, j
+    d = np.take(v, i, axis=1) - np.take(v, j, axis=1)
+    # numpy's norm, the same numbers, without its reduction over an axis of three (most of its time)
+    return np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2]), i, j
 
 
 @functools.lru_cache(maxsize=8)
@@ -223,13 +225,15 @@ def _mutual_matches(rotation, va_index, vb_index, vectors, gate_sq):
     """Mutual nearest neighbours within the gate of ``rotation[h] @ v_a`` and ``v_b``, for each hypothesis h
     relating snapshot ``va_index[h]`` to ``vb_index[h]``.
 
-    Returns (H, N) the source of b matched to each source of a (-1: none) and (H, N) the squared chord of
-    each match (0 elsewhere).  Chords come as ``2 - 2 (R v_a).v_b``; zero padding rows are at 2 (a right
-    angle), beyond every gate.  Ties go to the first source, as numpy's argmin gives them.
+    Returns (H, N) the source of b matched to each source of a (-1: none), (H, N) the squared chord of each
+    match (0 elsewhere) and (H, 3, 3) the attitude profile of the matches, B = sum v_b v_a^T (Wahba's
+    problem: :func:`wahba_rotations`).  Chords come as ``2 - 2 (R v_a).v_b``; zero padding rows are at 2
+    (a right angle), beyond every gate.  Ties go to the first source, as numpy's argmin gives them.
     """
     n = vectors.shape[1]
     match = np.full((rotation.shape[0], n), -1)
     match_sq = np.zeros((rotation.shape[0], n))
+    profiles = np.zeros((rotation.shape[0], 3, 3))
     d2 = np.empty((n, n))
     for h in range(rotation.shape[0]):
         R, va, vb = rotation[h], vectors[va_index[h]], vectors[vb_index[h]]
@@ -251,17 +255,17 @@ def _mutual_matches(rotation, va_index, vb_index, vectors, gate_sq):
             if back == i and d2[i, j] < gate_sq:
                 match[h, i] = j
                 match_sq[h, i] = d2[i, j]
-    return match, match_sq
+                for r in range(3):
+                    for c in range(3):
+                        profiles[h, r, c] += vb[j, r] * va[i, c]
+    return match, match_sq, profiles
 
 
 def _refit(rotation: np.ndarray, va_index: np.ndarray, vb_index: np.ndarray, vectors: np.ndarray,
            gate: float) -> np.ndarray:
     """One Wahba re-solve of each rotation on its mutual matches within the gate (kept with fewer than two)."""
-    match, _ = _mutual_matches(rotation, va_index, vb_index, vectors, gate**2)
-    matched = match >= 0
-    body = np.where(matched[..., None], np.take_along_axis(vectors[vb_index], np.maximum(match, 0)[..., None], axis=1), 0.0)
-    refined = wahba_rotations(np.swapaxes(body, 1, 2) @ vectors[va_index])
-    return np.where((matched.sum(axis=1) >= 2)[:, None, None], refined, rotation)
+    match, _, profiles = _mutual_matches(rotation, va_index, vb_index, vectors, gate**2)
+    return np.where(((match >= 0).sum(axis=1) >= 2)[:, None, None], wahba_rotations(profiles), rotation)
 
 
 @njit
@@ -363,7 +367,7 @@ def estimate_pair_rotations(vectors: np.ndarray, hypothesis_sources: np.ndarray,
     hyp_vectors = np.take_along_axis(padded, np.where(hypothesis_sources < 0, vectors.shape[1],
                                                       hypothesis_sources)[..., None], axis=1)
     chords, pi, pj = _pair_chords(hyp_vectors)
-    n_sources = (np.abs(vectors).sum(axis=2) > 0).sum(axis=1)  # zero rows are padding
+    n_sources = (np.abs(vectors[..., 0]) + np.abs(vectors[..., 1]) + np.abs(vectors[..., 2]) > 0).sum(axis=1)  # zero rows are padding
     cap = None
     if max_work is not None:
         cost = np.maximum(1, n_sources[links[:, 0]] * n_sources[links[:, 1]])
@@ -388,14 +392,14 @@ def estimate_pair_rotations(vectors: np.ndarray, hypothesis_sources: np.ndarray,
     # among a link's refined candidates the one whose matches fit best wins
     # (truncated quadratic again): a chance match that made a wrong
     # hypothesis tie in inliers leaves a visibly larger residual
-    match, match_sq = _mutual_matches(r, sa[keep], sb[keep], vectors, fit_gate**2)
+    match, match_sq, _ = _mutual_matches(r, sa[keep], sb[keep], vectors, fit_gate**2)
     fit_score = np.where(match >= 0, 1.0 - match_sq / fit_gate**2, 0.0).sum(axis=1)
     order = np.lexsort((-fit_score, found))
     winner = order[np.r_[True, found[order][1:] != found[order][:-1]]]
     found, sa, sb = found[winner], sa[keep][winner], sb[keep][winner]
     r = _refit(r[winner], sa, sb, vectors, fit_gate)
 
-    match, match_sq = _mutual_matches(r, sa, sb, vectors, fit_gate**2)
+    match, match_sq, _ = _mutual_matches(r, sa, sb, vectors, fit_gate**2)
     count = (match >= 0).sum(axis=1)
     radius_sq = np.maximum(match_sq.max(axis=1), min_radius**2)
     n_hyp = np.bincount(link, minlength=n_links)[found]
