@@ -53,6 +53,7 @@ import numpy as np
 from scipy.special import gammaln
 
 from app.attitude import rotation_from_pair
+from app.attitude.rotations import svd_3x3
 from app.compiled import njit, warm_up_with
 
 #: Slot width separating the chords of different snapshot pairs in one
@@ -272,66 +273,22 @@ def _refit(rotation: np.ndarray, va_index: np.ndarray, vb_index: np.ndarray, vec
 def wahba_rotations(profiles):
     """(K, 3, 3) rotations R minimising sum_i |b_i - R a_i|^2, from attitude profiles B = sum_i b_i a_i^T.
 
-    Davenport's q method: the optimal rotation's quaternion (q, q4) is the eigenvector of the largest
-    eigenvalue of the symmetric K = [[B + B^T - tr(B) I, z], [z^T, tr(B)]], z = (B23 - B32, B31 - B13,
-    B12 - B21); then R = (q4^2 - q.q) I + 2 q q^T - 2 q4 [q x].  The eigenvector comes from cyclic Jacobi
-    rotations of the 4x4 K (converged to 1e-16 of its norm in a few sweeps).  The optimum over rotations,
-    as the SVD method of :func:`app.attitude.solve_wahba` finds it (the two agree to rounding where the
-    optimum is well defined, and to ~1e-11 where two close vectors leave a turn about them barely
-    determined), at about a microsecond a problem where LAPACK's SVD of a 3x3 takes four or five.
+    With B = U S V^T (:func:`app.attitude.rotations.svd_3x3`, compiled: ~1 us where numpy's LAPACK SVD of
+    a 3x3 takes 4-5), R = U diag(1, 1, d) V^T, d = det(U V^T): where U V^T is a reflection, the axis of
+    the smallest singular value is flipped (:func:`app.attitude.solve_wahba`'s SVD method).
     """
     out = np.empty((profiles.shape[0], 3, 3))
-    K = np.empty((4, 4))
-    V = np.empty((4, 4))
     for k in range(profiles.shape[0]):
-        B = profiles[k]
-        trace = B[0, 0] + B[1, 1] + B[2, 2]
+        U, _, Vt = svd_3x3(profiles[k])
+        R = out[k]
         for r in range(3):
             for c in range(3):
-                K[r, c] = B[r, c] + B[c, r] - (trace if r == c else 0.0)
-        K[0, 3] = K[3, 0] = B[1, 2] - B[2, 1]
-        K[1, 3] = K[3, 1] = B[2, 0] - B[0, 2]
-        K[2, 3] = K[3, 2] = B[0, 1] - B[1, 0]
-        K[3, 3] = trace
-        scale = 0.0
-        for r in range(4):
-            for c in range(4):
-                scale += K[r, c] * K[r, c]
-                V[r, c] = 1.0 if r == c else 0.0
-        for _ in range(16):
-            off = 0.0
-            for p in range(3):
-                for q in range(p + 1, 4):
-                    off += K[p, q] * K[p, q]
-            if off <= 1e-32 * scale:
-                break
-            for p in range(3):
-                for q in range(p + 1, 4):
-                    if K[p, q] == 0.0:
-                        continue
-                    # the rotation in the (p, q) plane that zeroes K[p, q]
-                    theta = (K[q, q] - K[p, p]) / (2.0 * K[p, q])
-                    t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
-                    c = 1.0 / np.sqrt(t * t + 1.0)
-                    s = t * c
-                    for r in range(4):
-                        K[r, p], K[r, q] = c * K[r, p] - s * K[r, q], s * K[r, p] + c * K[r, q]
-                    for r in range(4):
-                        K[p, r], K[q, r] = c * K[p, r] - s * K[q, r], s * K[p, r] + c * K[q, r]
-                    for r in range(4):
-                        V[r, p], V[r, q] = c * V[r, p] - s * V[r, q], s * V[r, p] + c * V[r, q]
-        best = 0
-        for j in range(1, 4):
-            if K[j, j] > K[best, best]:
-                best = j
-        q1, q2, q3, q4 = V[0, best], V[1, best], V[2, best], V[3, best]
-        R = out[k]
-        R[0, 0] = q4 * q4 + q1 * q1 - q2 * q2 - q3 * q3
-        R[1, 1] = q4 * q4 - q1 * q1 + q2 * q2 - q3 * q3
-        R[2, 2] = q4 * q4 - q1 * q1 - q2 * q2 + q3 * q3
-        R[0, 1], R[1, 0] = 2.0 * (q1 * q2 + q3 * q4), 2.0 * (q1 * q2 - q3 * q4)
-        R[0, 2], R[2, 0] = 2.0 * (q1 * q3 - q2 * q4), 2.0 * (q1 * q3 + q2 * q4)
-        R[1, 2], R[2, 1] = 2.0 * (q2 * q3 + q1 * q4), 2.0 * (q2 * q3 - q1 * q4)
+                R[r, c] = U[r, 0] * Vt[0, c] + U[r, 1] * Vt[1, c] + U[r, 2] * Vt[2, c]
+        if (R[0, 0] * (R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1]) - R[0, 1] * (R[1, 0] * R[2, 2] - R[1, 2] * R[2, 0])
+                + R[0, 2] * (R[1, 0] * R[2, 1] - R[1, 1] * R[2, 0])) < 0:
+            for r in range(3):
+                for c in range(3):
+                    R[r, c] -= 2.0 * U[r, 2] * Vt[2, c]
     return out
 
 
