@@ -68,6 +68,7 @@ without ``known_hot``.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -593,12 +594,21 @@ def _noise_sigma_px(residual_sq_px: np.ndarray, dof_factor: np.ndarray, p: Extra
 
 def _max_sky_motion_px(camera, motion: np.ndarray, members: np.ndarray) -> float:
     """Largest pixel shift of the field's centre and corners between ``members`` and the reference."""
+    probe_xy, probe_vectors = _field_probes(camera)
+    moved = np.matmul(motion[members], probe_vectors.T)  # (n, 3, 5)
+    xy, _ = camera.vectors_to_pixels(np.swapaxes(moved, 1, 2).reshape(-1, 3))
+    d = xy.reshape(len(members), len(probe_xy), 2) - probe_xy
+    return float(np.nanmax(np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1])))  # numpy's norm, faster
+
+
+@functools.lru_cache(maxsize=16)
+def _field_probes(camera) -> tuple[np.ndarray, np.ndarray]:
+    """The field's centre and corners (5, 2) and their camera-frame vectors (5, 3), made once per camera."""
     probe_xy = np.array([[camera.cx, camera.cy], [0, 0], [camera.width - 1, 0],
                          [0, camera.height - 1], [camera.width - 1, camera.height - 1]], dtype=float)
-    moved = np.matmul(motion[members], camera.pixels_to_vectors(probe_xy).T)  # (n, 3, 5)
-    xy, _ = camera.vectors_to_pixels(np.swapaxes(moved, 1, 2).reshape(-1, 3))
-    shift = np.linalg.norm(xy.reshape(len(members), len(probe_xy), 2) - probe_xy, axis=-1)
-    return float(np.nanmax(shift))
+    vectors = camera.pixels_to_vectors(probe_xy)
+    probe_xy.flags.writeable = vectors.flags.writeable = False
+    return probe_xy, vectors
 
 
 def _single_snapshot(sequence: Sequence, p: ExtractionParameters, hot: np.ndarray | None = None) -> Extraction:
