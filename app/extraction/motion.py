@@ -25,11 +25,13 @@ follow it.  ``R`` is found by RANSAC:
 
 Everything is done for all snapshot pairs at once, no Python loop over
 hypotheses or pairs: the hypotheses in a handful of numpy calls (the
-pairs' chords sorted together), the scores and the mutual matches, a few
-arithmetic operations per source pair, in compiled loops over the
-hypotheses (:func:`_scores`, :func:`_mutual_matches`), where numpy made and
-scanned (hypotheses x sources x sources) arrays of chords.  Chords stand in for angles: they
-are monotonic in the angle, accurate for small angles and need no arccos.
+pairs' chords sorted together); the scores, the mutual matches and the
+Wahba fits, a few arithmetic operations per source pair, in compiled loops
+over the hypotheses (:func:`_scores`, :func:`_mutual_matches`,
+:func:`wahba_rotations`), where numpy made and scanned (hypotheses x
+sources x sources) arrays of chords and paid its overhead per 3x3 SVD.
+Chords stand in for angles: they are monotonic in the angle, accurate for
+small angles and need no arccos.
 
 **Bounded work.**  Scoring costs (hypotheses) x (sources of a) x (sources
 of b) per link, and the hypotheses grow with the fourth power of the
@@ -324,7 +326,8 @@ def estimate_pair_rotations(vectors: np.ndarray, hypothesis_sources: np.ndarray,
     hyp_vectors = np.take_along_axis(padded, np.where(hypothesis_sources < 0, vectors.shape[1],
                                                       hypothesis_sources)[..., None], axis=1)
     chords, pi, pj = _pair_chords(hyp_vectors)
-    n_sources = (np.abs(vectors[..., 0]) + np.abs(vectors[..., 1]) + np.abs(vectors[..., 2]) > 0).sum(axis=1)  # zero rows are padding
+    # zero rows are padding (|x| + |y| + |z|: a sum over an axis of three costs numpy more than the data)
+    n_sources = (np.abs(vectors[..., 0]) + np.abs(vectors[..., 1]) + np.abs(vectors[..., 2]) > 0).sum(axis=1)
     cap = None
     if max_work is not None:
         cost = np.maximum(1, n_sources[links[:, 0]] * n_sources[links[:, 1]])
@@ -372,7 +375,8 @@ def estimate_pair_rotations(vectors: np.ndarray, hypothesis_sources: np.ndarray,
 
 @warm_up_with
 def _warm_up_motion() -> None:
-    """Compile :func:`_scores`, :func:`_mutual_matches` and :func:`wahba_rotations` for the arrays :func:`estimate_pair_rotations` passes."""
+    """Compile :func:`_scores`, :func:`_mutual_matches` and :func:`wahba_rotations` for the arrays
+    :func:`estimate_pair_rotations` passes."""
     vectors = np.array([[[0.0, 0.0, 1.0], [0.0, 0.01, 1.0]], [[0.0, 0.0, 1.0], [0.01, 0.0, 1.0]]])
     _scores(np.eye(3)[None], np.array([0]), np.array([1]), vectors, 0.01)
     _mutual_matches(np.eye(3)[None], np.array([0]), np.array([1]), vectors, 0.01)
