@@ -371,6 +371,11 @@ def test_extraction_calls_its_kernels_only_with_the_types_the_warm_up_compiled(m
             sequence = simulate_sequence(rng, camera, scenario)[0]
             extract(sequence)
             extract(sequence, known_hot=[np.arange(s.n_sources) % 5 == 0 for s in sequence.snapshots])
+    # both sources of the second snapshot want the first track (the second track is beyond the gate): the
+    # nearer one gets it, and the kernel is called again, settled
+    common = _normalized(np.array([[0.0, 0.0, 1.0], [0.0, 1e-3, 1.0], [0.0, 1e-5, 1.0], [1.5e-5, 0.0, 1.0]]))
+    assert linking._associate(common, np.array([0, 0, 1, 1]), np.zeros(4, dtype=int), np.ones(4, dtype=bool),
+                              1e-4).tolist() == [0, 1, 0, 2]
     called = {name for name, _ in seen["extraction"]}
     assert called == {"scores", "mutual_matches", "wahba_rotations", "associate_kernel", "snapshot_profiles"}
     assert seen["extraction"] <= seen["warm-up"], seen["extraction"] - seen["warm-up"]

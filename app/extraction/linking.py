@@ -531,9 +531,9 @@ def _associate_kernel(common, comp, usable, bounds, max_cost, label, sums, means
 
 @warm_up_with
 def _warm_up_association() -> None:
-    """Compile :func:`_associate_kernel` and :func:`_snapshot_profiles` for the arrays extraction passes (the
-    second snapshot's two sources want the same track)."""
-    common = np.array([[0.0, 0.0, 1.0], [0.0, 0.001, 1.0], [0.0, 0.0, 1.0], [0.001, 0.0, 1.0]])
+    """Compile :func:`_associate_kernel` and :func:`_snapshot_profiles` for the arrays extraction passes (a
+    settled snapshot's call has the same types: no need to import scipy.optimize at every start)."""
+    common = np.array([[0.0, 0.0, 1.0], [0.0, 0.001, 1.0], [0.0, 0.0, 1.0], [0.0, 0.001, 1.0]])
     _associate(common, np.array([0, 0, 1, 1]), np.zeros(4, dtype=int), np.ones(4, dtype=bool), 0.01)
     _snapshot_profiles(common, np.array([0, 0, 1, 1]), np.array([0, 1, 0, 1]), np.tile(np.eye(3), (2, 1, 1)))
 
