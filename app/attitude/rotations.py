@@ -242,9 +242,28 @@ def svd_3x3(B):
     return U, S, Vt
 
 
+@njit
+def wahba_rotation(B):
+    """The rotation R minimising ``sum_i w_i |b_i - R r_i|^2`` from its attitude profile ``B = sum_i w_i b_i
+    r_i^T`` (compiled: :func:`solve_wahba`'s SVD method, through :func:`svd_3x3`): ``R = U diag(1, 1, d)
+    V^T`` with ``d = det(U V^T)``; where ``U V^T`` is a reflection, the axis of the smallest singular value
+    is flipped (``U V^T - 2 u_3 v_3^T``)."""
+    U, _, Vt = svd_3x3(B)
+    R = np.empty((3, 3))
+    for r in range(3):
+        for c in range(3):
+            R[r, c] = U[r, 0] * Vt[0, c] + U[r, 1] * Vt[1, c] + U[r, 2] * Vt[2, c]
+    if (R[0, 0] * (R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1]) - R[0, 1] * (R[1, 0] * R[2, 2] - R[1, 2] * R[2, 0])
+            + R[0, 2] * (R[1, 0] * R[2, 1] - R[1, 1] * R[2, 0])) < 0:
+        for r in range(3):
+            for c in range(3):
+                R[r, c] -= 2.0 * U[r, 2] * Vt[2, c]
+    return R
+
+
 @warm_up_with
 def _warm_up_svd() -> None:
-    svd_3x3(np.eye(3))
+    wahba_rotation(np.eye(3))
 
 
 @warm_up_with

@@ -55,7 +55,7 @@ import numpy as np
 from scipy.special import gammaln
 
 from app.attitude import rotation_from_pair
-from app.attitude.rotations import svd_3x3
+from app.attitude.rotations import wahba_rotation
 from app.compiled import njit, warm_up_with
 
 #: Slot width separating the chords of different snapshot pairs in one
@@ -273,24 +273,14 @@ def _refit(rotation: np.ndarray, va_index: np.ndarray, vb_index: np.ndarray, vec
 
 @njit
 def wahba_rotations(profiles):
-    """(K, 3, 3) rotations R minimising sum_i |b_i - R a_i|^2, from attitude profiles B = sum_i b_i a_i^T.
-
-    With B = U S V^T (:func:`app.attitude.rotations.svd_3x3`, compiled: ~1 us where numpy's LAPACK SVD of
-    a 3x3 takes 4-5), R = U diag(1, 1, d) V^T, d = det(U V^T): where U V^T is a reflection, the axis of
-    the smallest singular value is flipped (:func:`app.attitude.solve_wahba`'s SVD method).
-    """
+    """(K, 3, 3) rotations R minimising sum_i |b_i - R a_i|^2, from attitude profiles B = sum_i b_i a_i^T
+    (:func:`app.attitude.rotations.wahba_rotation` of each)."""
     out = np.empty((profiles.shape[0], 3, 3))
     for k in range(profiles.shape[0]):
-        U, _, Vt = svd_3x3(profiles[k])
-        R = out[k]
-        for r in range(3):
+        R = wahba_rotation(profiles[k])
+        for r in range(3):  # element by element: a slice assignment costs numba seconds to compile
             for c in range(3):
-                R[r, c] = U[r, 0] * Vt[0, c] + U[r, 1] * Vt[1, c] + U[r, 2] * Vt[2, c]
-        if (R[0, 0] * (R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1]) - R[0, 1] * (R[1, 0] * R[2, 2] - R[1, 2] * R[2, 0])
-                + R[0, 2] * (R[1, 0] * R[2, 1] - R[1, 1] * R[2, 0])) < 0:
-            for r in range(3):
-                for c in range(3):
-                    R[r, c] -= 2.0 * U[r, 2] * Vt[2, c]
+                out[k, r, c] = R[r, c]
     return out
 
 

@@ -38,7 +38,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import bdtrc, chdtr  # binomial survival, chi-square CDF (scipy.stats' are 30x slower per call)
 
-from app.attitude.rotations import svd_3x3
+from app.attitude.rotations import wahba_rotation
 from app.compiled import njit, warm_up_with
 from app.identification.cells import NearStarCells, check_kernel, nearest_star
 
@@ -301,31 +301,6 @@ def _cells_within(field: StarField, radius_rad: float) -> NearStarCells:
 # --- the compiled refinement ----------------------------------------------------------------
 
 @njit
-def _det3(A):
-    """Determinant of a 3x3 matrix (only its sign is used: a rotation's +-1)."""
-    return (A[0, 0] * (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1]) - A[0, 1] * (A[1, 0] * A[2, 2] - A[1, 2] * A[2, 0])
-            + A[0, 2] * (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]))
-
-
-@njit
-def _rotation_from_svd(B, sign_from_factors):
-    """Wahba's optimum ``U diag(1, 1, d) V^T`` from the SVD of B: ``d`` is det U det V when
-    ``sign_from_factors``, else the sign of det(U V^T) (:func:`app.attitude.solve_wahba`'s test); the same
-    number either way (both are +-1), two ways of writing it kept from the numpy code."""
-    U, _, Vt = svd_3x3(B)
-    R = np.zeros((3, 3))
-    for r in range(3):
-        for c in range(3):
-            R[r, c] = U[r, 0] * Vt[0, c] + U[r, 1] * Vt[1, c] + U[r, 2] * Vt[2, c]
-    d = _det3(U) * _det3(Vt) if sign_from_factors else (-1.0 if _det3(R) < 0 else 1.0)
-    if d < 0:
-        for r in range(3):
-            for c in range(3):
-                R[r, c] -= 2.0 * U[r, 2] * Vt[2, c]
-    return R
-
-
-@njit
 def _lower_quartile(x):
     """``np.quantile(x, 0.25)`` (linear interpolation, numpy's formula) of a short array."""
     v = x.copy()
@@ -352,7 +327,7 @@ def _wahba_kernel(body, ref, w):
         for r in range(3):
             for c in range(3):
                 B[r, c] += (body[i, r] * w[i]) * ref[i, c]
-    return _rotation_from_svd(B, False)
+    return wahba_rotation(B)
 
 
 @njit
@@ -423,7 +398,7 @@ def _consensus_kernel(body, ref, w, subsets):
                 for r in range(3):
                     for c in range(3):
                         B[r, c] += (w[i] * body[i, r]) * ref[i, c]
-        R = _rotation_from_svd(B, True)
+        R = wahba_rotation(B)
         count, chi2 = 0, 0.0
         for i in range(n):
             resid = _residual_angle(body[i], R, ref[i])
@@ -453,7 +428,7 @@ def _loo_kernel(body, ref, w):
         for r in range(3):
             for c in range(3):
                 Bi[r, c] -= (w[i] * body[i, r]) * ref[i, c]
-        out[i] = _residual_angle(body[i], _rotation_from_svd(Bi, True), ref[i])
+        out[i] = _residual_angle(body[i], wahba_rotation(Bi), ref[i])
     return out
 
 
