@@ -331,6 +331,16 @@ class _Search:
                 self._version += 1
         same["merged"] += 1
 
+    def _check(self, p, hyp, tol) -> tuple[np.ndarray, np.ndarray, int]:
+        """Check hypotheses ``hyp`` of ``p`` with tolerances ``tol`` and keep them for :meth:`alternatives`:
+        (matches, deviations, their first key among all of ``p``'s hypotheses)."""
+        n_match, dev = check_hypotheses(hyp.rotations, p.vectors, p.field, tol)
+        parts = self.parts.setdefault(id(p), [])
+        offset = sum(len(part[0]) for part in parts)  # keys: positions among all of p's hypotheses
+        parts.append((hyp.rotations, hyp.pattern_edge, hyp.catalogue_pair, n_match, dev, tol))
+        self.n_tried += len(hyp)
+        return n_match, dev, offset
+
     def run(self, p, max_features: int | None = None) -> bool:
         """Hypotheses of pattern ``p`` in batches, the most promising refined after each; True once settled.
 
@@ -346,11 +356,8 @@ class _Search:
         for hyp, tol, used in self.batches[id(p)]:
             self.used = max(self.used, used)
             if len(hyp):
-                n_match, dev = check_hypotheses(hyp.rotations, p.vectors, p.field, tol)
-                offset = sum(len(part[0]) for part in parts)  # keys: positions among all of p's hypotheses
                 first = not parts
-                parts.append((hyp.rotations, hyp.pattern_edge, hyp.catalogue_pair, n_match, dev, tol))
-                self.n_tried += len(hyp)
+                n_match, dev, offset = self._check(p, hyp, tol)
                 order = np.lexsort((dev, -n_match))
                 top = [h for h in order[:options.refine_per_batch] if n_match[h] >= 3]
                 # The declared camera's first batch usually settles the answer, and then the alternatives
@@ -383,16 +390,20 @@ class _Search:
         """
         options = self.options
         parts = self.parts.get(id(p))
-        if not parts:
+
+        def enough() -> bool:
+            credible = sum(c["refined"].n_matched >= max(3, options.min_matches) for c in self.found)
+            return (credible >= options.max_candidates or self.n_refined >= options.max_refinements
+                    or self.timed_out())
+
+        if not parts or enough():  # (a search that found nothing has spent its refinements long before)
             return
         rot, pe, cp, n_match, dev, hyp_tol = (np.concatenate(x) for x in zip(*parts))
-        order = np.lexsort((dev, -n_match))
-        order = order[n_match[order] >= max(3, options.min_matches)]  # the rest never make a candidate
+        kept = np.flatnonzero(n_match >= max(3, options.min_matches))  # the rest never make a candidate
+        order = kept[np.lexsort((dev[kept], -n_match[kept]))]
         merge_angle = 20 * p.scale
         for i, h in enumerate(order.tolist()):
-            credible = sum(c["refined"].n_matched >= max(3, options.min_matches) for c in self.found)
-            if (credible >= options.max_candidates or self.n_refined >= options.max_refinements
-                    or self.timed_out()):
+            if enough():
                 break
             if (id(p), h) not in self.refined and self._nearest(rot[h], "R0", p)[1] >= merge_angle:
                 budget = options.max_refinements - self.n_refined

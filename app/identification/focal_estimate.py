@@ -122,7 +122,8 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
     The triangles are taken in order of their shape tolerance (the most
     telling first), all shape matches of one at once, and the search stops
     at the first match that passes the chance test, counting every match
-    checked until then (or once ``max_tried``, :data:`MAX_TRIED` by default, are checked).  The best
+    checked until then (or once ``max_tried``, :data:`MAX_TRIED` by default, are checked, or once a match
+    catching every point would no longer pass: a few points pass only among few matches).  The best
     match of each triangle has its focal length (:func:`_fitted_focal_length`)
     and rotation (Wahba) fitted on the points it caught, twice, before the
     pattern is checked again and the chance test is made.  ``tried_out``, when given, gets the number of
@@ -136,15 +137,20 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
     if not named:
         return None
     shape_tolerance = [2 * err / sides[2] + SHAPE_MARGIN for _, sides, err in named]
+    # The best a match can do is to catch every point: once that would not pass the chance test, none will.
+    all_caught = float(bdtrc(m - 4, m - 3, catch_probability)) if m > 3 else np.inf
+    senses = sense_of(v[np.array([c for c, _, _ in named])]).astype(int).tolist()
     tried = 0
     for k in np.argsort(shape_tolerance, kind="stable").tolist():
         if tried >= max_tried:
             break
         c, s, err = named[k]
-        rows = shape_matches(triangles, s[0] / s[2], s[1] / s[2], int(sense_of(v[c][None])[0]), shape_tolerance[k],
+        rows = shape_matches(triangles, s[0] / s[2], s[1] / s[2], senses[k], shape_tolerance[k],
                              s[2] / (1 + tolerance) - err, s[2] / (1 - tolerance) + err, len(star_vectors))
         if len(rows) == 0:
             continue
+        if (tried + len(rows)) * all_caught > CHANCE_LIMIT:
+            break
         tried += len(rows)
         f_new = focal_length_px * s[2] / triangles.longest_rad[rows]
         seen = _directions(plane, focal_length_px / f_new)  # (H, m, 3)

@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -85,22 +86,34 @@ def ordered_pattern_edges(xy: np.ndarray, camera: Camera, min_separation_px: flo
 
 
 def delaunay_triangles(xy: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray] | None:
-    """The pattern's Delaunay triangles (T, 3) and whether each is surely bright (T,) bool; None when the
-    points are all on a line.
+    """The pattern's Delaunay triangles (T, 3) and whether each is surely bright (T,) bool (read-only);
+    None when the points are all on a line.
 
     Surely bright: its circumcircle lies inside the sensor, so it holds no
     pattern point and no star brighter than the pattern's faintest (the
     pattern is the field's brightest sources); its edges are then bright
-    pairs (:mod:`app.index`).
+    pairs (:mod:`app.index`).  One identification asks for the same
+    pattern's triangles several times (its edges at each focal length
+    searched, the bright triangles' two lookups), and Qhull costs ~0.5 ms a
+    call: the last few patterns' are kept.
     """
-    p = perturbed(np.asarray(xy, dtype=float))
+    xy = np.ascontiguousarray(xy, dtype=float).reshape(-1, 2)
+    return _delaunay_of(xy.tobytes(), len(xy), int(camera.width), int(camera.height))
+
+
+@functools.lru_cache(maxsize=16)
+def _delaunay_of(xy_bytes: bytes, m: int, width: int, height: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`delaunay_triangles` of the points ``xy_bytes`` ((m, 2) floats) on a sensor of that size."""
+    p = perturbed(np.frombuffer(xy_bytes).reshape(m, 2))
     try:
         tri = Delaunay(p).simplices
     except (QhullError, ValueError):
         return None
     centre, radius = _circumcircles(p[tri[:, 0]], p[tri[:, 1]], p[tri[:, 2]])
-    inside = ((centre[:, 0] - radius >= -0.5) & (centre[:, 0] + radius <= camera.width - 0.5)
-              & (centre[:, 1] - radius >= -0.5) & (centre[:, 1] + radius <= camera.height - 0.5))
+    inside = ((centre[:, 0] - radius >= -0.5) & (centre[:, 0] + radius <= width - 0.5)
+              & (centre[:, 1] - radius >= -0.5) & (centre[:, 1] + radius <= height - 0.5))
+    tri.setflags(write=False)
+    inside.setflags(write=False)
     return tri, inside
 
 
@@ -154,24 +167,57 @@ def bright_pair_hypotheses(pattern_vectors: np.ndarray, edges: list[tuple[int, i
                       np.concatenate(en))
 
 
-def bright_pair_batches(p: PreparedPattern, sky: Sky, options: SearchOptions):
-    """Hypotheses from the bright-pair index, edge batches of growing size (see :mod:`.hypotheses`)."""
-    edges = ordered_pattern_edges(p.xy, p.camera, options.min_pair_separation_px)
+@dataclass(frozen=True, eq=False)
+class EdgeWindows:
+    """A pattern's edges, surest first (:func:`ordered_pattern_edges`), and what their lookup and check need."""
+
+    edges: list[tuple[int, int]]
+    length: np.ndarray  # (E,) each edge's angle, radians
+    tolerance: np.ndarray  # (E,) half-width of its length window, radians
+    check_tol: np.ndarray  # (E,) the check tolerance of the hypotheses it generates, radians
+
+
+def edge_windows(p: PreparedPattern, options: SearchOptions,
+                 edges: list[tuple[int, int]] | None = None) -> EdgeWindows:
+    """The edges of ``p`` (``edges``, else :func:`ordered_pattern_edges`) with their length windows and check
+    tolerances.
+
+    The window is the edge's systematic error (``options.edge_tolerance_px``)
+    plus 4 sigma of its two points' noise, and ~1e-4 of its length for the
+    aberration's difference across the field.  A rotation made from one
+    edge errs at distance ``D`` from its first point by ~``window D / L``,
+    so the check tolerance is the largest match tolerance plus that at the
+    pattern's farthest point, capped at 10 pixels.
+    """
+    if edges is None:
+        edges = ordered_pattern_edges(p.xy, p.camera, options.min_pair_separation_px)
     if not edges:
-        return
+        empty = np.empty(0)
+        return EdgeWindows([], empty, empty, empty)
     v = p.vectors
     first, second = np.array(edges).T
     edge_sigma_px = np.hypot(p.sigma_px[first], p.sigma_px[second])
-    # Aberration differs across the field by up to ~1e-4 of an edge's length.
-    edge_len = angle_between(v[first], v[second])
-    edge_tol = (options.edge_tolerance_px + 4 * edge_sigma_px) * p.scale + 1.1e-4 * edge_len
-    # A rotation from one edge errs at distance D from its first point by ~tol * D / L.
+    length = angle_between(v[first], v[second])
+    tolerance = (options.edge_tolerance_px + 4 * edge_sigma_px) * p.scale + 1.1e-4 * length
     reach = np.arccos(np.clip(v @ v.T, -1, 1)).max(axis=1)[first]
-    check_tol = np.minimum(np.max(p.match_tol) + edge_tol * np.maximum(1.0, reach / np.maximum(edge_len, 1e-9)),
+    check_tol = np.minimum(np.max(p.match_tol) + tolerance * np.maximum(1.0, reach / np.maximum(length, 1e-9)),
                            10 * p.scale)
+    return EdgeWindows(list(edges), length, tolerance, check_tol)
+
+
+def edge_batches(n_edges: int):
+    """(start, stop) of the edge batches, of growing size 1, 2, 4, ...: the first edges usually settle a
+    pattern, and a batch's numpy calls cost the same whatever its size."""
     e, batch = 0, 1
-    while e < len(edges):
-        stop = min(len(edges), e + batch)
-        hyp = bright_pair_hypotheses(v, edges[e:stop], edge_tol[e:stop], sky.index, p.star_mask)
-        yield hyp, check_tol[e + hyp.edge_number], stop
+    while e < n_edges:
+        stop = min(n_edges, e + batch)
+        yield e, stop
         e, batch = stop, batch * 2
+
+
+def bright_pair_batches(p: PreparedPattern, sky: Sky, options: SearchOptions):
+    """Hypotheses from the bright-pair index, edge batches of growing size (see :mod:`.hypotheses`)."""
+    w = edge_windows(p, options)
+    for e, stop in edge_batches(len(w.edges)):
+        hyp = bright_pair_hypotheses(p.vectors, w.edges[e:stop], w.tolerance[e:stop], sky.index, p.star_mask)
+        yield hyp, w.check_tol[e + hyp.edge_number], stop
