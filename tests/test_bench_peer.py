@@ -367,3 +367,25 @@ def test_suite_without_its_environment_is_skipped_with_the_reason(monkeypatch, c
 def test_bench_cli_lists_the_peer_suite():
     done = subprocess.run([sys.executable, "-m", "app", "bench", "--help"], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0 and "peer" in done.stdout
+
+
+# --- frames in which no star is seen ------------------------------------------------------------
+
+@pytest.mark.parametrize("kind", ["noise", "earth"])
+def test_a_no_star_frame_is_one_snapshot_of_sources_that_are_not_stars(kind):
+    """Random points on the sensor, or the Earth's blobs (at least 3 sources, else both tools answer at once);
+    and any claim on such a frame is wrong."""
+    from app.identification import Sky, solve_sequence
+
+    rng = np.random.default_rng(4)
+    sky = Sky()
+    for _ in range(3):
+        sequence = peer._no_match_frame(rng, CAMERA, kind)
+        (snapshot,) = sequence.snapshots
+        assert snapshot.index == 0 and snapshot.n_sources >= 3
+        assert CAMERA.on_sensor(snapshot.xy).all()
+        if kind == "noise":
+            assert snapshot.n_sources == 10
+        ours = peer._ours(sky, sequence, None)
+        assert not ours.claimed and not ours.correct
+    assert peer._verdict(np.eye(3), None) == (False, None, None)
