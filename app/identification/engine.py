@@ -11,7 +11,7 @@ probability (:mod:`.verify`).
 from __future__ import annotations
 
 import time as _time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from datetime import datetime
 from typing import Callable
 
@@ -20,8 +20,10 @@ import numpy as np
 from app.attitude import rotation_angles_between
 from app.camera import Camera
 from app.compiled import warm_up
-from app.identification.candidates import build_candidate, prepare_pattern
+from app.identification.candidates import PreparedPattern, build_candidate, prepare_pattern
 from app.identification.focal_estimate import CHECK_RADIUS_PX, FocalEstimate, focal_estimate
+from app.identification.focal_scan import FocalScan, ScanGroup
+from app.identification.hypotheses import ordered_pattern_edges
 from app.identification.methods import METHODS
 from app.identification.optics import focal_lengths_to_try, prepared_with_camera, refine_optics
 from app.identification.options import SearchOptions
@@ -39,6 +41,8 @@ ESTIMATE_MIN_OFFSET = 0.005
 #: they are looked up this far (a fraction) from the declared focal length, for a declaration wrong beyond
 #: its tolerance: said to the operator, never searched.
 DIAGNOSIS_TOLERANCE = 0.2
+#: The phase that searches every other focal length within the tolerance at once (:mod:`.focal_scan`).
+SCAN = "scan"
 
 
 def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=None,
@@ -83,8 +87,9 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     search.n_tried = search.n_before = hypotheses_before
     # The declared camera's first feature; then a few features at the focal length the pattern's bright
     # triangles point to, when that is clearly another (when it is the declared one, their match is refined
-    # as a bright-pair hypothesis of its own); the declared camera's next features; then the first feature
-    # at each other focal length (nearest first), a few more at each, and the rest of the declared camera's.
+    # as a bright-pair hypothesis of its own); the declared camera's next features; then a few features at
+    # every other focal length (bright pairs: all at once, :mod:`.focal_scan`; other methods: the first
+    # feature at each, nearest first, then a few more at each), and the rest of the declared camera's.
     # An exact camera settles in the first phases as it always did, and a wrong one costs one search where
     # its triangles point (or, when they point nowhere, a few features per focal length) instead of a full
     # search at each.  (The pattern seen at another focal length is prepared when its phase comes: an exact
@@ -163,8 +168,11 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
                     return
             yield estimate.focal_length_px, options.focal_search_features
         yield None, options.declared_features_first
-        yield from ((f, 1) for f in searched)
-        yield from ((f, options.focal_search_features) for f in searched)
+        if METHODS[method].focal_scan:
+            yield SCAN, options.focal_search_features
+        else:
+            yield from ((f, 1) for f in searched)
+            yield from ((f, options.focal_search_features) for f in searched)
         yield None, None
 
     for f, max_features in phases():
@@ -175,10 +183,15 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
             if search.n_tried - tried_before_focal_search > options.focal_search_max_hypotheses:
                 focal_search_stopped = True
                 continue
-        p = at(f)
-        if search.run(p, max_features):
-            settled_at = p
-            break
+        if f is SCAN:
+            settled_at = search.run_scan([declared] + [at(g) for g in searched], max_features)
+            if settled_at is not None:
+                break
+        else:
+            p = at(f)
+            if search.run(p, max_features):
+                settled_at = p
+                break
         if search.timed_out():
             break
     # Why a method can have no feature at all, when it had none (the sky is not to blame then).
@@ -209,6 +222,8 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     if search.n_tried - search.n_before > options.max_hypotheses:
         notes.append(f"the search stopped at its bound of {options.max_hypotheses:,} hypotheses "
                      "(SearchOptions.max_hypotheses)")
+    if status == NO_MATCH and settled_at is None and contradiction is None and METHODS[method].focal_scan:
+        notes.append(_searched(search, declared, camera, len(searched)))
     notes.insert(0, f"{search.n_tried} {method} hypotheses from {features}"
                  + (f" at {n_scales} focal lengths within {camera.focal_tolerance:.1%} of the declared one"
                     if n_scales > 1 else ""))
@@ -244,6 +259,8 @@ class _Search:
         self.n_refined = 0
         self.n_scales = 0
         self.used = 0
+        self.used_at: dict = {}  # features used, by id of the prepared pattern (the scan's: "scan")
+        self.scan: FocalScan | None = None
 
     def timed_out(self) -> bool:
         """The search's bounds are spent: its wall-clock budget, or its count of hypotheses
@@ -355,6 +372,7 @@ class _Search:
         parts = self.parts.setdefault(id(p), [])
         for hyp, tol, used in self.batches[id(p)]:
             self.used = max(self.used, used)
+            self.used_at[id(p)] = used
             if len(hyp):
                 first = not parts
                 n_match, dev, offset = self._check(p, hyp, tol)
@@ -373,6 +391,49 @@ class _Search:
             if self.timed_out() or (max_features is not None and used >= max_features):
                 break
         return False
+
+    def run_scan(self, patterns: list[PreparedPattern], max_features: int) -> PreparedPattern | None:
+        """The focal scan's hypotheses (:mod:`.focal_scan`: ``patterns`` is the pattern seen at every focal
+        length searched, the declared first) in batches, the most promising of each batch refined at its
+        own focal length; the prepared pattern of the focal length that settled, else None."""
+        options = self.options
+        if "scan" not in self.batches:
+            self.scan = FocalScan(patterns, self.sky, options)
+            self.batches["scan"] = self.scan.batches()
+            self.n_scales += len(patterns) - 1
+        for groups, used in self.batches["scan"]:
+            self.used = max(self.used, used)
+            self.used_at["scan"] = used
+            checked = [self._check_group(g) for g in groups]
+            # A pair whose hypothesis caught a third star is tried at the other focal lengths of its window.
+            checked += [self._check_group(more) for more in self.scan.elsewhere(
+                [(c.group, np.flatnonzero(c.n_match >= 3)) for c in checked])]
+            if checked:
+                n_match = np.concatenate([c.n_match for c in checked])
+                dev = np.concatenate([c.dev for c in checked])
+                which = np.repeat(np.arange(len(checked)), [len(c.n_match) for c in checked])
+                within = np.concatenate([np.arange(len(c.n_match)) for c in checked])
+                order = np.lexsort((dev, -n_match))
+                top = [(checked[which[h]], int(within[h])) for h in order[:options.refine_per_batch]
+                       if n_match[h] >= 3]
+                for c in dict.fromkeys(c for c, _ in top):
+                    ahead = [h for cc, h in top if cc is c]
+                    self.prefetch(c.p, [c.offset + h for h in ahead], c.hypotheses.rotations[ahead],
+                                  c.group.check_tol[ahead])
+                for c, h in top:
+                    self.consider(c.p, c.hypotheses.rotations[h], c.hypotheses.pattern_edge[h],
+                                  c.hypotheses.catalogue_pair[h], float(c.group.check_tol[h]), key=c.offset + h)
+                for p in dict.fromkeys(c.p for c in checked):
+                    if self.settled(p, used):
+                        return p
+            if self.timed_out() or used >= max_features:
+                break
+        return None
+
+    def _check_group(self, group: ScanGroup) -> _Checked:
+        """Check a group of the focal scan's hypotheses (made at one focal length) and keep them."""
+        p = self.scan.patterns[group.step]
+        return _Checked(group, p, *self._check(p, group.hypotheses, group.check_tol))
 
     def settled(self, p, used: int) -> bool:
         """Whether a refined hypothesis of ``p`` explains most of it, after ``used`` pattern features."""
@@ -415,6 +476,39 @@ class _Search:
                 ahead = ahead[:budget]
                 self.prefetch(p, ahead.tolist(), rot[ahead], hyp_tol[ahead])
             self.consider(p, rot[h], pe[h], cp[h], float(hyp_tol[h]), key=h)
+
+
+@dataclass(frozen=True, eq=False)
+class _Checked:
+    """A checked group of the focal scan: the group, its prepared pattern, each hypothesis's matches and
+    deviation, and the key of its first (its position among all of the pattern's hypotheses)."""
+
+    group: ScanGroup
+    p: PreparedPattern
+    n_match: np.ndarray
+    dev: np.ndarray
+    offset: int
+
+    @property
+    def hypotheses(self):
+        return self.group.hypotheses
+
+
+def _searched(search: _Search, declared, camera: Camera, n_other: int) -> str:
+    """What a bright-pair search that found nothing searched, in a sentence."""
+    separation = search.options.min_pair_separation_px
+    edges = ordered_pattern_edges(declared.xy, camera, separation)
+    i, j = np.triu_indices(declared.m, k=1)
+    pairs = int(np.count_nonzero(np.hypot(*(declared.xy[i] - declared.xy[j]).T) >= separation))
+    said = (f"nothing found: searched {search.used_at.get(id(declared), 0)} of the pattern's {len(edges)} "
+            f"Delaunay edges at the declared focal length"
+            + (f" (not its other {pairs - len(edges)} point pair{'s' * (pairs - len(edges) != 1)}, each with a "
+               "point between its two)" if pairs > len(edges) else ""))
+    if search.scan is not None:
+        said += (f", and its first {search.used_at.get('scan', 0)} at the {n_other} other focal lengths within "
+                 f"{camera.focal_tolerance:.1%} at once (each catalogue pair at the one nearest its length, and at "
+                 "the others that fit it when it caught a third star)")
+    return said
 
 
 def _offset(estimate: FocalEstimate, camera: Camera) -> float:

@@ -35,6 +35,9 @@ class Method:
     #: (:mod:`app.identification.focal_estimate`) is one of its own; another method stays an independent
     #: opinion and uses them only to choose the focal length searched first.
     bright_triangles: bool = False
+    #: Its other focal lengths are searched at once, each catalogue pair at its nearest
+    #: (:mod:`app.identification.focal_scan`: bright pairs), not step by step.
+    focal_scan: bool = False
     #: Why a pattern can give this method no feature at all, said when it gives none (an operator who sees
     #: "0 hypotheses from 0 pattern features" needs to know it is the method, not the sky).
     no_feature: str = ""
@@ -42,7 +45,7 @@ class Method:
 
 METHODS: dict[str, Method] = {m.name: m for m in (
     Method("bright_pair", "the seed's bright-pair index, edges looked up by length (lost in space; default)",
-           hypotheses=bright_pair_batches, bright_triangles=True),
+           hypotheses=bright_pair_batches, bright_triangles=True, focal_scan=True),
     Method("tf", "Liebe's triangle features: two angular distances and the spherical angle (lost in space)",
            hypotheses=tf_batches,
            no_feature="no pattern point has its two nearest neighbours nearer than the sensor's edge (Liebe's rim "

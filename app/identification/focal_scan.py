@@ -1,0 +1,140 @@
+"""Bright-pair hypotheses of every searched focal length at once: the focal scan.
+
+Why.  A focal length off by the fraction ``e`` scales every pattern angle
+by about ``1 + e``; an edge of ``L`` pixels leaves the bright-pair lookup's
+length window (``w``, a few pixels) once ``e L > w``, so the engine also
+searches the focal lengths within the declared tolerance, in steps
+(:func:`app.identification.optics.focal_lengths_to_try`: half a step moves
+the pattern's farthest point by at most 4 pixels, so 12-38 steps for a 5 %
+tolerance).  Searched step by step, a short edge's window spans several
+steps (a window of ``2 w`` pixels is ``2 w / L`` of the edge's length, the
+step ``8 / L_max``), so each catalogue pair of the first, shortest, edges was
+tried again at each of those steps: 3-5 times on the 20 deg camera, and a
+pattern that matches nothing (noise, the Earth) paid for it at every step
+(60 % of its search).
+
+How.  Each pattern edge is looked up once, over the union of its windows at
+every searched focal length but the declared one, and each catalogue pair
+found is tried once: at the searched focal length whose length of that edge
+is nearest the pair's, when the pair lies within that focal length's window
+(the hypothesis the stepped search made there).  The declared camera's own
+search tried the pairs of its window; a pair nearest the declared focal
+length goes to the nearest other whose window holds it.  The hypotheses keep
+their focal length (the prepared pattern of their step), so checking,
+refining, the optics fit and the false-match count go on as for a step of
+their own.
+
+The nearest is only the edge's guess.  An edge of ``L`` pixels knows the
+scale to ``w / L`` (5 % for a 100-pixel edge whose stars sit 1-3 pixels from
+their catalogue places, as on defocused real frames), and a real lens's
+distortion makes the best pinhole scale differ across the field by ~1 %:
+at the nearest focal length a true pair's far stars can miss.  Its near ones
+do not (a star at ``D`` pixels from the edge moves ``D w / L`` across the
+window, within the check tolerance for ``D`` up to about ``L``), so a pair
+whose hypothesis catches a third star is also tried at every other focal
+length whose window holds it (:meth:`FocalScan.elsewhere`): the stepped
+search's other tries of that pair, for the pairs that earn them (a quarter
+of a random pattern's, at a 10 px check tolerance).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.attitude import rotation_from_pair
+from app.identification.candidates import PreparedPattern
+from app.identification.hypotheses import Hypotheses, edge_batches, edge_windows, ordered_pattern_edges
+from app.identification.options import SearchOptions
+from app.identification.sky import Sky
+
+
+@dataclass(frozen=True, eq=False)
+class ScanGroup:
+    """Hypotheses made at one searched focal length."""
+
+    step: int  # position of their prepared pattern in the scan's list
+    hypotheses: Hypotheses
+    check_tol: np.ndarray  # (H,) radians
+    pair_length: np.ndarray  # (H,) the catalogue pairs' lengths, radians
+
+
+class FocalScan:
+    """The bright-pair hypotheses of one pattern seen at several focal lengths (``patterns``: the declared
+    first, then at least one other), each catalogue pair at the focal length nearest its length (see the
+    module doc)."""
+
+    def __init__(self, patterns: list[PreparedPattern], sky: Sky, options: SearchOptions) -> None:
+        declared = patterns[0]
+        self.patterns, self.index, self.star_mask = patterns, sky.index, declared.star_mask
+        self.edges = ordered_pattern_edges(declared.xy, declared.camera, options.min_pair_separation_px)
+        windows = [edge_windows(p, options, self.edges) for p in patterns]
+        self.vectors = np.stack([p.vectors for p in patterns])  # (S, m, 3)
+        if self.edges:
+            self.lengths = np.stack([w.length for w in windows], axis=1)  # (E, S): each edge's angle at each
+            self.tolerance = np.stack([w.tolerance for w in windows], axis=1)  # its window's half-width
+            self.check_tol = np.stack([w.check_tol for w in windows], axis=1)
+
+    def batches(self):
+        """Yields (groups: the batch's hypotheses by focal length, a list of :class:`ScanGroup`, the pattern
+        features used so far), edge batches of growing size as :func:`.hypotheses.bright_pair_batches`."""
+        for e0, stop in edge_batches(len(self.edges)):
+            made = [self._nearest_step_hypotheses(e) for e in range(e0, stop)]
+            yield self._groups(*(np.concatenate(x) for x in zip(*made))), stop
+
+    def _groups(self, steps: np.ndarray, pair_length: np.ndarray, e: np.ndarray, r1: np.ndarray,
+                r2: np.ndarray) -> list[ScanGroup]:
+        """Hypotheses of edges ``e`` onto index stars ``r1``, ``r2`` (pairs of length ``pair_length``), each at
+        its focal length ``steps``: one group per focal length."""
+        order = np.argsort(steps, kind="stable")
+        steps, pair_length, e, r1, r2 = steps[order], pair_length[order], e[order], r1[order], r2[order]
+        hyp = self._hypotheses(e, steps, r1, r2)
+        starts = np.flatnonzero(np.r_[True, steps[1:] != steps[:-1]]) if len(steps) else np.empty(0, int)
+        return [ScanGroup(int(steps[a]), Hypotheses(hyp.rotations[a:b], hyp.pattern_edge[a:b],
+                                                    hyp.catalogue_pair[a:b], hyp.edge_number[a:b]),
+                          self.check_tol[e[a:b], int(steps[a])], pair_length[a:b])
+                for a, b in zip(starts.tolist(), np.r_[starts[1:], len(steps)].tolist())]
+
+    def _nearest_step_hypotheses(self, e: int) -> tuple[np.ndarray, ...]:
+        """Edge ``e``'s hypotheses, every index pair within one of its windows at the searched focal length
+        (not the declared) whose length of the edge is nearest the pair's, kept when within that window:
+        (steps, the pairs' lengths, edge numbers, first stars, second stars), both orientations of each pair
+        as in :func:`app.identification.hypotheses.bright_pair_hypotheses`."""
+        lengths, windows, index = self.lengths[e, 1:], self.tolerance[e, 1:], self.index
+        rows = index.pairs_with_length(float(np.min(lengths - windows)), float(np.max(lengths + windows)))
+        a, b, pair_length = index.star_a[rows], index.star_b[rows], index.length_rad[rows]
+        if self.star_mask is not None:
+            keep = self.star_mask[a] & self.star_mask[b]
+            a, b, pair_length = a[keep], b[keep], pair_length[keep]
+        # The nearest of the lengths in order: the one at the pair's place among them, or the one before.
+        order = np.argsort(lengths, kind="stable")
+        below = np.clip(np.searchsorted(lengths[order], pair_length) - 1, 0, len(order) - 1)
+        above = np.minimum(below + 1, len(order) - 1)
+        nearer_below = np.abs(pair_length - lengths[order][below]) <= np.abs(lengths[order][above] - pair_length)
+        step = order[np.where(nearer_below, below, above)]
+        keep = np.abs(pair_length - lengths[step]) <= windows[step]
+        a, b, step, pair_length = a[keep], b[keep], step[keep] + 1, pair_length[keep]
+        return (np.concatenate([step, step]), np.concatenate([pair_length, pair_length]), np.full(2 * len(a), e),
+                np.concatenate([a, b]), np.concatenate([b, a]))
+
+    def _hypotheses(self, e: np.ndarray, steps: np.ndarray, r1: np.ndarray, r2: np.ndarray) -> Hypotheses:
+        """Edges ``e`` (positions in :attr:`edges`)'s pattern points onto index stars ``r1``, ``r2``, each seen
+        at its focal length ``steps``."""
+        ij = np.array(self.edges, dtype=int).reshape(-1, 2)[e]
+        rotations = rotation_from_pair(self.vectors[steps, ij[:, 0]], self.vectors[steps, ij[:, 1]],
+                                       self.index.vectors[r1], self.index.vectors[r2])
+        return Hypotheses(rotations, ij, np.column_stack([r1, r2]).astype(int), np.asarray(e, dtype=int))
+
+    def elsewhere(self, picked: list[tuple[ScanGroup, np.ndarray]]) -> list[ScanGroup]:
+        """The hypotheses picked (``(group, positions in it)`` pairs) at every other searched focal length
+        (not the declared) whose window holds their pair, grouped by focal length."""
+        made = []
+        for group, which in picked:
+            e = group.hypotheses.edge_number[which]
+            held = np.abs(self.lengths[e] - group.pair_length[which, None]) <= self.tolerance[e]  # (n, S)
+            held[:, [0, group.step]] = False
+            h, steps = np.nonzero(held)
+            pair = group.hypotheses.catalogue_pair[which[h]]
+            made.append((steps, group.pair_length[which[h]], e[h], pair[:, 0], pair[:, 1]))
+        return self._groups(*(np.concatenate(x) for x in zip(*made))) if made else []
