@@ -20,8 +20,10 @@ How.
    window of the pattern's first edges and within a few match tolerances
    across the pattern, so the step is ``2 w / L_max`` with ``w`` a few pixels
    (:data:`SCALE_WINDOW_PX`), clipped to [:data:`MIN_STEP`, :data:`MAX_STEP`].
-   The engine runs its usual search at each focal length in turn and stops
-   at the first that identifies the pattern.
+   The engine searches the first features of every focal length (bright
+   pairs: all at once, each catalogue pair at the focal length nearest its
+   length, :mod:`app.identification.focal_scan`; other methods: one step
+   after another) and stops at the first that identifies the pattern.
 2. :func:`refine_optics`: a candidate's matched stars fix the attitude and
    the optics together (:func:`app.camera_fit.fit_attitude_and_camera`: the
    focal length from 3 stars, k1 too from 6, with weak priors from the

@@ -66,16 +66,18 @@ class SearchOptions:
     #: Wall-clock budget of one search, seconds.
     timeout_s: float = 5.0
     #: ... and its count of hypotheses, which bounds it the same way on a loaded machine: a pattern that fits
-    #: nowhere tries 90,000-136,000 against the default index (10 random points, 20 deg camera), but a narrow
-    #: field against the Hp 8 index 600,000 and more (5 s) before the time-out stopped it.
+    #: nowhere tries 52,000-92,000 against the default index (10 random points, 20 deg camera; 90,000-136,000
+    #: before the focal scan and the Delaunay edges), but a narrow field against the Hp 8 index 600,000 and
+    #: more (5 s) before the time-out stopped it.
     max_hypotheses: int = 300_000
     #: Planets are labelled when an unmatched point lies within this many pixels.
     planet_tolerance_px: float = 3.0
     #: When the declared camera does not settle the answer, search focal lengths within the camera's
     #: declared tolerance (real focal lengths are known to 1-5 %: app.identification.optics).
     search_focal_length: bool = True
-    #: ... trying this many pattern features (edges) at each searched focal length: at the right one
-    #: the first sure edges settle the answer, and a full search at every step would cost a dozen searches.
+    #: ... trying this many pattern features (edges) at each searched focal length (bright pairs: at all of
+    #: them at once, app.identification.focal_scan): at the right one the first sure edges settle the answer,
+    #: and a full search at every step would cost a dozen searches.
     focal_search_features: int = 3
     #: ... and checking at most this many hypotheses at the other focal lengths (a phase that starts within
     #: the count runs whole): a wrong focal length is usually found within a few steps (40 single snapshots of
@@ -85,7 +87,9 @@ class SearchOptions:
     #: the identification and camera benchmarks unchanged, but one of 100 snapshots 5 % off (bench --suite
     #: peer) then went unidentified: its triangles fit no focal length and the stepped search found it after
     #: 87,800 hypotheses.  A count, not seconds: the same data get the same answer on a loaded machine (a
-    #: wall-clock budget left frames unsolved under load).
+    #: wall-clock budget left frames unsolved under load).  The focal scan tries each catalogue pair of an
+    #: edge once (or, when it caught a third star, at the few focal lengths of its window): 10 random points
+    #: now try ~30,000 there, so the bound binds the triangle features' stepped search, not the bright pairs'.
     focal_search_max_hypotheses: int = 200_000
     #: The declared camera tries this many features before the other focal lengths are searched (and
     #: the rest after them): 7 is the first three batches (1 + 2 + 4 edges), past which an exact camera
