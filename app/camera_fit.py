@@ -109,7 +109,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from app.attitude.rotations import rotation_from_rotvec
+from app.attitude.rotations import matmul3, rodrigues, rotation_from_rotvec
 from app.camera import Camera
 from app.compiled import njit, warm_up_with
 
@@ -663,19 +663,8 @@ def _fit_inverse(N):
 
 @njit
 def _rotate_left_one(theta0, theta1, theta2, R):
-    """``exp([theta]x) R`` (:func:`app.attitude.rotations.rotation_from_rotvec`'s Rodrigues form)."""
-    t = np.sqrt(theta0 * theta0 + theta1 * theta1 + theta2 * theta2)
-    h = np.sin(t / 2) / (t / 2) if t > 0 else 1.0
-    a, b, c = h * np.cos(t / 2), 0.5 * h * h, np.cos(t)
-    x, y, z = theta0, theta1, theta2
-    E = np.array([[c + b * x * x, b * x * y - a * z, b * x * z + a * y],
-                  [b * x * y + a * z, c + b * y * y, b * y * z - a * x],
-                  [b * x * z - a * y, b * y * z + a * x, c + b * z * z]])
-    out = np.empty((3, 3))
-    for r in range(3):
-        for k in range(3):
-            out[r, k] = E[r, 0] * R[0, k] + E[r, 1] * R[1, k] + E[r, 2] * R[2, k]
-    return out
+    """``exp([theta]x) R`` (Rodrigues, :func:`app.attitude.rotations.rodrigues`)."""
+    return matmul3(rodrigues(theta0, theta1, theta2), R)
 
 
 @njit

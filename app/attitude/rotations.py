@@ -165,6 +165,32 @@ def _rotations_from_pairs(b1, b2, r1, r2):
 
 
 @njit
+def rodrigues(x, y, z):
+    """``exp([phi]x)`` of one rotation vector ``(x, y, z)``, compiled (:func:`rotation_from_rotvec`'s
+    formula: ``cos t I + a [phi]x + b phi phi^T`` with ``a = h cos(t/2)``, ``b = h^2 / 2``,
+    ``h = sin(t/2) / (t/2)``)."""
+    t = np.sqrt(x * x + y * y + z * z)
+    h = np.sin(t / 2) / (t / 2) if t > 0 else 1.0
+    a, b, c = h * np.cos(t / 2), 0.5 * h * h, np.cos(t)
+    R = np.empty((3, 3))
+    R[0, 0], R[0, 1], R[0, 2] = c + b * x * x, b * x * y - a * z, b * x * z + a * y
+    R[1, 0], R[1, 1], R[1, 2] = b * x * y + a * z, c + b * y * y, b * y * z - a * x
+    R[2, 0], R[2, 1], R[2, 2] = b * x * z - a * y, b * y * z + a * x, c + b * z * z
+    return R
+
+
+@njit
+def matmul3(A, B):
+    """A B of two 3 x 3 matrices, compiled and written out (numba's matrix product and array expressions
+    cost seconds of compilation on the first run after an install)."""
+    C = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            C[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+    return C
+
+
+@njit
 def svd_3x3(B):
     """``(U, S, V^T)`` of a 3 x 3 matrix, singular values descending: one-sided Jacobi.
 

@@ -27,7 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.attitude.rotations import propagate, rotation_from_rotvec, rotvec_from_rotation, solve_wahba
+from app.attitude.rotations import (matmul3, propagate, rodrigues, rotation_from_rotvec, rotvec_from_rotation,
+                                    solve_wahba)
 from app.attitude.wahba import wahba_covariance
 from app.compiled import njit, warm_up_with
 
@@ -149,19 +150,6 @@ def _fit_once(snaps: list[SnapshotAttitude], R0: np.ndarray, rate_guess: np.ndar
 # --- the compiled Gauss-Newton ------------------------------------------------------------------
 
 @njit
-def _exp(x, y, z):
-    """``exp([phi]x)`` of one rotation vector (Rodrigues, as :func:`app.attitude.rotations.rotation_from_rotvec`)."""
-    t = np.sqrt(x * x + y * y + z * z)
-    h = np.sin(t / 2) / (t / 2) if t > 0 else 1.0
-    a, b, c = h * np.cos(t / 2), 0.5 * h * h, np.cos(t)
-    R = np.empty((3, 3))
-    R[0, 0], R[0, 1], R[0, 2] = c + b * x * x, b * x * y - a * z, b * x * z + a * y
-    R[1, 0], R[1, 1], R[1, 2] = b * x * y + a * z, c + b * y * y, b * y * z - a * x
-    R[2, 0], R[2, 1], R[2, 2] = b * x * z - a * y, b * y * z + a * x, c + b * z * z
-    return R
-
-
-@njit
 def _log(R):
     """``log(R)``, the rotation vector of one rotation matrix, at any angle: through its unit quaternion
     (Shepperd's choice of the largest component, so no division loses accuracy), ``2 atan2(|v|, s) v/|v|``."""
@@ -199,23 +187,12 @@ def _left_jacobian(x, y, z):
     K = np.zeros((3, 3))
     K[0, 1], K[0, 2], K[1, 2] = -z, y, -x
     K[1, 0], K[2, 0], K[2, 1] = z, -y, x
-    KK = _mul(K, K)
+    KK = matmul3(K, K)
     J = np.empty((3, 3))
     for i in range(3):
         for j in range(3):
             J[i, j] = a * K[i, j] + b * KK[i, j] + (1.0 if i == j else 0.0)
     return J
-
-
-@njit
-def _mul(A, B):
-    """A B of two 3 x 3 matrices (written out: numba's matrix product and array expressions cost seconds of
-    compilation, the first run after an install)."""
-    C = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            C[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
-    return C
 
 
 @njit
@@ -225,11 +202,11 @@ def _residuals_and_jacobian(R_obs, dt, W, R0, c, w):
     S = dt.shape[0]
     f = np.empty(3 * S)
     J = np.empty((3 * S, 6))
-    base = _mul(_exp(c[0], c[1], c[2]), R0)
+    base = matmul3(rodrigues(c[0], c[1], c[2]), R0)
     for i in range(S):
         px, py, pz = -w[0] * dt[i], -w[1] * dt[i], -w[2] * dt[i]
-        turn = _exp(px, py, pz)
-        pred = _mul(turn, base)
+        turn = rodrigues(px, py, pz)
+        pred = matmul3(turn, base)
         misfit = np.empty((3, 3))
         for r in range(3):
             for k in range(3):
