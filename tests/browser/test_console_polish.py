@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import re
+from decimal import ROUND_HALF_UP, Decimal
 
 import httpx
 import numpy as np
@@ -194,7 +195,9 @@ def test_the_gap_to_rank_1_is_signed(server, api, new_page, tmp_path):
     page = watched.page
     open_sequence(page, seq_id, "06-sparse-gap")
     for rank, gap in gaps.items():
-        shown = "-" if rank == 1 else f"{'+' if gap >= 0 else '-'}{abs(gap):.0f}″"
+        # JavaScript's toFixed(0): the exact binary value rounded half up (Python's format rounds half to even).
+        whole = Decimal(abs(gap)).quantize(Decimal(1), rounding=ROUND_HALF_UP)
+        shown = "-" if rank == 1 else f"{'+' if gap >= 0 else '-'}{whole}″"
         expect_text(page.locator(f"#candidate-rows tr[data-rank='{rank}'] td").last, f"^{re.escape(shown)}$")
     # The point picked by hand is "hand 0" in the candidate's matches too, as in the table and the sky chart.
     expect_text(page.locator("#cand-matches"), r"(^| · )hand 0 → ")
