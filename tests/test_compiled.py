@@ -57,3 +57,32 @@ def test_a_first_run_compiles_once_says_so_in_one_line_and_the_next_loads_the_ca
     report, log = _run(tmp_path)
     assert report["first"]["compiled"] == 0 and report["first"]["loaded"] == 1
     assert "WARNING" not in log and sum("loaded 1 compiled kernels" in line for line in log.splitlines()) == 1
+
+
+def test_searches_call_every_kernel_only_with_types_the_warm_up_compiled():
+    """A kernel called with other argument types (a read-only view, a strided array) compiles again inside a
+    search, outside the warm-up's one log line and against the search's clock (a first run's first answers).
+    Solving every kind of frame after the warm-up must compile nothing."""
+    import numpy as np
+
+    import app.identification  # noqa: F401  (every kernel module registers its warm-up when imported)
+    from app.bench.peer import _no_match_frame
+    from app.camera import CAMERAS
+    from app.compiled import _kernels, warm_up
+    from app.identification import Sky, solve_sequence
+    from app.simulate import simulate_sequence, true_optics
+
+    warm_up()
+    before = {kernel: len(kernel.signatures) for kernel in _kernels}
+    sky = Sky()
+    rng = np.random.default_rng(8)
+    camera = CAMERAS["tubsat-752x582-20deg"]
+    sequences = [simulate_sequence(rng, camera, scenario)[0] for scenario in ("single", "nominal", "ghosts", "sparse")]
+    sequences.append(simulate_sequence(rng, camera, "single", true_camera=true_optics(camera, focal_error=0.04))[0])
+    sequences.append(simulate_sequence(rng, CAMERAS["liebe-576x604-30deg"], "nominal")[0])
+    sequences += [_no_match_frame(rng, camera, "noise"), _no_match_frame(rng, camera, "earth")]
+    for sequence in sequences:
+        solve_sequence(sequence, sky)
+    compiled_again = {kernel.py_func.__qualname__: kernel.signatures[before[kernel]:]
+                      for kernel in _kernels if len(kernel.signatures) > before[kernel]}
+    assert not compiled_again

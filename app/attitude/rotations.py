@@ -294,9 +294,12 @@ def _warm_up_svd() -> None:
 
 @warm_up_with
 def _warm_up_pairs() -> None:
-    """Compile :func:`_rotations_from_pairs` for the stacks the searches pass."""
+    """Compile :func:`_rotations_from_pairs` for the stacks the searches pass: one pattern pair against many
+    catalogue pairs (the pattern's two broadcast into writable copies, the catalogue's read-only views), and
+    stacks on both sides (the focal scan's, the extraction's: all four read-only views)."""
     e = np.eye(3)
     rotation_from_pair(e[0], e[1], e[:2], e[1:])
+    rotation_from_pair(e[:2], e[1:], e[:2], e[1:])
 
 
 def rotation_from_rotvec(phi: np.ndarray) -> np.ndarray:
