@@ -65,14 +65,13 @@ def test_searches_call_every_kernel_only_with_types_the_warm_up_compiled():
     Solving every kind of frame after the warm-up must compile nothing."""
     import numpy as np
 
-    import app.identification  # noqa: F401  (every kernel module registers its warm-up when imported)
     from app.bench.peer import _no_match_frame
     from app.camera import CAMERAS
     from app.compiled import _kernels, warm_up
     from app.identification import Sky, solve_sequence
     from app.simulate import simulate_sequence, true_optics
 
-    warm_up()
+    warm_up()  # the imports above registered every kernel module's warm-up
     before = {kernel: len(kernel.signatures) for kernel in _kernels}
     sky = Sky()
     rng = np.random.default_rng(8)
