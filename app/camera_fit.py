@@ -336,19 +336,9 @@ def _stars_from(observations: Sequence) -> tuple[_Stars, np.ndarray, list]:
     xy_parts, vec_parts, owner, inv_sigma, rotations, labels = [], [], [], [], [], []
     for j, obs in enumerate(observations):
         obs = obs if isinstance(obs, Observation) else Observation(*obs)
-        xy = np.asarray(obs.xy, dtype=float).reshape(-1, 2)
-        vectors = np.asarray(obs.star_vectors, dtype=float).reshape(-1, 3)
-        if len(xy) != len(vectors):
-            raise ValueError(f"observation {j}: {len(xy)} pixel positions but {len(vectors)} star vectors")
-        if len(xy) == 0:
-            raise ValueError(f"observation {j}: no stars")
-        if not (math.isfinite(obs.sigma_px) and obs.sigma_px > 0):
-            raise ValueError(f"observation {j}: sigma_px must be > 0, got {obs.sigma_px!r}")
-        if not (np.all(np.isfinite(xy)) and np.all(np.isfinite(vectors))):
-            raise ValueError(f"observation {j}: pixel positions and star vectors must be finite")
-        rotation = np.asarray(obs.rotation, dtype=float).reshape(3, 3)
+        xy, vectors, rotation = _one_observation(obs.xy, obs.star_vectors, obs.rotation, obs.sigma_px, j)
         xy_parts.append(xy)
-        vec_parts.append(vectors / np.linalg.norm(vectors, axis=1, keepdims=True))
+        vec_parts.append(vectors)
         owner.append(np.full(len(xy), j))
         inv_sigma.append(np.full(len(xy), 1.0 / obs.sigma_px))
         rotations.append(rotation)
@@ -362,19 +352,20 @@ def _stars_from(observations: Sequence) -> tuple[_Stars, np.ndarray, list]:
     return stars, np.array(rotations), labels
 
 
-def _one_observation(xy, star_vectors, rotation, sigma_px) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`_stars_from`'s checks and unit vectors for one observation, without its bookkeeping of many
-    (a search fits one snapshot's optics several times a solve)."""
+def _one_observation(xy, star_vectors, rotation, sigma_px, j: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Observation ``j``'s pixels, unit star vectors and rotation, checked (a ValueError says what is wrong
+    with which observation).  A single snapshot's fit calls it alone: several times a solve, where the
+    many-observation bookkeeping of :func:`_stars_from` cost twice the fit."""
     xy = np.ascontiguousarray(xy, dtype=float).reshape(-1, 2)
     vectors = np.asarray(star_vectors, dtype=float).reshape(-1, 3)
     if len(xy) != len(vectors):
-        raise ValueError(f"observation 0: {len(xy)} pixel positions but {len(vectors)} star vectors")
+        raise ValueError(f"observation {j}: {len(xy)} pixel positions but {len(vectors)} star vectors")
     if len(xy) == 0:
-        raise ValueError("observation 0: no stars")
+        raise ValueError(f"observation {j}: no stars")
     if not (math.isfinite(sigma_px) and sigma_px > 0):
-        raise ValueError(f"observation 0: sigma_px must be > 0, got {sigma_px!r}")
+        raise ValueError(f"observation {j}: sigma_px must be > 0, got {sigma_px!r}")
     if not (np.isfinite(xy).all() and np.isfinite(vectors).all()):
-        raise ValueError("observation 0: pixel positions and star vectors must be finite")
+        raise ValueError(f"observation {j}: pixel positions and star vectors must be finite")
     vectors = vectors / np.sqrt((vectors * vectors).sum(axis=1))[:, None]
     return xy, vectors, np.ascontiguousarray(rotation, dtype=float).reshape(3, 3)
 

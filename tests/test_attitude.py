@@ -100,7 +100,7 @@ def test_left_jacobian_matches_finite_differences():
 
     rng = np.random.default_rng(2)
     phi = np.vstack([rng.normal(size=(5, 3)) * 0.3, [[1e-8, 0, 0]]])
-    J = left_jacobian(phi)
+    J = np.stack([left_jacobian(*p) for p in phi])
     h = 1e-7
     for k in range(3):
         step = np.zeros(3)

@@ -421,7 +421,7 @@ def test_the_compiled_sequence_fit_steps_are_numpys(turn):
     assert np.allclose(f, f0, rtol=1e-9, atol=1e-9 * np.abs(f0).max())
     assert np.allclose(J, J0, rtol=1e-12, atol=1e-12 * np.abs(J0).max())
     phi = rng.normal(size=(6, 3)) * turn
-    assert np.allclose(left_jacobian(phi), _numpy_left_jacobian(phi), rtol=1e-13, atol=1e-15)
+    assert np.allclose(np.stack([left_jacobian(*p) for p in phi]), _numpy_left_jacobian(phi), rtol=1e-13, atol=1e-15)
 
 
 # --- pixels to camera-frame vectors, as numpy computed them before the kernel ---------------------------------

@@ -177,8 +177,10 @@ def _log(R):
 
 
 @njit
-def _left_jacobian(x, y, z):
-    """The left Jacobian of SO(3) at one rotation vector (see :func:`left_jacobian`)."""
+def left_jacobian(x, y, z):
+    """The left Jacobian of SO(3) at the rotation vector ``phi = (x, y, z)``:
+    ``exp(phi + d) ~ exp([J_l(phi) d]x) exp(phi)``, with
+    ``J_l = I + (1 - cos t)/t^2 [phi]x + (t - sin t)/t^3 [phi]x^2``, t = |phi|."""
     t = np.sqrt(x * x + y * y + z * z)
     if t < 1e-6:
         a, b = 0.5 - t * t / 24, 1 / 6 - t * t / 120
@@ -212,7 +214,7 @@ def _residuals_and_jacobian(R_obs, dt, W, R0, c, w):
             for k in range(3):
                 misfit[r, k] = R_obs[i, r, 0] * pred[k, 0] + R_obs[i, r, 1] * pred[k, 1] + R_obs[i, r, 2] * pred[k, 2]
         r = _log(misfit)
-        jl = _left_jacobian(px, py, pz)
+        jl = left_jacobian(px, py, pz)
         for a in range(3):
             f[3 * i + a] = W[i, a, 0] * r[0] + W[i, a, 1] * r[1] + W[i, a, 2] * r[2]
             for k in range(3):
@@ -292,14 +294,6 @@ def _gauss_newton(R_obs, dt, W, R0, w0, iterations, converged):
 def _warm_up_gauss_newton() -> None:
     R = np.stack([np.eye(3), np.eye(3)])
     _gauss_newton(R, np.array([0.0, 1.0]), np.stack([np.eye(3), np.eye(3)]) * 1e3, np.eye(3), np.zeros(3), 2, 1e-10)
-
-
-def left_jacobian(phi: np.ndarray) -> np.ndarray:
-    """(S, 3, 3) left Jacobians of SO(3) at rotation vectors ``phi`` (S, 3):
-    ``exp(phi + d) ~ exp([J_l(phi) d]x) exp(phi)``, with
-    ``J_l = I + (1 - cos t)/t^2 [phi]x + (t - sin t)/t^3 [phi]x^2``, t = |phi|.
-    """
-    return np.stack([_left_jacobian(*map(float, p)) for p in np.asarray(phi, dtype=float).reshape(-1, 3)])
 
 
 def rate_from_motion(motion: np.ndarray, dt_s: np.ndarray) -> np.ndarray | None:

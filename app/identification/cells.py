@@ -288,12 +288,20 @@ def _nearest_chords(points, star_vectors, bound, G, words, word_rank, first, sta
 
 
 @njit
-def _nearest_listed(x, y, z, c, star_vectors, words, word_rank, first, stars):
-    """(squared chord, star) of the nearest star listed for marked cell ``c`` of the unit vector (x, y, z)."""
+def _listed(c, words, word_rank, first):
+    """(begin, end): where marked cell ``c``'s stars lie in the map's star list (its rank among the marked
+    cells: its word's rank plus the marked bits below it in the word)."""
     word = words[c >> 6]
     rank = word_rank[c >> 6] + _popcount64(word & ((np.uint64(1) << np.uint64(c & 63)) - np.uint64(1)))
+    return first[rank], first[rank + 1]
+
+
+@njit
+def _nearest_listed(x, y, z, c, star_vectors, words, word_rank, first, stars):
+    """(squared chord, star) of the nearest star listed for marked cell ``c`` of the unit vector (x, y, z)."""
+    begin, end = _listed(c, words, word_rank, first)
     best, star = np.inf, -1
-    for k in range(first[rank], first[rank + 1]):
+    for k in range(begin, end):
         s = np.int64(stars[k])
         dx, dy, dz = x - star_vectors[s, 0], y - star_vectors[s, 1], z - star_vectors[s, 2]
         d2 = (dx * dx + dy * dy) + dz * dz  # a KD-tree's order: the same sums, bit for bit
@@ -324,12 +332,11 @@ def _brightest_within_kernel(points, star_vectors, mag, bound, neighbours, G, wo
     for i in range(n):
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
         c = _cell(x, y, z, G)
-        word = words[c >> 6]
-        if (word >> np.uint64(c & 63)) & np.uint64(1) == 0:
+        if (words[c >> 6] >> np.uint64(c & 63)) & np.uint64(1) == 0:
             continue
-        rank = word_rank[c >> 6] + _popcount64(word & ((np.uint64(1) << np.uint64(c & 63)) - np.uint64(1)))
+        begin, end = _listed(c, words, word_rank, first)
         count = 0
-        for k in range(first[rank], first[rank + 1]):
+        for k in range(begin, end):
             s = np.int64(stars[k])
             dx, dy, dz = x - star_vectors[s, 0], y - star_vectors[s, 1], z - star_vectors[s, 2]
             d2 = (dx * dx + dy * dy) + dz * dz

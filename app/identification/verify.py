@@ -93,14 +93,16 @@ class StarField:
         k = min(EPOCH_NEIGHBOURS, len(self.vectors))
         d, near = tree.query(points, k=k)
         d, near = d.reshape(len(points), k), near.reshape(len(points), k)
-        diff = points[:, None, :] - self.vectors[near]
-        out = np.sqrt(np.min((diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]) + diff[..., 2] * diff[..., 2],
-                             axis=1))
+
+        def nearest(point, rows):  # the chord to the nearest of these stars, summed in a KD-tree's order
+            diff = point - self.vectors[rows]
+            x, y, z = diff[..., 0], diff[..., 1], diff[..., 2]
+            return np.sqrt(np.min((x * x + y * y) + z * z, axis=-1))
+
+        out = nearest(points[:, None, :], near)
         # Where a star beyond the k nearest at the epoch could still be within d0 + 2 shift: all of those.
         for i in np.flatnonzero((d[:, -1] <= d[:, 0] + 2 * shift) & (k < len(self.vectors))).tolist():
-            ball = tree.query_ball_point(points[i], d[i, 0] + 2 * shift + 1e-12)
-            far = points[i] - self.vectors[ball]
-            out[i] = np.sqrt(np.min((far[:, 0] * far[:, 0] + far[:, 1] * far[:, 1]) + far[:, 2] * far[:, 2]))
+            out[i] = nearest(points[i], tree.query_ball_point(points[i], d[i, 0] + 2 * shift + 1e-12))
         return out
 
     @property
