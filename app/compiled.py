@@ -18,14 +18,24 @@ before numba is first imported.
 Compiling.  Each kernel module registers a warm-up (:func:`warm_up_with`: a
 call of each kernel on tiny inputs of the types the program uses).
 :func:`warm_up` runs them all once per process and says in ONE log line
-whether it compiled (the first run after an install: 32-36 s of CPU for
-the 49 kernels of 2026-11-25, more with each new one) or loaded the cache
-(0.2-0.3 s, most of it numba setting itself up for its first kernel).
+whether it compiled (the first run after an install: 22-24 s of CPU for
+the 43 kernels of 2026-11-26) or loaded the cache (0.2-0.3 s, most of it
+numba setting itself up for its first kernel).
 :func:`app.identification.identify` warms up before its search's clock
 starts; a server's compute pool (:mod:`app.workflow.compute`) warms up in
 its workers, or in a thread of its own, while the server answers.
-Processes warming up at once take turns (a lock file in the cache
-directory): the first compiles, the others load what it wrote.
+
+Compiling on every core.  A process that expects to compile (the cache
+does not hold its kernels' sources as they are: :func:`_cache_current`)
+starts helper processes, one per further core (:data:`MAX_COMPILE_PROCESSES`
+in all), and they share the warm-ups out: each takes the next warm-up no one
+holds (a lock file per warm-up), the first process then goes back for the
+ones it skipped and, once their holder is done, loads them from the cache.
+A warm-up calling another's kernel loads it from the cache when it is
+there, else compiles it too (the order is the modules' import order, callees
+first, so that is rare).  Other processes warming up at once (a server's
+second worker) wait on a lock of the cache directory and load what the
+first wrote.
 """
 
 from __future__ import annotations
@@ -33,6 +43,8 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -52,6 +64,12 @@ _kernels: list = []
 _warm_lock = threading.Lock()
 _warmed = False
 _report: dict = {}
+
+#: Processes compiling at once on a first run (the first and its helpers) by default: one a core, at most this many
+#: (more share the warm-ups thinner and compile more callees twice).
+MAX_COMPILE_PROCESSES = 4
+#: How long a helper is waited for once the first process is done (it only loads by then), seconds.
+HELPER_GRACE_S = 60.0
 
 
 def njit(function):
@@ -74,9 +92,13 @@ def warm_up_with(function: Callable[[], None]) -> Callable[[], None]:
 def warm_up(say: bool = True) -> dict:
     """Compile (or load from the cache) every registered kernel, once per process; one log line says which.
 
-    Returns ``{"seconds": ..., "compiled": n kernels compiled now, "loaded": n loaded from the cache}``.
-    ``say=False`` leaves the log line to the caller (:func:`describe`): a
-    worker process has no log of its own and reports to its server.
+    Returns ``{"seconds": ..., "compiled": n, "loaded": n, "processes": n}``:
+    the kernels compiled now (by this process or its helpers), those this
+    process loaded from a cache written before (each kernel a helper
+    compiled is loaded here once, not counted), and how many processes
+    compiled.  ``say=False`` leaves the log line to the caller
+    (:func:`describe`): a worker process has no log of its own and reports
+    to its server.
     """
     global _warmed, _report
     if _warmed:
@@ -85,12 +107,22 @@ def warm_up(say: bool = True) -> dict:
         if _warmed:  # another thread warmed them while this one waited
             return _report
         t0 = time.perf_counter()
-        with _one_process_at_a_time():
-            for function in list(_warm_ups):
-                function()
+        functions = list(_warm_ups)
+        with _cache_lock() as directory:
+            if directory is None:  # no cache to share (not POSIX, or read-only): each process for itself
+                for function in functions:
+                    function()
+                helpers_compiled, processes = 0, 1
+            else:
+                helpers = [] if _cache_current(directory) else _start_helpers(functions)
+                _take_turns(functions[::-1], directory, go_back=True)  # the callers first, its helpers the callees
+                helpers_compiled = sum(_joined(helper) for helper in helpers)
+                processes = 1 + len(helpers)
+                _write_stamp(directory)
+        own_hits = sum(sum(k.stats.cache_hits.values()) for k in _kernels)
         _report = {"seconds": time.perf_counter() - t0,
-                   "compiled": sum(sum(k.stats.cache_misses.values()) for k in _kernels),
-                   "loaded": sum(sum(k.stats.cache_hits.values()) for k in _kernels)}
+                   "compiled": sum(sum(k.stats.cache_misses.values()) for k in _kernels) + helpers_compiled,
+                   "loaded": max(0, own_hits - helpers_compiled), "processes": processes}
         _warmed = True
         if say:
             log.log(logging.WARNING if _report["compiled"] else logging.INFO, "%s", describe(_report))
@@ -100,34 +132,181 @@ def warm_up(say: bool = True) -> dict:
 def describe(report: dict) -> str:
     """:func:`warm_up`'s report in words: compiled (the first run after an install) or loaded from the cache."""
     if report["compiled"]:
-        return (f"compiled {report['compiled']} numba kernels in {report['seconds']:.1f} s (the first run after "
-                f"an install; kept in {os.environ['NUMBA_CACHE_DIR']})")
+        on = f" on {report['processes']} cores" if report.get("processes", 1) > 1 else ""
+        return (f"compiled {report['compiled']} numba kernels in {report['seconds']:.1f} s{on} (the first run "
+                f"after an install; kept in {os.environ['NUMBA_CACHE_DIR']})")
     return f"loaded {report['loaded']} compiled kernels from {os.environ['NUMBA_CACHE_DIR']} in {report['seconds']:.2f} s"
 
 
 @contextlib.contextmanager
-def _one_process_at_a_time() -> Iterator[None]:
-    """An exclusive lock on the cache directory while warming up: the processes starting together (a server's
-    workers, a batch's) compile one after the other, the first writing the cache the others then load.
+def _cache_lock() -> Iterator[Path | None]:
+    """An exclusive lock on the cache directory while warming up (yields the directory; None when there is no
+    cache to share): the processes starting together (a server's workers, a batch's) warm up one after the
+    other, the first (with its helpers) writing the cache the others then load.
 
-    Not a lock per warm-up, letting processes compile different warm-ups at once: the kernels call one another,
+    Not the warm-up locks alone, letting every process take warm-ups at once: the kernels call one another,
     so several processes compiled the same callees, and three processes on two cores took 78 s to be warm
-    against 37 s taking turns (one run each on a busy machine, 2026-11-25)."""
+    against 37 s taking turns (one run each on a busy machine, 2026-11-25).  The first process's helpers
+    are as many as the cores, and take the warm-ups callees first."""
     try:
         import fcntl
     except ImportError:  # not POSIX: each process compiles for itself
-        yield
+        yield None
         return
     directory = Path(os.environ["NUMBA_CACHE_DIR"])
     try:
         directory.mkdir(parents=True, exist_ok=True)
         lock = open(directory / "warm-up.lock", "a")
     except OSError:  # a read-only cache: nothing to share
-        yield
+        yield None
         return
     with lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
-            yield
+            yield directory
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def _take_turns(functions: list[Callable[[], None]], directory: Path, go_back: bool) -> None:
+    """Run each warm-up that no other process holds, holding its lock file meanwhile; with ``go_back``, then
+    the ones skipped, each once its holder is done (a load from the cache it wrote)."""
+    import fcntl
+
+    skipped = []
+    for function in functions:
+        with open(directory / f"warm-up.{function.__module__}.{function.__qualname__}.lock", "a") as lock:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:  # another process compiles it now
+                skipped.append(function)
+                continue
+            try:
+                function()
+            finally:
+                fcntl.flock(lock, fcntl.LOCK_UN)
+    if go_back and skipped:
+        _take_turns_waiting(skipped, directory)
+
+
+def _take_turns_waiting(functions: list[Callable[[], None]], directory: Path) -> None:
+    """Run each warm-up once the process holding it (if any) is done; a holder that died freed its lock."""
+    import fcntl
+
+    for function in functions:
+        with open(directory / f"warm-up.{function.__module__}.{function.__qualname__}.lock", "a") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            try:
+                function()
+            finally:
+                fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def _compile_processes() -> int:
+    """How many processes compile on a first run: ``STARID_COMPILE_PROCESSES`` when set, else one per core this
+    process may use, at most :data:`MAX_COMPILE_PROCESSES`."""
+    if settings().compile_processes:
+        return settings().compile_processes
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, MAX_COMPILE_PROCESSES))
+
+
+def _start_helpers(functions: list[Callable[[], None]]) -> list[subprocess.Popen]:
+    """Start :func:`_compile_processes` - 1 helper processes taking warm-ups from ``functions``' modules
+    (:func:`helper_main`); none where they cannot start (said in the log: this process compiles alone)."""
+    modules = list(dict.fromkeys(f.__module__ for f in functions))
+    path = os.pathsep.join(os.path.abspath(p) if p else os.getcwd() for p in sys.path)
+    env = {**os.environ, "PYTHONPATH": path}
+    helpers = []
+    for _ in range(_compile_processes() - 1):
+        try:
+            helpers.append(subprocess.Popen([sys.executable, "-c", _HELPER, *modules], env=env,
+                                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+        except OSError as exc:
+            log.warning("a compile helper could not start (%s): compiling in one process", exc)
+            break
+    return helpers
+
+
+#: A helper's program: import the kernel modules named, take warm-ups, print how many kernels it compiled.
+_HELPER = "import sys; from app.compiled import helper_main; helper_main(sys.argv[1:])"
+
+
+def helper_main(modules: list[str]) -> None:
+    """A compile helper (:func:`_start_helpers`): import ``modules``, take the warm-ups no other process holds
+    (never waiting for one), print ``{"compiled": n}``."""
+    import importlib
+    import json
+
+    for name in modules:
+        importlib.import_module(name)
+    _take_turns(list(_warm_ups), Path(os.environ["NUMBA_CACHE_DIR"]), go_back=False)
+    print(json.dumps({"compiled": sum(sum(k.stats.cache_misses.values()) for k in _kernels)}))
+
+
+def _joined(helper: subprocess.Popen) -> int:
+    """Wait for a helper (at most :data:`HELPER_GRACE_S`: every warm-up is done by now, it only finishes
+    loading); the kernels it compiled (0 if it failed: said in the log)."""
+    import json
+
+    try:
+        out, err = helper.communicate(timeout=HELPER_GRACE_S)
+    except subprocess.TimeoutExpired:
+        helper.kill()
+        out, err = helper.communicate()
+    try:
+        return int(json.loads(out.strip().splitlines()[-1])["compiled"])
+    except (ValueError, KeyError, IndexError):
+        log.warning("a compile helper failed (exit %s): %s", helper.returncode, err.strip()[-500:])
+        return 0
+
+
+def _kernel_sources() -> dict[str, list[float]]:
+    """Each kernel's source file with its modification time and size: what numba's cache is keyed by."""
+    sources = {}
+    for kernel in _kernels:
+        path = kernel.py_func.__code__.co_filename
+        with contextlib.suppress(OSError):
+            stat = os.stat(path)
+            sources[path] = [stat.st_mtime, stat.st_size]
+    return sources
+
+
+def _stamp_file(directory: Path) -> Path:
+    return directory / "warm-up.stamp.json"
+
+
+def _read_stamp(directory: Path) -> dict:
+    import json
+
+    try:
+        stamp = json.loads(_stamp_file(directory).read_text())
+    except (OSError, ValueError):
+        return {}
+    return stamp if isinstance(stamp, dict) and stamp.get("versions") == _versions() else {}
+
+
+def _versions() -> list[str]:
+    return [numba.__version__, sys.version]
+
+
+def _cache_current(directory: Path) -> bool:
+    """Whether the last warm-up with this cache saw every kernel source as it is now (then this one loads, not
+    compiles: no helpers).  Wrong only if the cache files went and the stamp stayed: one process compiles."""
+    known = _read_stamp(directory).get("sources", {})
+    return all(known.get(path) == stat for path, stat in _kernel_sources().items())
+
+
+def _write_stamp(directory: Path) -> None:
+    """Note the kernel sources the cache now holds (merged with other processes' kernel sets)."""
+    import json
+
+    stamp = _read_stamp(directory)
+    stamp = {"versions": _versions(), "sources": {**stamp.get("sources", {}), **_kernel_sources()}}
+    temporary = directory / f"warm-up.stamp.{os.getpid()}.tmp"
+    with contextlib.suppress(OSError):
+        temporary.write_text(json.dumps(stamp))
+        os.replace(temporary, _stamp_file(directory))

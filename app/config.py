@@ -59,6 +59,9 @@ class Settings:
     #: sources), apart from the search workers and at a lower CPU priority, so that worst-case
     #: files never hold up ordinary searches (STARID_BULK_WORKERS, at least 1).
     bulk_workers: int = field(default_factory=lambda: max(1, int(os.environ.get("STARID_BULK_WORKERS", "1"))))
+    #: Processes that compile the numba kernels on a first run, the first included (STARID_COMPILE_PROCESSES;
+    #: default 0: one per core this process may use, at most 4; see app.compiled).
+    compile_processes: int = field(default_factory=lambda: max(0, int(os.environ.get("STARID_COMPILE_PROCESSES", "0"))))
 
 
     @property

@@ -59,6 +59,94 @@ def test_a_first_run_compiles_once_says_so_in_one_line_and_the_next_loads_the_ca
     assert "WARNING" not in log and sum("loaded 1 compiled kernels" in line for line in log.splitlines()) == 1
 
 
+SHARED_MODULE = '''
+import os
+import time
+from pathlib import Path
+
+from app.compiled import njit, warm_up_with
+
+
+@njit
+def twice(x):
+    return 2.0 * x
+
+
+@njit
+def thrice(x):
+    return 3.0 * x
+
+
+@warm_up_with
+def _warm_twice():  # registered first: a helper's first pick
+    twice(1.5)
+
+
+def _twice_taken() -> bool:
+    """Whether another process holds _warm_twice's lock, or has compiled it (its cache index is written)."""
+    import fcntl
+
+    directory = Path(os.environ["NUMBA_CACHE_DIR"])
+    if list(directory.rglob("*twice*.nbi")):
+        return True
+    with open(directory / f"warm-up.{__name__}._warm_twice.lock", "a") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        fcntl.flock(lock, fcntl.LOCK_UN)
+        return False
+
+
+@warm_up_with
+def _warm_thrice():  # registered last: the first process's first pick, held until a helper has taken the other
+    thrice(1.5)
+    deadline = time.monotonic() + 60.0
+    while not _twice_taken():
+        if time.monotonic() > deadline:
+            raise RuntimeError("no helper took the other warm-up within 60 s")
+        time.sleep(0.01)
+'''
+
+SHARED_RUN = '''
+import json, logging, sys
+logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+sys.path.insert(0, sys.argv[1])
+import shared_kernels
+from app.compiled import warm_up
+report = warm_up()
+print(json.dumps({"report": report, "values": [shared_kernels.twice(4.0), shared_kernels.thrice(4.0)],
+                  "twice_loaded": sum(shared_kernels.twice.stats.cache_hits.values()),
+                  "thrice_compiled": sum(shared_kernels.thrice.stats.cache_misses.values())}))
+'''
+
+
+def test_a_first_run_shares_the_compiling_with_a_helper_process_and_the_next_starts_none(tmp_path):
+    """Two warm-ups, two processes: the first process takes the last registered, its helper the first; the
+    first then loads what the helper compiled.  (The first's warm-up holds on until the helper has the other, so
+    that the sharing is not left to how fast a process starts.)"""
+    (tmp_path / "shared_kernels.py").write_text(SHARED_MODULE)
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env.update(STARID_CACHE_DIR=str(tmp_path / "cache"), STARID_COMPILE_PROCESSES="2")
+
+    def run() -> tuple[dict, str]:
+        done = subprocess.run([sys.executable, "-c", SHARED_RUN, str(tmp_path)], cwd=ROOT, env=env,
+                              capture_output=True, text=True, timeout=180)
+        assert done.returncode == 0, done.stderr
+        return json.loads(done.stdout.strip().splitlines()[-1]), done.stderr
+
+    out, log = run()
+    assert out["values"] == [8.0, 12.0]
+    assert out["thrice_compiled"] == 1 and out["twice_loaded"] == 1  # the helper compiled twice, this loaded it
+    assert out["report"]["compiled"] == 2 and out["report"]["loaded"] == 0 and out["report"]["processes"] == 2
+    said = [line for line in log.splitlines() if "numba kernels" in line or "compiled kernels" in line]
+    assert len(said) == 1 and said[0].startswith("WARNING compiled 2 numba kernels in ") and "on 2 cores" in said[0]
+    # The cache now holds both as their sources are: the next process loads them, alone.
+    out, log = run()
+    assert out["report"] == {**out["report"], "compiled": 0, "loaded": 2, "processes": 1}
+    assert sum("loaded 2 compiled kernels" in line for line in log.splitlines()) == 1
+
+
 def test_searches_call_every_kernel_only_with_types_the_warm_up_compiled():
     """A kernel called with other argument types (a read-only view, a strided array) compiles again inside a
     search, outside the warm-up's one log line and against the search's clock (a first run's first answers).
