@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from app.compiled import njit, warm_up_with
+
 
 def wahba_covariance(body: np.ndarray, sigma_rad: np.ndarray) -> np.ndarray:
     """(3, 3) covariance (rad^2) of the attitude from vectors ``body`` (N, 3) with 1-sigma ``sigma_rad`` (N,).
@@ -30,8 +32,8 @@ def wahba_covariance(body: np.ndarray, sigma_rad: np.ndarray) -> np.ndarray:
     w = 1.0 / np.asarray(sigma_rad, dtype=float) ** 2
     if body.ndim == 1:
         body, w = body.reshape(-1, 3), w.reshape(-1)
-    if body.ndim == 2:  # one attitude (a candidate asks for one at a time): a product, not an einsum's parse
-        return _inverse_3x3((w.sum() * np.eye(3) - (body.T * w) @ body).tolist())
+    if body.ndim == 2:  # one attitude (a candidate asks for one at a time, six a search): compiled, 1 us not 23
+        return _covariance_of_one(np.ascontiguousarray(body), np.ascontiguousarray(w))
     info = w.sum(axis=-1)[..., None, None] * np.eye(3) - np.einsum("...n,...ni,...nj->...ij", w, body, body)
     # The inverse by cofactors, stack-wide (numpy's inverse raises for the whole stack on one
     # singular matrix; a 3x3 adjugate is also cheaper than its call overhead).
@@ -56,21 +58,45 @@ def cross_boresight_and_roll_sigma(cov: np.ndarray) -> tuple[float, float]:
     return float(np.sqrt((cov[0, 0] + cov[1, 1]) / 2)), float(np.sqrt(cov[2, 2]))
 
 
-def _inverse_3x3(m: list[list[float]]) -> np.ndarray:
-    """:func:`wahba_covariance`'s inverse of one information matrix, in Python floats.
+@njit
+def _covariance_of_one(body: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """:func:`wahba_covariance` of one attitude: ``body`` (N, 3), weights ``w`` (N,) = 1 / sigma^2.
 
-    The same IEEE operations in the same order as the stack-wide code,
-    without a dozen numpy calls on nine numbers: a candidate asks for one
-    covariance at a time.
+    The information matrix summed point by point, then the same adjugate,
+    determinant test and checks as the stack-wide code (its values to the
+    last bits: the sums' order differs).
     """
-    (a, b, c), (d, e, f), (g, h, i) = m
-    adjugate = [[e * i - f * h, c * h - b * i, b * f - c * e],
-                [f * g - d * i, a * i - c * g, c * d - a * f],
-                [d * h - e * g, b * g - a * h, a * e - b * d]]
-    det = a * adjugate[0][0] + b * adjugate[1][0] + c * adjugate[2][0]
-    if not abs(det) > 1e-12 * abs(a + e + i) ** 3:
-        return np.full((3, 3), np.inf)
-    cov = np.array(adjugate) / det
-    if not np.isfinite(cov).all() or (np.diagonal(cov) < 0).any():
-        return np.full((3, 3), np.inf)
+    info = np.zeros((3, 3))
+    total = 0.0
+    for n in range(body.shape[0]):
+        total += w[n]
+        for i in range(3):
+            for j in range(3):
+                info[i, j] -= w[n] * body[n, i] * body[n, j]
+    for i in range(3):
+        info[i, i] += total
+    a, b, c = info[0, 0], info[0, 1], info[0, 2]
+    d, e, f = info[1, 0], info[1, 1], info[1, 2]
+    g, h, k = info[2, 0], info[2, 1], info[2, 2]
+    adjugate = np.empty((3, 3))
+    adjugate[0, 0], adjugate[0, 1], adjugate[0, 2] = e * k - f * h, c * h - b * k, b * f - c * e
+    adjugate[1, 0], adjugate[1, 1], adjugate[1, 2] = f * g - d * k, a * k - c * g, c * d - a * f
+    adjugate[2, 0], adjugate[2, 1], adjugate[2, 2] = d * h - e * g, b * g - a * h, a * e - b * d
+    det = a * adjugate[0, 0] + b * adjugate[1, 0] + c * adjugate[2, 0]
+    cov = np.full((3, 3), np.inf)
+    # A singular information matrix (fewer than two usable directions): inf, not a huge number.
+    if not abs(det) > 1e-12 * abs(a + e + k) ** 3:
+        return cov
+    for i in range(3):
+        for j in range(3):
+            value = adjugate[i, j] / det
+            if not np.isfinite(value) or (i == j and value < 0):
+                return np.full((3, 3), np.inf)
+            cov[i, j] = value
     return cov
+
+
+@warm_up_with
+def _warm_up_covariance() -> None:
+    """Compile the one-attitude covariance for the arrays a candidate passes (contiguous float rows)."""
+    wahba_covariance(np.array([[0.0, 0.0, 1.0], [0.1, 0.0, 0.995]]), np.array([1e-4, 1e-4]))

@@ -11,6 +11,7 @@ attitude's 1-sigma (Wahba covariance inflated by the reduced chi-square).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Callable
@@ -96,8 +97,9 @@ def build_candidate(r: Refined, p: PreparedPattern, sky: Sky, *, tol: float, n_h
                   residual_arcsec=float(np.degrees(residual_rad[i]) * 3600))
         for i in matched)
     resid = residual_rad[matched]
+    sum_sq = float(resid @ resid)
     density = local_density_per_sr(field, R[2], p.camera.corner_radius * scale)  # R[2]: the boresight in ICRS
-    fmp = false_match_probability(m, len(matched), tol, density, n_hypotheses, float(np.sum(resid ** 2)),
+    fmp = false_match_probability(m, len(matched), tol, density, n_hypotheses, sum_sq,
                                   n_fitted=n_fitted)
     planet_matches = []
     unmatched = np.flatnonzero(star_of_point < 0)
@@ -117,7 +119,7 @@ def build_candidate(r: Refined, p: PreparedPattern, sky: Sky, *, tol: float, n_h
         rank=0, rotation_matrix=R,
         deviation_arcsec=float(np.degrees(deviation) * 3600),
         deviation_px_per_point=float(deviation / m / scale),
-        rms_arcsec=float(np.degrees(np.sqrt(np.mean(resid ** 2))) * 3600) if len(resid) else float("nan"),
+        rms_arcsec=math.degrees(math.sqrt(sum_sq / len(resid))) * 3600 if len(resid) else float("nan"),
         false_match_probability=fmp, matches=matches, planets=tuple(planet_matches),
         generating_edge=(-1, -1) if generating_edge is None else (int(keep[generating_edge[0]]),
                                                                    int(keep[generating_edge[1]])),
