@@ -27,6 +27,7 @@ from app.attitude.sequence import SequenceFit, fit_constant_rate, rate_from_moti
 from app.attitude.wahba import cross_boresight_and_roll_sigma
 from app.camera_fit import calibrate as calibrate_camera, default_priors, parameters_for
 from app.catalogue import vectors_to_radec
+from app.compiled import warm_up
 from app.extraction import Extraction, Pattern, extract
 from app.identification.engine import classify, identify, is_rival
 from app.identification.methods import METHODS, Method
@@ -118,6 +119,9 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     if METHODS[method].needs_prior and prior is None:
         raise ValueError(f"the {method} method needs a prior attitude")
+    # Every kernel, the extraction's too, before the extraction runs: a first run compiles them all at once on
+    # every core (app.compiled) instead of the extraction's one by one at its first calls.
+    warm_up()
     extraction = extraction if extraction is not None else extract(sequence)
     pattern = pattern if pattern is not None else extraction.pattern
     t = sequence.snapshots[extraction.reference].time
