@@ -138,16 +138,24 @@ def rotation_from_pair(b1: np.ndarray, b2: np.ndarray, r1: np.ndarray, r2: np.nd
 
 
 @njit
-def _triad(u0, u1, u2, v0, v1, v2):
-    """Columns (u, n, w) of the triad of a pair, as a (3, 3) matrix."""
+def pair_triad(u0, u1, u2, v0, v1, v2):
+    """The triad (u, n, w) of a pair (:func:`rotation_from_pair`), its columns as nine numbers: no array, for
+    kernels that make one per hypothesis (:func:`app.identification.cells.check_pairs_kernel`)."""
     n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
     norm = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
     n0, n1, n2 = n0 / norm, n1 / norm, n2 / norm
-    T = np.empty((3, 3))
-    T[0, 0], T[1, 0], T[2, 0] = u0, u1, u2
-    T[0, 1], T[1, 1], T[2, 1] = n0, n1, n2
-    T[0, 2], T[1, 2], T[2, 2] = n1 * u2 - n2 * u1, n2 * u0 - n0 * u2, n0 * u1 - n1 * u0
-    return T
+    return u0, u1, u2, n0, n1, n2, n1 * u2 - n2 * u1, n2 * u0 - n0 * u2, n0 * u1 - n1 * u0
+
+
+@njit
+def triads_rotation(b, r):
+    """``T_b T_r^T`` of two triads (:func:`pair_triad`'s nine numbers), row by row as nine numbers."""
+    return (b[0] * r[0] + b[3] * r[3] + b[6] * r[6], b[0] * r[1] + b[3] * r[4] + b[6] * r[7],
+            b[0] * r[2] + b[3] * r[5] + b[6] * r[8],
+            b[1] * r[0] + b[4] * r[3] + b[7] * r[6], b[1] * r[1] + b[4] * r[4] + b[7] * r[7],
+            b[1] * r[2] + b[4] * r[5] + b[7] * r[8],
+            b[2] * r[0] + b[5] * r[3] + b[8] * r[6], b[2] * r[1] + b[5] * r[4] + b[8] * r[7],
+            b[2] * r[2] + b[5] * r[5] + b[8] * r[8])
 
 
 @njit
@@ -156,11 +164,11 @@ def _rotations_from_pairs(b1, b2, r1, r2):
     N = b1.shape[0]
     out = np.empty((N, 3, 3))
     for k in range(N):
-        Tb = _triad(b1[k, 0], b1[k, 1], b1[k, 2], b2[k, 0], b2[k, 1], b2[k, 2])
-        Tr = _triad(r1[k, 0], r1[k, 1], r1[k, 2], r2[k, 0], r2[k, 1], r2[k, 2])
-        for i in range(3):
-            for j in range(3):
-                out[k, i, j] = Tb[i, 0] * Tr[j, 0] + Tb[i, 1] * Tr[j, 1] + Tb[i, 2] * Tr[j, 2]
+        R = triads_rotation(pair_triad(b1[k, 0], b1[k, 1], b1[k, 2], b2[k, 0], b2[k, 1], b2[k, 2]),
+                            pair_triad(r1[k, 0], r1[k, 1], r1[k, 2], r2[k, 0], r2[k, 1], r2[k, 2]))
+        out[k, 0, 0], out[k, 0, 1], out[k, 0, 2] = R[0], R[1], R[2]
+        out[k, 1, 0], out[k, 1, 1], out[k, 1, 2] = R[3], R[4], R[5]
+        out[k, 2, 0], out[k, 2, 1], out[k, 2, 2] = R[6], R[7], R[8]
     return out
 
 

@@ -35,6 +35,7 @@ import math
 
 import numpy as np
 
+from app.attitude.rotations import pair_triad, triads_rotation
 from app.compiled import njit, warm_up_with
 
 #: The map holds for observation times within this many years of the stars' epoch ...
@@ -397,6 +398,89 @@ def check_kernel(rotations, pattern_vectors, tolerance, star_vectors, bound, G, 
     return n_match, deviation
 
 
+@njit
+def check_pairs_kernel(pattern_vectors, pattern_edge, catalogue_pair, index_vectors, tolerance, min_matches,
+                       star_vectors, bound, G, words, word_rank, first, stars):
+    """:func:`check_kernel` of the rotations of :func:`app.attitude.rotation_from_pair` (edge ``pattern_edge[h]``'s
+    points onto index stars ``catalogue_pair[h]``), each made where it is checked, keeping those that match
+    ``min_matches`` points or more: (their rows (K,), matches (K,), capped deviations (K,), rotations (K, 3, 3)).
+
+    The same numbers as making every rotation (the same triads and products) and checking it with
+    :func:`check_kernel`, without an (H, 3, 3) array of rotations or an (H m, 3) one of sky points.  The
+    points off the edge are looked up first: the edge's own two land on their stars (the costliest look-ups,
+    a marked cell's list), and are looked up only when the others could make ``min_matches`` with them (for
+    a pattern that matches nothing, a third of the hypotheses).  The deviation is summed in the points'
+    order, as :func:`check_kernel` sums it.
+    """
+    H, m = pattern_edge.shape[0], pattern_vectors.shape[0]
+    rows = np.empty(H, dtype=np.int64)
+    n_match = np.empty(H, dtype=np.int64)
+    deviation = np.empty(H)
+    rotations = np.empty((H, 3, 3))
+    kept = 0
+    angles = np.empty(m)
+    visit = np.empty(m, dtype=np.int64)  # the points off the edge in order, then the edge's two
+    last_i, last_j = -1, -1
+    Tb = (0.0,) * 9
+    for h in range(H):
+        i, j = pattern_edge[h, 0], pattern_edge[h, 1]
+        if i != last_i or j != last_j:  # a batch holds each edge's pairs together: its triad once
+            Tb = pair_triad(pattern_vectors[i, 0], pattern_vectors[i, 1], pattern_vectors[i, 2],
+                            pattern_vectors[j, 0], pattern_vectors[j, 1], pattern_vectors[j, 2])
+            n = 0
+            for k in range(m):
+                if k != i and k != j:
+                    visit[n] = k
+                    n += 1
+            visit[m - 2], visit[m - 1] = i, j
+            last_i, last_j = i, j
+        a, b = catalogue_pair[h, 0], catalogue_pair[h, 1]
+        R = triads_rotation(Tb, pair_triad(index_vectors[a, 0], index_vectors[a, 1], index_vectors[a, 2],
+                                           index_vectors[b, 0], index_vectors[b, 1], index_vectors[b, 2]))
+        tol = tolerance[h]
+        off_edge = 0  # matches among the points off the edge
+        for n in range(m):
+            if n == m - 2 and off_edge + 2 < min_matches:
+                break
+            k = visit[n]
+            p0, p1, p2 = pattern_vectors[k, 0], pattern_vectors[k, 1], pattern_vectors[k, 2]
+            x = p0 * R[0] + p1 * R[3] + p2 * R[6]  # R^T p
+            y = p0 * R[1] + p1 * R[4] + p2 * R[7]
+            z = p0 * R[2] + p1 * R[5] + p2 * R[8]
+            angle = np.pi
+            cell = _cell(x, y, z, G)
+            if (words[cell >> 6] >> np.uint64(cell & 63)) & np.uint64(1) != 0:
+                # _nearest_listed's loop written out: a call here (its arrays passed field by field) cost a
+                # quarter of the check, and more as a helper of this loop's body.
+                begin, end = _listed(cell, words, word_rank, first)
+                d2 = np.inf
+                for q in range(begin, end):
+                    s = np.int64(stars[q])
+                    dx, dy, dz = x - star_vectors[s, 0], y - star_vectors[s, 1], z - star_vectors[s, 2]
+                    d2 = min(d2, (dx * dx + dy * dy) + dz * dz)  # a KD-tree's order, as _nearest_listed's
+                d = np.sqrt(d2)
+                if d <= bound:
+                    angle = 2.0 * np.arcsin(min(d / 2, 1.0))
+            angles[k] = angle
+            if n < m - 2:
+                off_edge += angle <= tol
+        else:
+            count, total = 0, 0.0
+            for k in range(m):
+                if angles[k] <= tol:
+                    count += 1
+                    total += angles[k]
+                else:
+                    total += tol
+            if count >= min_matches:
+                rows[kept], n_match[kept], deviation[kept] = h, count, total
+                rotations[kept, 0, 0], rotations[kept, 0, 1], rotations[kept, 0, 2] = R[0], R[1], R[2]
+                rotations[kept, 1, 0], rotations[kept, 1, 1], rotations[kept, 1, 2] = R[3], R[4], R[5]
+                rotations[kept, 2, 0], rotations[kept, 2, 1], rotations[kept, 2, 2] = R[6], R[7], R[8]
+                kept += 1
+    return rows[:kept], n_match[:kept], deviation[:kept], rotations[:kept]
+
+
 @warm_up_with
 def _warm_up_cells() -> None:
     """Compile the look-ups for the types the searches pass (a map of two stars)."""
@@ -405,3 +489,5 @@ def _warm_up_cells() -> None:
     cells.nearest_within(stars, stars, 0.01)
     cells.brightest_within(stars, stars, np.zeros(2), 0.01, 4)
     check_kernel(np.eye(3)[None], stars, np.array([0.01]), stars, 0.01, *cells.kernel_arrays())
+    pair = np.array([[0, 1]])
+    check_pairs_kernel(stars, pair, pair, stars, np.array([0.01]), 3, stars, 0.01, *cells.kernel_arrays())

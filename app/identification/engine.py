@@ -20,17 +20,17 @@ import numpy as np
 from app.attitude import rotation_angles_between
 from app.camera import Camera
 from app.compiled import warm_up
-from app.identification.candidates import PreparedPattern, build_candidate, prepare_pattern
+from app.identification.candidates import PreparedPattern, build_candidate, prepare_pattern, with_optics_uncertainty
 from app.identification.focal_estimate import CHECK_RADIUS_PX, FocalEstimate, focal_estimate
 from app.identification.focal_scan import FocalScan, ScanGroup
-from app.identification.hypotheses import ordered_pattern_edges
+from app.identification.hypotheses import PairHypotheses, ordered_pattern_edges
 from app.identification.methods import METHODS
 from app.identification.optics import focal_lengths_to_try, prepared_with_camera, refine_optics
 from app.identification.options import SearchOptions
 from app.identification.result import AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, FocalLengthContradiction, Solution
 from app.identification.scale_free import identify_unknown_scale
 from app.identification.sky import Sky
-from app.identification.verify import check_hypotheses, refine, refine_many
+from app.identification.verify import check_hypotheses, check_pair_hypotheses, refine, refine_many
 
 #: The bright triangles' focal length is searched first when it is at least this far from the declared one
 #: (a fraction): its estimates err by 0.05 % RMS, 0.13 % at most (144 simulated single snapshots and
@@ -249,7 +249,9 @@ class _Search:
         #: Focal lengths fitted on stars already (the bright triangles' estimate): no optics fit per hypothesis.
         self.fitted_focal_lengths: set[float] = set()
         self.found: list[dict] = []
-        self.parts: dict[int, list[tuple]] = {}  # by id of the prepared pattern: its checked hypotheses
+        self.parts: dict[int, list[_Caught]] = {}  # by id of the prepared pattern: its checked hypotheses that
+        # caught 3 points or more
+        self.n_checked: dict[int, int] = {}  # by id of the prepared pattern: how many it checked
         self.batches: dict[int, object] = {}  # by id of the prepared pattern: its hypothesis batches
         self.refined: dict[tuple, object] = {}  # by (id of the prepared pattern, hypothesis key): its Refined
         self._version = 0  # counts the changes of ``found``
@@ -348,15 +350,23 @@ class _Search:
                 self._version += 1
         same["merged"] += 1
 
-    def _check(self, p, hyp, tol) -> tuple[np.ndarray, np.ndarray, int]:
-        """Check hypotheses ``hyp`` of ``p`` with tolerances ``tol`` and keep them for :meth:`alternatives`:
-        (matches, deviations, their first key among all of ``p``'s hypotheses)."""
-        n_match, dev = check_hypotheses(hyp.rotations, p.vectors, p.field, tol)
-        parts = self.parts.setdefault(id(p), [])
-        offset = sum(len(part[0]) for part in parts)  # keys: positions among all of p's hypotheses
-        parts.append((hyp.rotations, hyp.pattern_edge, hyp.catalogue_pair, n_match, dev, tol))
+    def _check(self, p, hyp, tol) -> _Caught:
+        """Check hypotheses ``hyp`` of ``p`` with tolerances ``tol``, and keep those that caught 3 points or more
+        for :meth:`alternatives` (the rest never make a candidate: a candidate has 3 matches at least)."""
+        if isinstance(hyp, PairHypotheses):  # made where they are checked, only the caught ones kept
+            at, n_match, dev, rotations = check_pair_hypotheses(hyp.pattern_vectors, hyp.pattern_edge,
+                                                                hyp.catalogue_pair, hyp.index_vectors, p.field, tol)
+        else:
+            n_match, dev = check_hypotheses(hyp.rotations, p.vectors, p.field, tol)
+            at = np.flatnonzero(n_match >= 3)
+            n_match, dev, rotations = n_match[at], dev[at], hyp.rotations[at]
+        offset = self.n_checked.get(id(p), 0)  # keys: positions among all of p's hypotheses
+        self.n_checked[id(p)] = offset + len(hyp)
+        caught = _Caught(at, offset + at, rotations, hyp.pattern_edge[at], hyp.catalogue_pair[at], n_match, dev,
+                         tol[at])
+        self.parts.setdefault(id(p), []).append(caught)
         self.n_tried += len(hyp)
-        return n_match, dev, offset
+        return caught
 
     def run(self, p, max_features: int | None = None) -> bool:
         """Hypotheses of pattern ``p`` in batches, the most promising refined after each; True once settled.
@@ -375,17 +385,17 @@ class _Search:
             self.used_at[id(p)] = used
             if len(hyp):
                 first = not parts
-                n_match, dev, offset = self._check(p, hyp, tol)
-                order = np.lexsort((dev, -n_match))
-                top = [h for h in order[:options.refine_per_batch] if n_match[h] >= 3]
+                c = self._check(p, hyp, tol)
+                order = np.lexsort((c.dev, -c.n_match))
+                top = order[:options.refine_per_batch]
                 # The declared camera's first batch usually settles the answer, and then the alternatives
                 # are its next hypotheses in this order: refine those in the same batch.
                 ahead = order[:options.max_refinements] if first and p.camera is self.declared else top
-                ahead = [h for h in ahead if n_match[h] >= max(3, options.min_matches) or h in top]
-                self.prefetch(p, [offset + h for h in ahead], hyp.rotations[ahead], tol[ahead])
-                for h in top:
-                    self.consider(p, hyp.rotations[h], hyp.pattern_edge[h], hyp.catalogue_pair[h],
-                                  float(tol[h]), key=offset + h)
+                ahead = [h for h in ahead if c.n_match[h] >= options.min_matches or h in top]
+                self.prefetch(p, c.keys[ahead].tolist(), c.rotations[ahead], c.tol[ahead])
+                for h in top.tolist():
+                    self.consider(p, c.rotations[h], c.pattern_edge[h], c.catalogue_pair[h], float(c.tol[h]),
+                                  key=int(c.keys[h]))
             if self.settled(p, used):
                 return True
             if self.timed_out() or (max_features is not None and used >= max_features):
@@ -406,23 +416,22 @@ class _Search:
             self.used_at["scan"] = used
             checked = [self._check_group(g) for g in groups]
             # A pair whose hypothesis caught a third star is tried at the other focal lengths of its window.
-            checked += [self._check_group(more) for more in self.scan.elsewhere(
-                [(c.group, np.flatnonzero(c.n_match >= 3)) for c in checked])]
+            checked += [self._check_group(more) for more in self.scan.elsewhere([(c.group, c.caught.at)
+                                                                                  for c in checked])]
             if checked:
-                n_match = np.concatenate([c.n_match for c in checked])
-                dev = np.concatenate([c.dev for c in checked])
-                which = np.repeat(np.arange(len(checked)), [len(c.n_match) for c in checked])
-                within = np.concatenate([np.arange(len(c.n_match)) for c in checked])
+                n_match = np.concatenate([c.caught.n_match for c in checked])
+                dev = np.concatenate([c.caught.dev for c in checked])
+                which = np.repeat(np.arange(len(checked)), [len(c.caught.n_match) for c in checked])
+                within = np.concatenate([np.arange(len(c.caught.n_match)) for c in checked])
                 order = np.lexsort((dev, -n_match))
-                top = [(checked[which[h]], int(within[h])) for h in order[:options.refine_per_batch]
-                       if n_match[h] >= 3]
-                for c in dict.fromkeys(c for c, _ in top):
-                    ahead = [h for cc, h in top if cc is c]
-                    self.prefetch(c.p, [c.offset + h for h in ahead], c.hypotheses.rotations[ahead],
-                                  c.group.check_tol[ahead])
-                for c, h in top:
-                    self.consider(c.p, c.hypotheses.rotations[h], c.hypotheses.pattern_edge[h],
-                                  c.hypotheses.catalogue_pair[h], float(c.group.check_tol[h]), key=c.offset + h)
+                top = [(checked[which[h]].caught, checked[which[h]].p, int(within[h]))
+                       for h in order[:options.refine_per_batch]]
+                for c, p in dict.fromkeys((c, p) for c, p, _ in top):
+                    ahead = [h for cc, _, h in top if cc is c]
+                    self.prefetch(p, c.keys[ahead].tolist(), c.rotations[ahead], c.tol[ahead])
+                for c, p, h in top:
+                    self.consider(p, c.rotations[h], c.pattern_edge[h], c.catalogue_pair[h], float(c.tol[h]),
+                                  key=int(c.keys[h]))
                 for p in dict.fromkeys(c.p for c in checked):
                     if self.settled(p, used):
                         return p
@@ -433,7 +442,7 @@ class _Search:
     def _check_group(self, group: ScanGroup) -> _Checked:
         """Check a group of the focal scan's hypotheses (made at one focal length) and keep them."""
         p = self.scan.patterns[group.step]
-        return _Checked(group, p, *self._check(p, group.hypotheses, group.check_tol))
+        return _Checked(group, p, self._check(p, group.hypotheses, group.check_tol))
 
     def settled(self, p, used: int) -> bool:
         """Whether a refined hypothesis of ``p`` explains most of it, after ``used`` pattern features."""
@@ -459,14 +468,15 @@ class _Search:
 
         if not parts or enough():  # (a search that found nothing has spent its refinements long before)
             return
-        rot, pe, cp, n_match, dev, hyp_tol = (np.concatenate(x) for x in zip(*parts))
-        kept = np.flatnonzero(n_match >= max(3, options.min_matches))  # the rest never make a candidate
+        rot, pe, cp, n_match, dev, hyp_tol, keys = (np.concatenate([getattr(c, name) for c in parts]) for name in (
+            "rotations", "pattern_edge", "catalogue_pair", "n_match", "dev", "tol", "keys"))
+        kept = np.flatnonzero(n_match >= options.min_matches)  # the rest never make a candidate
         order = kept[np.lexsort((dev[kept], -n_match[kept]))]
         merge_angle = 20 * p.scale
         for i, h in enumerate(order.tolist()):
             if enough():
                 break
-            if (id(p), h) not in self.refined and self._nearest(rot[h], "R0", p)[1] >= merge_angle:
+            if (id(p), int(keys[h])) not in self.refined and self._nearest(rot[h], "R0", p)[1] >= merge_angle:
                 budget = options.max_refinements - self.n_refined
                 ahead = order[i:i + 4 * budget]
                 _, starts = self._rotations("R0", p)
@@ -474,24 +484,34 @@ class _Search:
                     first = np.min([rotation_angles_between(rot[ahead], R) for R in starts], axis=0)
                     ahead = ahead[first >= merge_angle]
                 ahead = ahead[:budget]
-                self.prefetch(p, ahead.tolist(), rot[ahead], hyp_tol[ahead])
-            self.consider(p, rot[h], pe[h], cp[h], float(hyp_tol[h]), key=h)
+                self.prefetch(p, keys[ahead].tolist(), rot[ahead], hyp_tol[ahead])
+            self.consider(p, rot[h], pe[h], cp[h], float(hyp_tol[h]), key=int(keys[h]))
+
+
+@dataclass(frozen=True, eq=False)
+class _Caught:
+    """The hypotheses of a checked batch that caught 3 points or more: their positions in the batch, their
+    keys (positions among all of the pattern's hypotheses), rotations, generating edges and pairs, matches,
+    capped deviations and check tolerances."""
+
+    at: np.ndarray
+    keys: np.ndarray
+    rotations: np.ndarray
+    pattern_edge: np.ndarray
+    catalogue_pair: np.ndarray
+    n_match: np.ndarray
+    dev: np.ndarray
+    tol: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)
 class _Checked:
-    """A checked group of the focal scan: the group, its prepared pattern, each hypothesis's matches and
-    deviation, and the key of its first (its position among all of the pattern's hypotheses)."""
+    """A checked group of the focal scan: the group, its prepared pattern, and its hypotheses that caught 3
+    points or more."""
 
     group: ScanGroup
     p: PreparedPattern
-    n_match: np.ndarray
-    dev: np.ndarray
-    offset: int
-
-    @property
-    def hypotheses(self):
-        return self.group.hypotheses
+    caught: _Caught
 
 
 def _searched(search: _Search, declared, camera: Camera, n_other: int) -> str:
@@ -550,7 +570,7 @@ def _candidate(c: dict, declared: Camera, sky: Sky, n_tried: int, options: Searc
     if not optics.within_tolerance:
         # The stars fit only with optics the declaration excludes: no credible identification.
         candidate = replace(candidate, false_match_probability=1.0)
-    return replace(candidate, camera_fit=optics.fit)
+    return with_optics_uncertainty(candidate, optics.fit)  # its attitude sigma marginal over the optics
 
 
 def classify(candidates: list[Candidate], options: SearchOptions) -> str:

@@ -43,9 +43,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.attitude import rotation_from_pair
 from app.identification.candidates import PreparedPattern
-from app.identification.hypotheses import Hypotheses, edge_batches, edge_windows, ordered_pattern_edges
+from app.identification.hypotheses import PairHypotheses, edge_batches, edge_windows, ordered_pattern_edges
 from app.identification.options import SearchOptions
 from app.identification.sky import Sky
 
@@ -55,7 +54,7 @@ class ScanGroup:
     """Hypotheses made at one searched focal length."""
 
     step: int  # position of their prepared pattern in the scan's list
-    hypotheses: Hypotheses
+    hypotheses: PairHypotheses
     check_tol: np.ndarray  # (H,) radians
     pair_length: np.ndarray  # (H,) the catalogue pairs' lengths, radians
 
@@ -89,12 +88,15 @@ class FocalScan:
         its focal length ``steps``: one group per focal length."""
         order = np.argsort(steps, kind="stable")
         steps, pair_length, e, r1, r2 = steps[order], pair_length[order], e[order], r1[order], r2[order]
-        hyp = self._hypotheses(e, steps, r1, r2)
+        edge = np.array(self.edges, dtype=int).reshape(-1, 2)[e]
+        pair = np.column_stack([r1, r2]).astype(int)
         starts = np.flatnonzero(np.r_[True, steps[1:] != steps[:-1]]) if len(steps) else np.empty(0, int)
-        return [ScanGroup(int(steps[a]), Hypotheses(hyp.rotations[a:b], hyp.pattern_edge[a:b],
-                                                    hyp.catalogue_pair[a:b], hyp.edge_number[a:b]),
-                          self.check_tol[e[a:b], int(steps[a])], pair_length[a:b])
-                for a, b in zip(starts.tolist(), np.r_[starts[1:], len(steps)].tolist())]
+        groups = []
+        for a, b in zip(starts.tolist(), np.r_[starts[1:], len(steps)].tolist()):
+            step = int(steps[a])
+            hypotheses = PairHypotheses(self.vectors[step], self.index.vectors, edge[a:b], pair[a:b], e[a:b])
+            groups.append(ScanGroup(step, hypotheses, self.check_tol[e[a:b], step], pair_length[a:b]))
+        return groups
 
     def _nearest_step_hypotheses(self, e: int) -> tuple[np.ndarray, ...]:
         """Edge ``e``'s hypotheses, every index pair within one of its windows at the searched focal length
@@ -117,14 +119,6 @@ class FocalScan:
         a, b, step, pair_length = a[keep], b[keep], step[keep] + 1, pair_length[keep]
         return (np.concatenate([step, step]), np.concatenate([pair_length, pair_length]), np.full(2 * len(a), e),
                 np.concatenate([a, b]), np.concatenate([b, a]))
-
-    def _hypotheses(self, e: np.ndarray, steps: np.ndarray, r1: np.ndarray, r2: np.ndarray) -> Hypotheses:
-        """Edges ``e`` (positions in :attr:`edges`)'s pattern points onto index stars ``r1``, ``r2``, each seen
-        at its focal length ``steps``."""
-        ij = np.array(self.edges, dtype=int).reshape(-1, 2)[e]
-        rotations = rotation_from_pair(self.vectors[steps, ij[:, 0]], self.vectors[steps, ij[:, 1]],
-                                       self.index.vectors[r1], self.index.vectors[r2])
-        return Hypotheses(rotations, ij, np.column_stack([r1, r2]).astype(int), np.asarray(e, dtype=int))
 
     def elsewhere(self, picked: list[tuple[ScanGroup, np.ndarray]]) -> list[ScanGroup]:
         """The hypotheses picked (``(group, positions in it)`` pairs) at every other searched focal length

@@ -44,6 +44,30 @@ class Hypotheses:
         return int(self.rotations.shape[0])
 
 
+@dataclass(frozen=True, eq=False)
+class PairHypotheses:
+    """Hypotheses each mapping a catalogue pair onto a pattern edge (:func:`app.attitude.rotation_from_pair`),
+    given by their rows: a search makes the rotations where it checks them and keeps the few it refines
+    (:func:`app.identification.verify.check_pair_hypotheses`); :attr:`rotations` makes them all."""
+
+    pattern_vectors: np.ndarray  # (m, 3) the pattern as seen at these hypotheses' focal length
+    index_vectors: np.ndarray  # (n, 3) the index's stars
+    pattern_edge: np.ndarray  # (H, 2) pattern rows i, j
+    catalogue_pair: np.ndarray  # (H, 2) index rows mapped onto i, j
+    edge_number: np.ndarray  # (H,) position of the generating edge in the edge list
+
+    def __len__(self) -> int:
+        return int(self.pattern_edge.shape[0])
+
+    @functools.cached_property
+    def rotations(self) -> np.ndarray:
+        """(H, 3, 3) every hypothesis's rotation (ICRS -> camera)."""
+        i, j = self.pattern_edge.T
+        a, b = self.catalogue_pair.T
+        return rotation_from_pair(self.pattern_vectors[i], self.pattern_vectors[j], self.index_vectors[a],
+                                  self.index_vectors[b])
+
+
 def perturbed(xy: np.ndarray) -> np.ndarray:
     """Deterministic sub-milli-pixel perturbation that breaks grid degeneracies."""
     i = np.arange(len(xy))
@@ -146,14 +170,15 @@ def _circumcircles(a, b, c) -> tuple[np.ndarray, np.ndarray]:
 
 def bright_pair_hypotheses(pattern_vectors: np.ndarray, edges: list[tuple[int, int]],
                            edge_tolerance_rad: np.ndarray, index: BrightPairIndex,
-                           star_mask: np.ndarray | None = None) -> Hypotheses:
-    """Rotations mapping each catalogue pair of matching length onto each pattern edge.
+                           star_mask: np.ndarray | None = None) -> PairHypotheses:
+    """Each catalogue pair of matching length onto each pattern edge, both orientations: the rotation mapping
+    the pair onto the edge is a hypothesis.
 
     ``edge_tolerance_rad[e]`` is the half-width of the length window of edge
     ``e``; ``star_mask`` (n_stars,) restricts the catalogue pairs to stars the
     camera can see.
     """
-    rot, pe, cp, en = [], [], [], []
+    pe, cp, en = [], [], []
     for e, (i, j) in enumerate(edges):
         length = float(angle_between(pattern_vectors[i], pattern_vectors[j]))
         rows = index.pairs_with_length(length - edge_tolerance_rad[e], length + edge_tolerance_rad[e])
@@ -165,18 +190,14 @@ def bright_pair_hypotheses(pattern_vectors: np.ndarray, edges: list[tuple[int, i
         if len(a) == 0:
             continue
         # Both orientations: (a -> i, b -> j) and (b -> i, a -> j).
-        r1 = np.concatenate([a, b])
-        r2 = np.concatenate([b, a])
-        # One pattern triad for all the catalogue pairs of this edge (the same numbers as one per pair).
-        R = rotation_from_pair(pattern_vectors[i], pattern_vectors[j], index.vectors[r1], index.vectors[r2])
-        rot.append(R)
-        pe.append(np.broadcast_to([i, j], (len(r1), 2)))
-        cp.append(np.column_stack([r1, r2]))
-        en.append(np.full(len(r1), e))
-    if not rot:
-        return Hypotheses(np.empty((0, 3, 3)), np.empty((0, 2), int), np.empty((0, 2), int), np.empty(0, int))
-    return Hypotheses(np.concatenate(rot), np.concatenate(pe).astype(int), np.concatenate(cp).astype(int),
-                      np.concatenate(en))
+        cp.append(np.column_stack([np.concatenate([a, b]), np.concatenate([b, a])]))
+        pe.append(np.broadcast_to([i, j], (2 * len(a), 2)))
+        en.append(np.full(2 * len(a), e))
+    if not cp:
+        return PairHypotheses(pattern_vectors, index.vectors, np.empty((0, 2), int), np.empty((0, 2), int),
+                              np.empty(0, int))
+    return PairHypotheses(pattern_vectors, index.vectors, np.concatenate(pe).astype(int),
+                          np.concatenate(cp).astype(int), np.concatenate(en))
 
 
 @dataclass(frozen=True, eq=False)

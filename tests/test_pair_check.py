@@ -1,0 +1,74 @@
+"""The bright-pair hypotheses made where they are checked (app.identification.cells.check_pairs_kernel through
+verify.check_pair_hypotheses): the same hypotheses, matches and deviations as making every rotation and
+checking it with the KD-tree, and only those that match 3 points or more kept."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.camera import CAMERAS
+from app.extraction import extract
+from app.identification.candidates import prepare_pattern
+from app.identification.hypotheses import bright_pair_batches
+from app.identification.options import SearchOptions
+from app.identification.verify import chord, chord_to_angle, check_pair_hypotheses
+from app.simulate import simulate_sequence
+
+
+def _tree_check(rotations, p, tol):
+    """Every point of every hypothesis mapped onto the sky, its nearest star by the KD-tree: (matches,
+    capped deviations), numpy's plain computation."""
+    sky_points = np.matmul(p.vectors[None], rotations).reshape(-1, 3)
+    d, _ = p.field.tree.query(sky_points, k=1, distance_upper_bound=float(chord(np.max(tol))))
+    ang = chord_to_angle(np.where(np.isfinite(d), d, 2.0)).reshape(len(rotations), -1)
+    return (ang <= tol[:, None]).sum(axis=1), np.minimum(ang, tol[:, None]).sum(axis=1)
+
+
+@pytest.mark.parametrize("seed, name, scenario", [(21, "tubsat-752x582-20deg", "single"),
+                                                  (22, "liebe-576x604-30deg", "ghosts3"),
+                                                  (23, "narrow-1024x1024-12deg", "sparse")])
+def test_the_hypotheses_checked_where_they_are_made_are_those_that_catch_three_points(sky, seed, name, scenario):
+    camera = CAMERAS[name]
+    sequence, _ = simulate_sequence(np.random.default_rng(seed), camera, scenario)
+    extraction = extract(sequence)
+    p = prepare_pattern(extraction.pattern, camera, sequence.snapshots[extraction.reference].time, sky)
+    assert p.field.cells is not None
+    batches = bright_pair_batches(p, sky, SearchOptions())
+    kept_some = dropped_some = False
+    for _ in range(3):
+        hyp, tol, _ = next(batches)
+        rows, n_match, dev, rotations = check_pair_hypotheses(hyp.pattern_vectors, hyp.pattern_edge,
+                                                              hyp.catalogue_pair, hyp.index_vectors, p.field, tol)
+        all_match, all_dev = _tree_check(hyp.rotations, p, tol)
+        expected = np.flatnonzero(all_match >= 3)
+        assert np.array_equal(rows, expected)
+        assert np.array_equal(n_match, all_match[expected])
+        np.testing.assert_allclose(dev, all_dev[expected], rtol=1e-12)
+        assert np.array_equal(rotations, hyp.rotations[expected])  # the very rotations, bit for bit
+        kept_some |= n_match.max(initial=0) >= 5  # the true attitude among them
+        dropped_some |= len(rows) < len(hyp)
+    assert kept_some and dropped_some
+
+
+def test_a_field_without_a_cell_map_gets_the_same_answer(sky):
+    """Where the field has no cell map (an observer too fast for the sky's maps), the tree checks the same
+    hypotheses and the same ones are kept."""
+    camera = CAMERAS["tubsat-752x582-20deg"]
+    sequence, _ = simulate_sequence(np.random.default_rng(24), camera, "single")
+    extraction = extract(sequence)
+    p = prepare_pattern(extraction.pattern, camera, sequence.snapshots[extraction.reference].time, sky)
+    hyp, tol, _ = next(bright_pair_batches(p, sky, SearchOptions()))
+    with_map = check_pair_hypotheses(hyp.pattern_vectors, hyp.pattern_edge, hyp.catalogue_pair, hyp.index_vectors,
+                                     p.field, tol)
+    without = check_pair_hypotheses(hyp.pattern_vectors, hyp.pattern_edge, hyp.catalogue_pair, hyp.index_vectors,
+                                    _without_cells(p.field), tol)
+    assert len(with_map[0]) > 0
+    for a, b in zip(with_map, without):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=0)
+
+
+def _without_cells(field):
+    import dataclasses
+
+    return dataclasses.replace(field, cells=None)
