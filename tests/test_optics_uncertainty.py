@@ -74,3 +74,24 @@ def test_a_tight_cluster_whose_focal_length_stays_open_states_its_attitude_error
     pulls = np.abs(d_arcsec) / [best.sigma_cross_boresight_arcsec, best.sigma_cross_boresight_arcsec,
                                 best.sigma_roll_arcsec]
     assert np.all(pulls <= 2.0), pulls
+
+
+def test_the_optics_part_is_the_marginal_covariance_less_the_one_at_fixed_optics():
+    """By the partitioned inverse: with the joint fit's own optics covariance, J S_oo J^T equals the attitude's
+    marginal covariance (S_aa) less its covariance at fixed optics (the inverse of the information's attitude
+    block); with another optics covariance C over named parameters (in any order, some the joint fit lacks),
+    J C J^T takes the parameters both know."""
+    from app.identification.candidates import optics_attitude_covariance
+
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(5, 5))
+    S = A @ A.T + 0.5 * np.eye(5)  # attitude (3) then focal length and k1
+    fit = _fit(S, chi2=4.0, dof=4)
+    fit = CameraAttitudeFit(**{**fit.__dict__, "parameters": ("focal_length_px", "k1"),
+                               "covariance_names": ("rot_x", "rot_y", "rot_z", "focal_length_px", "k1")})
+    fixed_optics = np.linalg.inv(np.linalg.inv(S)[:3, :3])
+    assert np.allclose(optics_attitude_covariance(fit), S[:3, :3] - fixed_optics, atol=1e-12)
+    J = S[:3, 3:] @ np.linalg.inv(S[3:, 3:])
+    C = np.array([[0.3, 0.0, 0.1], [0.0, 2.0, 0.0], [0.1, 0.0, 0.5]])  # over k1, cx, focal length
+    expected = J @ np.array([[0.5, 0.1], [0.1, 0.3]]) @ J.T
+    assert np.allclose(optics_attitude_covariance(fit, ("k1", "cx", "focal_length_px"), C), expected, atol=1e-12)

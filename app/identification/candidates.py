@@ -154,6 +154,35 @@ def with_optics_uncertainty(candidate: Candidate, fit: CameraAttitudeFit) -> Can
                    sigma_roll_arcsec=max(candidate.sigma_roll_arcsec, roll_arcsec))
 
 
+def optics_attitude_covariance(joint: CameraAttitudeFit, optics_names: tuple[str, ...] | None = None,
+                                optics_covariance: np.ndarray | None = None) -> np.ndarray:
+    """(3, 3) rad^2: the part of an attitude's covariance its optics leave open, ``J C J^T``.
+
+    ``J = S_ao S_oo^-1`` is the attitude's regression on the optics in the
+    joint fit's covariance ``S`` (attitude ``a`` first, optics ``o``): how
+    far the attitude moves with each optical parameter.  ``C`` is the
+    optics' covariance that applies: ``optics_covariance`` over
+    ``optics_names`` (a sequence's calibration, fitted on every snapshot;
+    the parameters the joint fit did not fit are left out), else the joint
+    fit's own ``S_oo`` (then ``J C J^T`` is the marginal covariance minus
+    the one at fixed optics).  A sequence fit holds the optics fixed: this
+    is what it adds (:func:`app.identification.solve_sequence`).
+    """
+    names = list(joint.covariance_names[3:])
+    S = np.asarray(joint.covariance, dtype=float)
+    try:
+        J = np.linalg.solve(S[3:, 3:], S[3:, :3]).T  # S_oo symmetric: (S_oo^-1 S_oa)^T = S_ao S_oo^-1
+    except np.linalg.LinAlgError:
+        return np.zeros((3, 3))
+    if optics_covariance is None:
+        return J @ S[3:, 3:] @ J.T
+    at = {name: k for k, name in enumerate(optics_names or ())}
+    shared = [k for k, name in enumerate(names) if name in at]
+    rows = [at[names[k]] for k in shared]
+    C = np.asarray(optics_covariance, dtype=float)[np.ix_(rows, rows)]
+    return J[:, shared] @ C @ J[:, shared].T
+
+
 def named_by_brightest(star_of_point: np.ndarray, residual_rad: np.ndarray, directions: np.ndarray,
                        field: StarField, match_tol: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The refinement's star of each point (and its residual), or the brightest star within the point's
