@@ -45,12 +45,14 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import bdtrc  # binomial survival function
 
-from app.attitude import rotation_from_pair, solve_wahba
+from app.attitude.rotations import pair_triad, triads_rotation, wahba_rotation
+from app.compiled import njit, warm_up_with
 from app.identification.candidates import PreparedPattern
+from app.identification.cells import NearStarCells, nearest_star
 from app.identification.hypotheses import delaunay_triangles
 from app.identification.options import SearchOptions
 from app.identification.triangle_index import BrightTriangles, sense_of, shape_matches, sides_of
-from app.identification.verify import StarField, chord, chord_to_angle
+from app.identification.verify import cells_within, chord
 
 #: Expected number of chance matches as good as the estimate's, at most (see the module doc).
 CHANCE_LIMIT = 1e-3
@@ -102,7 +104,7 @@ def _namings(triangle: np.ndarray, sides: np.ndarray, error: float) -> list[tupl
 
 def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, focal_length_px: float,
                           tolerance: float, side_error_rad: np.ndarray, triangles: BrightTriangles,
-                          matched_within, nearest_star, star_vectors: np.ndarray,
+                          cells: NearStarCells, bound: float, star_vectors: np.ndarray,
                           catch_probability: float, tried_out: list[int] | None = None,
                           max_tried: int = MAX_TRIED) -> FocalEstimate | None:
     """The focal length of the first shape match of a pattern triangle that chance does not explain.
@@ -113,11 +115,11 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
     ``(plane, 1)`` normalised, and at focal length ``f'`` it is
     ``(plane f / f', 1)``); ``tolerance`` the declared focal tolerance
     (fraction); ``side_error_rad`` (K,) how far a side of each triangle may
-    be off; ``matched_within(points (N, 3)) -> (N,) bool`` whether a sky
-    point has a star within the check radius, ``nearest_star(points (N, 3))
-    -> (N,)`` the row of that star (-1: none); ``star_vectors`` the places of
-    the index rows now; ``catch_probability`` the chance that a point lands
-    within the check radius of a star.
+    be off; a sky point is caught by the nearest star of ``star_vectors``
+    (the places of the index rows now) within chord ``bound`` of it, found
+    with ``cells`` (a :class:`app.identification.cells.NearStarCells` of
+    those stars for at least that radius); ``catch_probability`` the chance
+    that a point lands within the check radius of a star.
 
     The triangles are taken in order of their shape tolerance (the most
     telling first), all shape matches of one at once, and the search stops
@@ -126,7 +128,9 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
     catching every point would no longer pass: a few points pass only among few matches).  The best
     match of each triangle has its focal length (:func:`_fitted_focal_length`)
     and rotation (Wahba) fitted on the points it caught, twice, before the
-    pattern is checked again and the chance test is made.  ``tried_out``, when given, gets the number of
+    pattern is checked again and the chance test is made (compiled loops, :func:`_caught_counts` and
+    :func:`_refitted`: a pattern that matches nothing checks a few thousand matches and refits a dozen, where
+    numpy's calls on a dozen points cost ~0.5 ms a refit).  ``tried_out``, when given, gets the number of
     shape matches checked appended (also when none passes: a search over scales counts them all).
     """
     m = plane.shape[0]
@@ -140,6 +144,8 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
     # The best a match can do is to catch every point: once that would not pass the chance test, none will.
     all_caught = float(bdtrc(m - 4, m - 3, catch_probability)) if m > 3 else np.inf
     senses = sense_of(v[np.array([c for c, _, _ in named])]).astype(int).tolist()
+    plane = np.ascontiguousarray(plane, dtype=float)
+    map_arrays = cells.kernel_arrays()
     tried = 0
     for k in np.argsort(shape_tolerance, kind="stable").tolist():
         if tried >= max_tried:
@@ -153,28 +159,17 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
             break
         tried += len(rows)
         f_new = focal_length_px * s[2] / triangles.longest_rad[rows]
-        seen = _directions(plane, focal_length_px / f_new)  # (H, m, 3)
-        h = np.arange(len(rows))
-        stars = triangles.corners[rows]
-        R = rotation_from_pair(seen[h, c[0]], seen[h, c[1]], star_vectors[stars[:, 0]], star_vectors[stars[:, 1]])
-        caught = matched_within(np.matmul(seen, R).reshape(-1, 3)).reshape(len(rows), m).sum(axis=1)  # rows R^T p
+        stars = triangles.corners[rows].astype(np.int64)
+        caught = _caught_counts(plane, int(c[0]), int(c[1]), focal_length_px / f_new, stars, star_vectors, bound,
+                                *map_arrays)
         best = int(np.argmax(caught))
         if caught[best] <= 3:
             continue
         # The match's focal length and rotation fitted on the points it caught, then the pattern checked
         # again: one side's focal length errs by ~1 %, enough to miss the far points of a pattern seen
         # 10-20 % off the declared focal length.
-        f, rotation = float(f_new[best]), R[best]
-        star = nearest_star(seen[best] @ rotation)
-        for _ in range(2):
-            ok = star >= 0
-            if np.count_nonzero(ok) < 3:  # a refit lost its points: no estimate from this match
-                break
-            f = _fitted_focal_length(plane[ok], focal_length_px, f, star_vectors[star[ok]])
-            v_f = _directions(plane, np.array([focal_length_px / f]))[0]
-            rotation = solve_wahba(v_f[ok], star_vectors[star[ok]])
-            star = nearest_star(v_f @ rotation)
-        n = int(np.count_nonzero(star >= 0))
+        f, rotation, n = _refitted(plane, float(focal_length_px), float(f_new[best]), int(c[0]), int(c[1]),
+                                   int(stars[best, 0]), int(stars[best, 1]), star_vectors, bound, *map_arrays)
         # The corners are caught by construction: P[Binomial(m - 3, p) >= n - 3] = P[... > n - 4].
         if n > 3 and tried * float(bdtrc(n - 4, m - 3, catch_probability)) <= CHANCE_LIMIT:
             if tried_out is not None:
@@ -186,7 +181,8 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
     return None
 
 
-def _fitted_focal_length(plane: np.ndarray, declared_px: float, start_px: float, stars: np.ndarray) -> float:
+@njit
+def _fitted_focal_length(plane, declared_px, start_px, stars):
     """The focal length at which the angles between the points (``plane``: normalised coordinates at
     ``declared_px``) are those between their stars, by least squares, from ``start_px``.
 
@@ -198,14 +194,119 @@ def _fitted_focal_length(plane: np.ndarray, declared_px: float, start_px: float,
     longest side alone gives the focal length to ~1 %; the pairs of all the
     caught points, to ~0.1 %.
     """
-    i, j = np.triu_indices(len(plane), k=1)
-    star_angle = chord_to_angle(np.linalg.norm(stars[i] - stars[j], axis=1))
+    n = plane.shape[0]
+    star_angle = np.empty(n * (n - 1) // 2)
+    k = 0
+    for i in range(n):
+        for j in range(i + 1, n):
+            dx, dy, dz = stars[i, 0] - stars[j, 0], stars[i, 1] - stars[j, 1], stars[i, 2] - stars[j, 2]
+            star_angle[k] = 2.0 * np.arcsin(min(np.sqrt(dx * dx + dy * dy + dz * dz) / 2, 1.0))
+            k += 1
+    v = np.empty((n, 3))
     f = start_px
     for _ in range(3):
-        v = _directions(plane, np.array([declared_px / f]))[0]
-        seen_angle = chord_to_angle(np.linalg.norm(v[i] - v[j], axis=1))
-        f *= float(seen_angle @ star_angle / (star_angle @ star_angle))
+        _seen_at(plane, declared_px / f, v)
+        product, norm = 0.0, 0.0
+        k = 0
+        for i in range(n):
+            for j in range(i + 1, n):
+                dx, dy, dz = v[i, 0] - v[j, 0], v[i, 1] - v[j, 1], v[i, 2] - v[j, 2]
+                seen = 2.0 * np.arcsin(min(np.sqrt(dx * dx + dy * dy + dz * dz) / 2, 1.0))
+                product += seen * star_angle[k]
+                norm += star_angle[k] * star_angle[k]
+                k += 1
+        f *= product / norm
     return f
+
+
+@njit
+def _seen_at(plane, scale, out):
+    """:func:`_directions` of one scale, written into ``out`` (m, 3)."""
+    for k in range(plane.shape[0]):
+        x, y = plane[k, 0] * scale, plane[k, 1] * scale
+        norm = np.sqrt(x * x + y * y + 1.0)
+        out[k, 0], out[k, 1], out[k, 2] = x / norm, y / norm, 1.0 / norm
+
+
+@njit
+def _caught_star(v, R, star_vectors, bound, G, words, word_rank, first, stars):
+    """The star whose place is nearest ``R^T v`` (a unit vector) within chord ``bound``, else -1."""
+    x = v[0] * R[0, 0] + v[1] * R[1, 0] + v[2] * R[2, 0]
+    y = v[0] * R[0, 1] + v[1] * R[1, 1] + v[2] * R[2, 1]
+    z = v[0] * R[0, 2] + v[1] * R[1, 2] + v[2] * R[2, 2]
+    chord_to_star, star = nearest_star(x, y, z, star_vectors, G, words, word_rank, first, stars)
+    return star if chord_to_star <= bound else -1
+
+
+@njit
+def _pair_rotation(v, c0, c1, a, b):
+    """:func:`app.attitude.rotation_from_pair` of points ``v[c0]``, ``v[c1]`` and stars ``a``, ``b`` (3,)."""
+    R = triads_rotation(pair_triad(v[c0, 0], v[c0, 1], v[c0, 2], v[c1, 0], v[c1, 1], v[c1, 2]),
+                        pair_triad(a[0], a[1], a[2], b[0], b[1], b[2]))
+    out = np.empty((3, 3))
+    for r in range(3):
+        for c in range(3):
+            out[r, c] = R[3 * r + c]
+    return out
+
+
+@njit
+def _caught_counts(plane, c0, c1, scale, corners, star_vectors, bound, G, words, word_rank, first, stars):
+    """(H,) the points each shape match catches: the pattern seen at ``scale[h]`` (declared over the match's
+    focal length), turned by :func:`_pair_rotation` of its corners ``c0``, ``c1`` onto the match's stars
+    ``corners[h, 0]``, ``corners[h, 1]``, each point caught by a star within chord ``bound``."""
+    H, m = scale.shape[0], plane.shape[0]
+    caught = np.zeros(H, dtype=np.int64)
+    v = np.empty((m, 3))
+    for h in range(H):
+        _seen_at(plane, scale[h], v)
+        R = _pair_rotation(v, c0, c1, star_vectors[corners[h, 0]], star_vectors[corners[h, 1]])
+        for k in range(m):
+            caught[h] += _caught_star(v[k], R, star_vectors, bound, G, words, word_rank, first, stars) >= 0
+    return caught
+
+
+@njit
+def _refitted(plane, declared_px, f, c0, c1, a, b, star_vectors, bound, G, words, word_rank, first, stars):
+    """(focal length, rotation, points caught) of a shape match (its focal length ``f``, its corners ``c0``,
+    ``c1`` on stars ``a``, ``b``), fitted twice on the points it catches: the focal length
+    (:func:`_fitted_focal_length`), the rotation (Wahba's), each pattern point's star again."""
+    m = plane.shape[0]
+    v = np.empty((m, 3))
+    _seen_at(plane, declared_px / f, v)
+    rotation = _pair_rotation(v, c0, c1, star_vectors[a], star_vectors[b])
+    star = np.empty(m, dtype=np.int64)
+    for k in range(m):
+        star[k] = _caught_star(v[k], rotation, star_vectors, bound, G, words, word_rank, first, stars)
+    for _ in range(2):
+        n = 0
+        for k in range(m):
+            n += star[k] >= 0
+        if n < 3:  # a refit lost its points: no estimate from this match
+            break
+        caught_plane, caught_stars = np.empty((n, 2)), np.empty((n, 3))
+        i = 0
+        for k in range(m):
+            if star[k] >= 0:
+                caught_plane[i, 0], caught_plane[i, 1] = plane[k, 0], plane[k, 1]
+                for c in range(3):
+                    caught_stars[i, c] = star_vectors[star[k], c]
+                i += 1
+        f = _fitted_focal_length(caught_plane, declared_px, f, caught_stars)
+        _seen_at(plane, declared_px / f, v)
+        B = np.zeros((3, 3))
+        for k in range(m):
+            if star[k] >= 0:
+                for r in range(3):
+                    for c in range(3):
+                        B[r, c] += v[k, r] * star_vectors[star[k], c]
+        rotation = wahba_rotation(B)
+        for k in range(m):
+            star[k] = _caught_star(v[k], rotation, star_vectors, bound, G, words, word_rank, first, stars)
+    n = 0
+    for k in range(m):
+        n += star[k] >= 0
+    return f, rotation, n
 
 
 def focal_estimate(p: PreparedPattern, triangles: BrightTriangles, options: SearchOptions,
@@ -228,22 +329,18 @@ def focal_estimate(p: PreparedPattern, triangles: BrightTriangles, options: Sear
     plane = p.vectors[:, :2] / p.vectors[:, 2:]
     radius = CHECK_RADIUS_PX * p.scale
     catch = 1.0 - np.exp(-p.field.density_per_sr * np.pi * radius * radius)
-    within, nearest = _star_within(p.field, radius)
     tolerance = p.camera.focal_tolerance if tolerance is None else tolerance
-    return estimate_focal_length(tri, plane, p.camera.focal_length_px, tolerance, side_error,
-                                 triangles, within, nearest, p.field.vectors, float(catch), tried_out, max_tried)
+    return estimate_focal_length(tri, plane, p.camera.focal_length_px, tolerance, side_error, triangles,
+                                 cells_within(p.field, radius), float(chord(radius)), p.field.vectors, float(catch),
+                                 tried_out, max_tried)
 
 
-def _star_within(field: StarField, radius_rad: float):
-    """Two functions of sky points (N, 3): whether a star of ``field`` lies within ``radius_rad`` of each
-    (its cell map, else its KD-tree), and that star's row (-1: none; the KD-tree)."""
-    bound = float(chord(radius_rad))
-
-    def nearest(points):
-        d, row = field.tree.query(points, k=1, distance_upper_bound=bound)
-        return np.where(d <= bound, row, -1)
-
-    cells = field.cells(radius_rad) if field.cells is not None else None
-    if cells is not None:
-        return (lambda points: cells.nearest_within(points, field.vectors, bound) <= bound), nearest
-    return (lambda points: nearest(points) >= 0), nearest
+@warm_up_with
+def _warm_up_focal_estimate() -> None:
+    """Compile the shape matches' check and refit for the types the searches pass (four stars)."""
+    stars = np.array([[0.0, 0.0, 1.0], [0.1, 0.0, 1.0], [0.0, 0.1, 1.0], [0.1, 0.1, 1.0]])
+    stars /= np.linalg.norm(stars, axis=1, keepdims=True)
+    plane = np.ascontiguousarray(stars[:, :2] / stars[:, 2:])
+    cells = NearStarCells.build(stars, 0.01).kernel_arrays()
+    _caught_counts(plane, 0, 1, np.ones(1), np.array([[0, 1, 2]], dtype=np.int64), stars, 0.01, *cells)
+    _refitted(plane, 1000.0, 1000.0, 0, 1, 0, 1, stars, 0.01, *cells)

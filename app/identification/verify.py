@@ -298,7 +298,7 @@ def refine_many(rotations: np.ndarray, pattern_vectors: np.ndarray, weights: np.
     reach = max(float(np.max(start)), 2.0 * float(np.max(final_tol)))
     # Slightly beyond, so that rounding never loses a star at exactly the tolerance.
     bound = float(chord(reach)) * (1 + 1e-9) + 1e-15
-    cells = _cells_within(field, reach * (1 + 1e-6))
+    cells = cells_within(field, reach * (1 + 1e-6))
     weights = np.ascontiguousarray(weights, dtype=float)
     star, resid, nearest = np.empty((K, m), dtype=np.int64), np.empty((K, m)), np.empty((K, m))
     arrays = cells.kernel_arrays()
@@ -318,7 +318,7 @@ def refine_many(rotations: np.ndarray, pattern_vectors: np.ndarray, weights: np.
 _own_cells: "weakref.WeakKeyDictionary[StarField, dict]" = weakref.WeakKeyDictionary()
 
 
-def _cells_within(field: StarField, radius_rad: float) -> NearStarCells:
+def cells_within(field: StarField, radius_rad: float) -> NearStarCells:
     """A cell map of the field's stars for at least ``radius_rad``: the sky's (kept on disk), else one made
     from the field's own places (exact for them; 30-50 ms, kept with the field)."""
     cells = field.cells(radius_rad) if field.cells is not None else None
