@@ -70,6 +70,10 @@ _report: dict = {}
 MAX_COMPILE_PROCESSES = 4
 #: How long a helper is waited for once the first process is done (it only loads by then), seconds.
 HELPER_GRACE_S = 60.0
+#: How long the first process waits for a warm-up another process holds, seconds (the slowest compiles in
+#: ~7 s on a 2-core machine); and how often it looks.
+WARM_UP_WAIT_S = 300.0
+LOCK_POLL_S = 0.02
 
 
 def njit(function):
@@ -115,7 +119,7 @@ def warm_up(say: bool = True) -> dict:
                 helpers_compiled, processes = 0, 1
             else:
                 helpers = [] if _cache_current(directory) else _start_helpers(functions)
-                _take_turns(functions[::-1], directory, go_back=True)  # the callers first, its helpers the callees
+                _take_turns(functions[::-1], directory, helpers)  # the callers first, its helpers the callees
                 helpers_compiled = sum(_joined(helper) for helper in helpers)
                 processes = 1 + len(helpers)
                 _write_stamp(directory)
@@ -168,38 +172,44 @@ def _cache_lock() -> Iterator[Path | None]:
             fcntl.flock(lock, fcntl.LOCK_UN)
 
 
-def _take_turns(functions: list[Callable[[], None]], directory: Path, go_back: bool) -> None:
-    """Run each warm-up that no other process holds, holding its lock file meanwhile; with ``go_back``, then
-    the ones skipped, each once its holder is done (a load from the cache it wrote)."""
+def _take_turns(functions: list[Callable[[], None]], directory: Path,
+                helpers: list[subprocess.Popen] | None = None) -> None:
+    """Run each warm-up that no other process holds, holding its lock file meanwhile.  With ``helpers`` (the
+    first process's; none: it started none), then the ones skipped, each once its holder is done (a load
+    from the cache it wrote), or after :data:`WARM_UP_WAIT_S` without it (the helpers are stopped and it
+    compiles here: a bound, never expected to be reached)."""
+    skipped = [function for function in functions if not _run_holding_its_lock(function, directory, None)]
+    if helpers is None:
+        return
+    deadline = time.monotonic() + WARM_UP_WAIT_S
+    for function in skipped:
+        if not _run_holding_its_lock(function, directory, deadline):
+            for helper in helpers:
+                helper.kill()
+            log.warning("%s.%s was held by another process for %.0f s: compiled here", function.__module__,
+                        function.__qualname__, WARM_UP_WAIT_S)
+            function()
+
+
+def _run_holding_its_lock(function: Callable[[], None], directory: Path, deadline: float | None) -> bool:
+    """Run ``function`` holding its lock file; False (not run) when another process holds it, at once
+    (``deadline`` None) or at ``deadline`` (``time.monotonic()``; looked at every :data:`LOCK_POLL_S`)."""
     import fcntl
 
-    skipped = []
-    for function in functions:
-        with open(directory / f"warm-up.{function.__module__}.{function.__qualname__}.lock", "a") as lock:
+    with open(directory / f"warm-up.{function.__module__}.{function.__qualname__}.lock", "a") as lock:
+        while True:
             try:
                 fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
             except BlockingIOError:  # another process compiles it now
-                skipped.append(function)
-                continue
-            try:
-                function()
-            finally:
-                fcntl.flock(lock, fcntl.LOCK_UN)
-    if go_back and skipped:
-        _take_turns_waiting(skipped, directory)
-
-
-def _take_turns_waiting(functions: list[Callable[[], None]], directory: Path) -> None:
-    """Run each warm-up once the process holding it (if any) is done; a holder that died freed its lock."""
-    import fcntl
-
-    for function in functions:
-        with open(directory / f"warm-up.{function.__module__}.{function.__qualname__}.lock", "a") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)
-            try:
-                function()
-            finally:
-                fcntl.flock(lock, fcntl.LOCK_UN)
+                if deadline is None or time.monotonic() >= deadline:
+                    return False
+                time.sleep(LOCK_POLL_S)
+        try:
+            function()
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+    return True
 
 
 def _compile_processes() -> int:
@@ -243,7 +253,7 @@ def helper_main(modules: list[str]) -> None:
 
     for name in modules:
         importlib.import_module(name)
-    _take_turns(list(_warm_ups), Path(os.environ["NUMBA_CACHE_DIR"]), go_back=False)
+    _take_turns(list(_warm_ups), Path(os.environ["NUMBA_CACHE_DIR"]))
     print(json.dumps({"compiled": sum(sum(k.stats.cache_misses.values()) for k in _kernels)}))
 
 

@@ -173,3 +173,34 @@ def test_searches_call_every_kernel_only_with_types_the_warm_up_compiled():
     compiled_again = {kernel.py_func.__qualname__: kernel.signatures[before[kernel]:]
                       for kernel in _kernels if len(kernel.signatures) > before[kernel]}
     assert not compiled_again
+
+
+def test_a_warm_up_held_too_long_by_another_process_is_run_here_after_the_bound(tmp_path, monkeypatch, caplog):
+    """The first process waits for a warm-up another holds (its helper compiling it) at most WARM_UP_WAIT_S,
+    then stops its helpers and runs it itself, saying so: a stuck holder never stalls a start."""
+    import fcntl
+    import logging
+    import time
+
+    import app.compiled as compiled
+
+    ran = []
+
+    def _warm_held():
+        ran.append(True)
+
+    class Helper:
+        killed = False
+
+        def kill(self):
+            Helper.killed = True
+
+    monkeypatch.setattr(compiled, "WARM_UP_WAIT_S", 0.3)
+    with open(tmp_path / f"warm-up.{_warm_held.__module__}.{_warm_held.__qualname__}.lock", "a") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)  # another open file: flock conflicts as with another process
+        t0 = time.monotonic()
+        with caplog.at_level(logging.WARNING, logger="app.compiled"):
+            compiled._take_turns([_warm_held], tmp_path, [Helper()])
+        waited = time.monotonic() - t0
+    assert ran == [True] and Helper.killed and 0.3 <= waited < 5.0
+    assert "._warm_held was held by another process for 0 s: compiled here" in caplog.text
