@@ -226,18 +226,28 @@ def _compile_processes() -> int:
 
 def _start_helpers(functions: list[Callable[[], None]]) -> list[subprocess.Popen]:
     """Start :func:`_compile_processes` - 1 helper processes taking warm-ups from ``functions``' modules
-    (:func:`helper_main`); none where they cannot start (said in the log: this process compiles alone)."""
+    (:func:`helper_main`); none where they cannot start (said in the log: this process compiles alone).
+
+    Their output goes to temporary files, not pipes: a helper writing more than a pipe holds (numba's
+    warnings) while it holds a warm-up would wait for a reader that waits for the warm-up."""
+    import tempfile
+
     modules = list(dict.fromkeys(f.__module__ for f in functions))
     path = os.pathsep.join(os.path.abspath(p) if p else os.getcwd() for p in sys.path)
     env = {**os.environ, "PYTHONPATH": path}
     helpers = []
     for _ in range(_compile_processes() - 1):
+        out, err = tempfile.TemporaryFile("w+"), tempfile.TemporaryFile("w+")
         try:
-            helpers.append(subprocess.Popen([sys.executable, "-c", _HELPER, *modules], env=env,
-                                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+            helper = subprocess.Popen([sys.executable, "-c", _HELPER, *modules], env=env, stdout=out, stderr=err,
+                                      text=True)
         except OSError as exc:
+            out.close()
+            err.close()
             log.warning("a compile helper could not start (%s): compiling in one process", exc)
             break
+        helper.output_files = (out, err)
+        helpers.append(helper)
     return helpers
 
 
@@ -263,15 +273,20 @@ def _joined(helper: subprocess.Popen) -> int:
     import json
 
     try:
-        out, err = helper.communicate(timeout=HELPER_GRACE_S)
+        helper.wait(timeout=HELPER_GRACE_S)
     except subprocess.TimeoutExpired:
         helper.kill()
-        out, err = helper.communicate()
-    try:
-        return int(json.loads(out.strip().splitlines()[-1])["compiled"])
-    except (ValueError, KeyError, IndexError):
-        log.warning("a compile helper failed (exit %s): %s", helper.returncode, err.strip()[-500:])
-        return 0
+        helper.wait()
+    out, err = helper.output_files
+    with out, err:
+        out.seek(0)
+        err.seek(0)
+        lines = out.read().strip().splitlines()
+        try:
+            return int(json.loads(lines[-1])["compiled"])
+        except (ValueError, KeyError, IndexError):
+            log.warning("a compile helper failed (exit %s): %s", helper.returncode, err.read().strip()[-500:])
+            return 0
 
 
 def _kernel_sources() -> dict[str, list[float]]:
