@@ -406,11 +406,13 @@ def check_pairs_kernel(pattern_vectors, pattern_edge, catalogue_pair, index_vect
     ``min_matches`` points or more: (their rows (K,), matches (K,), capped deviations (K,), rotations (K, 3, 3)).
 
     The same numbers as making every rotation (the same triads and products) and checking it with
-    :func:`check_kernel`, without an (H, 3, 3) array of rotations or an (H m, 3) one of sky points.  The
-    points off the edge are looked up first: the edge's own two land on their stars (the costliest look-ups,
-    a marked cell's list), and are looked up only when the others could make ``min_matches`` with them (for
-    a pattern that matches nothing, a third of the hypotheses).  The deviation is summed in the points'
-    order, as :func:`check_kernel` sums it.
+    :func:`check_kernel`, without an (H, 3, 3) array of rotations or an (H m, 3) one of sky points.  Each
+    hypothesis's points are put in their cells first, then the marked ones looked up in their cells' star
+    lists (independent loads the processor overlaps; one pass with a branch per point took a fifth longer),
+    the points off the edge first: the edge's own two land on their stars (the costliest look-ups), and are
+    looked up only when the others could make ``min_matches`` with them (a third of the hypotheses of a
+    pattern that matches nothing).  The deviation is summed in the points' order, as :func:`check_kernel`
+    sums it.
     """
     H, m = pattern_edge.shape[0], pattern_vectors.shape[0]
     rows = np.empty(H, dtype=np.int64)
@@ -418,6 +420,9 @@ def check_pairs_kernel(pattern_vectors, pattern_edge, catalogue_pair, index_vect
     deviation = np.empty(H)
     rotations = np.empty((H, 3, 3))
     kept = 0
+    sky = np.empty((m, 3))  # the hypothesis's points on the sky, R^T p
+    cell = np.empty(m, dtype=np.int64)
+    marked = np.empty(m, dtype=np.int64)  # the points whose cell is marked, off the edge first
     angles = np.empty(m)
     visit = np.empty(m, dtype=np.int64)  # the points off the edge in order, then the edge's two
     last_i, last_j = -1, -1
@@ -437,47 +442,53 @@ def check_pairs_kernel(pattern_vectors, pattern_edge, catalogue_pair, index_vect
         a, b = catalogue_pair[h, 0], catalogue_pair[h, 1]
         R = triads_rotation(Tb, pair_triad(index_vectors[a, 0], index_vectors[a, 1], index_vectors[a, 2],
                                            index_vectors[b, 0], index_vectors[b, 1], index_vectors[b, 2]))
-        tol = tolerance[h]
-        off_edge = 0  # matches among the points off the edge
+        n_marked = 0
         for n in range(m):
-            if n == m - 2 and off_edge + 2 < min_matches:
-                break
             k = visit[n]
             p0, p1, p2 = pattern_vectors[k, 0], pattern_vectors[k, 1], pattern_vectors[k, 2]
-            x = p0 * R[0] + p1 * R[3] + p2 * R[6]  # R^T p
+            x = p0 * R[0] + p1 * R[3] + p2 * R[6]
             y = p0 * R[1] + p1 * R[4] + p2 * R[7]
             z = p0 * R[2] + p1 * R[5] + p2 * R[8]
-            angle = np.pi
-            cell = _cell(x, y, z, G)
-            if (words[cell >> 6] >> np.uint64(cell & 63)) & np.uint64(1) != 0:
-                # _nearest_listed's loop written out: a call here (its arrays passed field by field) cost a
-                # quarter of the check, and more as a helper of this loop's body.
-                begin, end = _listed(cell, words, word_rank, first)
-                d2 = np.inf
-                for q in range(begin, end):
-                    s = np.int64(stars[q])
-                    dx, dy, dz = x - star_vectors[s, 0], y - star_vectors[s, 1], z - star_vectors[s, 2]
-                    d2 = min(d2, (dx * dx + dy * dy) + dz * dz)  # a KD-tree's order, as _nearest_listed's
-                d = np.sqrt(d2)
-                if d <= bound:
-                    angle = 2.0 * np.arcsin(min(d / 2, 1.0))
-            angles[k] = angle
-            if n < m - 2:
-                off_edge += angle <= tol
-        else:
-            count, total = 0, 0.0
-            for k in range(m):
-                if angles[k] <= tol:
-                    count += 1
-                    total += angles[k]
-                else:
-                    total += tol
-            if count >= min_matches:
-                rows[kept], n_match[kept], deviation[kept] = h, count, total
-                rotations[kept, 0, 0], rotations[kept, 0, 1], rotations[kept, 0, 2] = R[0], R[1], R[2]
-                rotations[kept, 1, 0], rotations[kept, 1, 1], rotations[kept, 1, 2] = R[3], R[4], R[5]
-                rotations[kept, 2, 0], rotations[kept, 2, 1], rotations[kept, 2, 2] = R[6], R[7], R[8]
-                kept += 1
+            sky[k, 0], sky[k, 1], sky[k, 2] = x, y, z
+            c = _cell(x, y, z, G)
+            cell[k] = c
+            angles[k] = np.pi
+            marked[n_marked] = k
+            n_marked += np.int64((words[c >> 6] >> np.uint64(c & 63)) & np.uint64(1))  # no branch
+        tol = tolerance[h]
+        off_edge = 0  # matches among the points off the edge
+        for n in range(n_marked):
+            k = marked[n]
+            if (k == i or k == j) and off_edge + 2 < min_matches:
+                break
+            # _nearest_listed's loop written out: a call here (its arrays passed field by field) cost a
+            # quarter of the check.
+            x, y, z = sky[k, 0], sky[k, 1], sky[k, 2]
+            begin, end = _listed(cell[k], words, word_rank, first)
+            d2 = np.inf
+            for q in range(begin, end):
+                s = np.int64(stars[q])
+                dx, dy, dz = x - star_vectors[s, 0], y - star_vectors[s, 1], z - star_vectors[s, 2]
+                d2 = min(d2, (dx * dx + dy * dy) + dz * dz)  # a KD-tree's order, as _nearest_listed's
+            d = np.sqrt(d2)
+            if d <= bound:
+                angles[k] = 2.0 * np.arcsin(min(d / 2, 1.0))
+                off_edge += angles[k] <= tol and k != i and k != j
+        if off_edge + 2 < min_matches:
+            continue
+        count, total = 0, 0.0
+        for k in range(m):
+            if angles[k] <= tol:
+                count += 1
+                total += angles[k]
+            else:
+                total += tol
+        if count >= min_matches:
+            rows[kept], n_match[kept], deviation[kept] = h, count, total
+            rotations[kept, 0, 0], rotations[kept, 0, 1], rotations[kept, 0, 2] = R[0], R[1], R[2]
+            rotations[kept, 1, 0], rotations[kept, 1, 1], rotations[kept, 1, 2] = R[3], R[4], R[5]
+            rotations[kept, 2, 0], rotations[kept, 2, 1], rotations[kept, 2, 2] = R[6], R[7], R[8]
+            kept += 1
     return rows[:kept], n_match[:kept], deviation[:kept], rotations[:kept]
 
 
