@@ -72,3 +72,29 @@ def _without_cells(field):
     import dataclasses
 
     return dataclasses.replace(field, cells=None)
+
+
+def test_each_edge_gets_every_visible_pair_of_its_length_both_ways(sky):
+    """bright_pair_hypotheses against brute force over the whole index: for each edge, every pair whose
+    length lies in its window and whose stars the camera sees, (a, b) then (b, a), in the index's order."""
+    from app.attitude import angle_between
+    from app.identification.hypotheses import bright_pair_hypotheses, edge_windows
+
+    camera = CAMERAS["tubsat-752x582-20deg"]
+    sequence, _ = simulate_sequence(np.random.default_rng(25), camera, "single")
+    extraction = extract(sequence)
+    p = prepare_pattern(extraction.pattern, camera, sequence.snapshots[extraction.reference].time, sky)
+    w = edge_windows(p, SearchOptions())
+    index = sky.for_camera(camera).index
+    hyp = bright_pair_hypotheses(p.vectors, w.edges[:6], w.tolerance[:6], index, p.star_mask)
+    expected_edge, expected_pair = [], []
+    for e, (i, j) in enumerate(w.edges[:6]):
+        length = float(angle_between(p.vectors[i], p.vectors[j]))
+        rows = [r for r in range(index.n_pairs) if abs(index.length_rad[r] - length) <= w.tolerance[e]
+                and p.star_mask[index.star_a[r]] and p.star_mask[index.star_b[r]]]
+        pairs = [(int(index.star_a[r]), int(index.star_b[r])) for r in rows]
+        expected_pair += pairs + [(b, a) for a, b in pairs]
+        expected_edge += [(i, j)] * (2 * len(pairs))
+    assert len(expected_pair) > 100
+    assert [tuple(x) for x in hyp.catalogue_pair.tolist()] == expected_pair
+    assert [tuple(x) for x in hyp.pattern_edge.tolist()] == expected_edge

@@ -123,12 +123,15 @@ class FocalScan:
     def elsewhere(self, picked: list[tuple[ScanGroup, np.ndarray]]) -> list[ScanGroup]:
         """The hypotheses picked (``(group, positions in it)`` pairs) at every other searched focal length
         (not the declared) whose window holds their pair, grouped by focal length."""
-        made = []
-        for group, which in picked:
-            e = group.hypotheses.edge_number[which]
-            held = np.abs(self.lengths[e] - group.pair_length[which, None]) <= self.tolerance[e]  # (n, S)
-            held[:, [0, group.step]] = False
-            h, steps = np.nonzero(held)
-            pair = group.hypotheses.catalogue_pair[which[h]]
-            made.append((steps, group.pair_length[which[h]], e[h], pair[:, 0], pair[:, 1]))
-        return self._groups(*(np.concatenate(x) for x in zip(*made))) if made else []
+        picked = [(group, which) for group, which in picked if len(which)]
+        if not picked:
+            return []
+        e = np.concatenate([group.hypotheses.edge_number[which] for group, which in picked])
+        pair = np.concatenate([group.hypotheses.catalogue_pair[which] for group, which in picked])
+        pair_length = np.concatenate([group.pair_length[which] for group, which in picked])
+        own = np.concatenate([np.full(len(which), group.step) for group, which in picked])
+        held = np.abs(self.lengths[e] - pair_length[:, None]) <= self.tolerance[e]  # (n, S)
+        held[:, 0] = False
+        held[np.arange(len(e)), own] = False
+        h, steps = np.nonzero(held)
+        return self._groups(steps, pair_length[h], e[h], pair[h, 0], pair[h, 1])

@@ -25,6 +25,7 @@ from scipy.spatial import Delaunay, QhullError
 
 from app.attitude import angle_between, rotation_from_pair
 from app.camera import Camera
+from app.compiled import njit, warm_up_with
 from app.identification.candidates import PreparedPattern
 from app.identification.options import SearchOptions
 from app.identification.sky import Sky
@@ -176,28 +177,48 @@ def bright_pair_hypotheses(pattern_vectors: np.ndarray, edges: list[tuple[int, i
 
     ``edge_tolerance_rad[e]`` is the half-width of the length window of edge
     ``e``; ``star_mask`` (n_stars,) restricts the catalogue pairs to stars the
-    camera can see.
+    camera can see.  Each edge's pairs are a run of the index (sorted by
+    length): all edges' runs are found at once, and one compiled loop
+    (:func:`_edge_pairs`) lists their pairs, edge after edge, both orientations (a -> i, b -> j) then
+    (b -> i, a -> j).
     """
-    pe, cp, en = [], [], []
-    for e, (i, j) in enumerate(edges):
-        length = float(angle_between(pattern_vectors[i], pattern_vectors[j]))
-        rows = index.pairs_with_length(length - edge_tolerance_rad[e], length + edge_tolerance_rad[e])
-        a = index.star_a[rows]
-        b = index.star_b[rows]
-        if star_mask is not None:
-            keep = star_mask[a] & star_mask[b]
-            a, b = a[keep], b[keep]
-        if len(a) == 0:
-            continue
-        # Both orientations: (a -> i, b -> j) and (b -> i, a -> j).
-        cp.append(np.column_stack([np.concatenate([a, b]), np.concatenate([b, a])]))
-        pe.append(np.broadcast_to([i, j], (2 * len(a), 2)))
-        en.append(np.full(2 * len(a), e))
-    if not cp:
-        return PairHypotheses(pattern_vectors, index.vectors, np.empty((0, 2), int), np.empty((0, 2), int),
-                              np.empty(0, int))
-    return PairHypotheses(pattern_vectors, index.vectors, np.concatenate(pe).astype(int),
-                          np.concatenate(cp).astype(int), np.concatenate(en))
+    edge = np.array(edges, dtype=np.int64).reshape(-1, 2)
+    length = angle_between(pattern_vectors[edge[:, 0]], pattern_vectors[edge[:, 1]])
+    tolerance = np.asarray(edge_tolerance_rad, dtype=float)
+    first = np.searchsorted(index.length_rad, length - tolerance, side="left")
+    stop = np.searchsorted(index.length_rad, length + tolerance, side="right")
+    mask = np.ones(index.n_stars, dtype=np.bool_) if star_mask is None else star_mask
+    pattern_edge, catalogue_pair, edge_number = _edge_pairs(edge, first, stop, index.star_a, index.star_b, mask)
+    return PairHypotheses(pattern_vectors, index.vectors, pattern_edge, catalogue_pair, edge_number)
+
+
+@njit
+def _edge_pairs(edge, first, stop, star_a, star_b, star_mask):
+    """(pattern edges (H, 2), catalogue pairs (H, 2), edge numbers (H,)) of every index pair in rows
+    ``first[e]:stop[e]`` whose stars are both in ``star_mask``, for each edge ``e`` in turn: the pairs (a, b)
+    onto the edge, then (b, a)."""
+    total = 0
+    for e in range(edge.shape[0]):
+        for row in range(first[e], stop[e]):
+            total += star_mask[star_a[row]] and star_mask[star_b[row]]
+    pattern_edge = np.empty((2 * total, 2), dtype=np.int64)
+    catalogue_pair = np.empty((2 * total, 2), dtype=np.int64)
+    edge_number = np.empty(2 * total, dtype=np.int64)
+    h = 0
+    for e in range(edge.shape[0]):
+        start = h
+        for row in range(first[e], stop[e]):
+            if star_mask[star_a[row]] and star_mask[star_b[row]]:
+                catalogue_pair[h, 0], catalogue_pair[h, 1] = star_a[row], star_b[row]
+                h += 1
+        n = h - start
+        for k in range(start, h):
+            catalogue_pair[k + n, 0], catalogue_pair[k + n, 1] = catalogue_pair[k, 1], catalogue_pair[k, 0]
+        for k in range(start, h + n):
+            pattern_edge[k, 0], pattern_edge[k, 1] = edge[e, 0], edge[e, 1]
+            edge_number[k] = e
+        h += n
+    return pattern_edge, catalogue_pair, edge_number
 
 
 @dataclass(frozen=True, eq=False)
@@ -254,3 +275,10 @@ def bright_pair_batches(p: PreparedPattern, sky: Sky, options: SearchOptions):
     for e, stop in edge_batches(len(w.edges)):
         hyp = bright_pair_hypotheses(p.vectors, w.edges[e:stop], w.tolerance[e:stop], sky.index, p.star_mask)
         yield hyp, w.check_tol[e + hyp.edge_number], stop
+
+
+@warm_up_with
+def _warm_up_edge_pairs() -> None:
+    """Compile the listing of an edge's pairs for the types the searches pass."""
+    rows = np.array([0], dtype=np.int64)
+    _edge_pairs(np.array([[0, 1]], dtype=np.int64), rows, rows + 1, rows, rows + 1, np.ones(2, dtype=np.bool_))
