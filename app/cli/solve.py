@@ -89,16 +89,14 @@ def parse_prior(text: str):
 
 
 def run(args: argparse.Namespace) -> int:
-    from app.compiled import warm_up
     from app.identification import SearchOptions, Sky
     from app.workflow.files import invalid_solve_document, solve_document
 
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     annotate = Annotator(args.annotate, args.files)  # --annotate OUT.png: the solved frame drawn
     sky = Sky()
-    # Every kernel before the first file (the extraction's too, which runs before the search's own warm-up): one
-    # line says whether they were compiled (the first run after an install) and how long that took.
-    warm_up()
+    # The kernels load (or, the first run after an install, compile) when the first valid file is solved
+    # (solve_sequence's warm-up, one log line): a file that cannot be read is said at once.
     options = SearchOptions() if args.candidates is None else SearchOptions(max_candidates=args.candidates)
 
     def solve_one(path, sequence):

@@ -407,7 +407,8 @@ class ComputePool:
             reports = [w.warm_up for w in ready if w.warm_up]
             self._kernels_are_ready({"seconds": max(r["seconds"] for r in reports),
                                      "compiled": sum(r["compiled"] for r in reports),
-                                     "loaded": sum(r["loaded"] for r in reports)} if reports else None)
+                                     "loaded": sum(r["loaded"] for r in reports),
+                                     "processes": max(r.get("processes", 1) for r in reports)} if reports else None)
 
     def pids(self) -> list[int]:
         """Process ids of the live workers (tests and diagnostics)."""
