@@ -405,9 +405,10 @@ class ComputePool:
         ready = [w for w in self._workers if w.ready]
         if all(any(w.lane == lane for w in ready) for lane in self._lanes):
             reports = [w.warm_up for w in ready if w.warm_up]
+            # Compiling is work done once (by whichever worker came first); loading, each worker's own copy.
             self._kernels_are_ready({"seconds": max(r["seconds"] for r in reports),
                                      "compiled": sum(r["compiled"] for r in reports),
-                                     "loaded": sum(r["loaded"] for r in reports),
+                                     "loaded": max(r["loaded"] for r in reports),
                                      "processes": max(r.get("processes", 1) for r in reports)} if reports else None)
 
     def pids(self) -> list[int]:
