@@ -98,3 +98,37 @@ def test_each_edge_gets_every_visible_pair_of_its_length_both_ways(sky):
     assert len(expected_pair) > 100
     assert [tuple(x) for x in hyp.catalogue_pair.tolist()] == expected_pair
     assert [tuple(x) for x in hyp.pattern_edge.tolist()] == expected_edge
+
+
+def test_the_windows_of_every_focal_length_at_once_are_each_ones_own(sky):
+    """stacked_edge_windows (one set of numpy calls for the pattern at every searched focal length) against
+    the plain formulas for each prepared pattern alone: the same numbers, bit for bit (the lookup's windows
+    decide which pairs are tried)."""
+    from app.attitude import angle_between
+    from app.identification.hypotheses import ordered_pattern_edges, stacked_edge_windows
+    from app.identification.optics import focal_lengths_to_try, prepared_with_camera
+
+    options = SearchOptions()
+    compared = 0
+    for seed, name in ((26, "tubsat-752x582-20deg"), (27, "narrow-1024x1024-12deg")):
+        camera = CAMERAS[name]
+        sequence, _ = simulate_sequence(np.random.default_rng(seed), camera, "single")
+        extraction = extract(sequence)
+        p = prepare_pattern(extraction.pattern, camera, sequence.snapshots[extraction.reference].time, sky)
+        patterns = [p] + [prepared_with_camera(p, camera.with_optics(focal_length_px=f))
+                          for f in focal_lengths_to_try(camera, p.xy)[1:]]
+        edges = ordered_pattern_edges(p.xy, camera, options.min_pair_separation_px)
+        stacked = stacked_edge_windows(patterns, options, edges)
+        first, second = np.array(edges).T
+        for s, q in enumerate(patterns):
+            v = q.vectors
+            length = angle_between(v[first], v[second])
+            tolerance = ((options.edge_tolerance_px + 4 * np.hypot(q.sigma_px[first], q.sigma_px[second])) * q.scale
+                         + 1.1e-4 * length)
+            reach = np.arccos(np.clip(v @ v.T, -1, 1)).max(axis=1)[first]
+            check_tol = np.minimum(np.max(q.match_tol) + tolerance * np.maximum(1.0, reach / np.maximum(length, 1e-9)),
+                                   10 * q.scale)
+            for got, want in zip(stacked, (length, tolerance, check_tol)):
+                assert np.array_equal(got[s], want)
+            compared += 1
+    assert compared >= 10

@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.identification.candidates import PreparedPattern
-from app.identification.hypotheses import PairHypotheses, edge_batches, edge_windows, ordered_pattern_edges
+from app.identification.hypotheses import PairHypotheses, edge_batches, ordered_pattern_edges, stacked_edge_windows
 from app.identification.options import SearchOptions
 from app.identification.sky import Sky
 
@@ -68,12 +68,11 @@ class FocalScan:
         declared = patterns[0]
         self.patterns, self.index, self.star_mask = patterns, sky.index, declared.star_mask
         self.edges = ordered_pattern_edges(declared.xy, declared.camera, options.min_pair_separation_px)
-        windows = [edge_windows(p, options, self.edges) for p in patterns]
         self.vectors = np.stack([p.vectors for p in patterns])  # (S, m, 3)
         if self.edges:
-            self.lengths = np.stack([w.length for w in windows], axis=1)  # (E, S): each edge's angle at each
-            self.tolerance = np.stack([w.tolerance for w in windows], axis=1)  # its window's half-width
-            self.check_tol = np.stack([w.check_tol for w in windows], axis=1)
+            # (E, S): each edge's angle at each focal length, its window's half-width, its check tolerance.
+            self.lengths, self.tolerance, self.check_tol = (
+                np.ascontiguousarray(x.T) for x in stacked_edge_windows(patterns, options, self.edges))
 
     def batches(self):
         """Yields (groups: the batch's hypotheses by focal length, a list of :class:`ScanGroup`, the pattern

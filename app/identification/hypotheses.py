@@ -234,7 +234,21 @@ class EdgeWindows:
 def edge_windows(p: PreparedPattern, options: SearchOptions,
                  edges: list[tuple[int, int]] | None = None) -> EdgeWindows:
     """The edges of ``p`` (``edges``, else :func:`ordered_pattern_edges`) with their length windows and check
-    tolerances.
+    tolerances (:func:`stacked_edge_windows` of ``p`` alone)."""
+    if edges is None:
+        edges = ordered_pattern_edges(p.xy, p.camera, options.min_pair_separation_px)
+    if not edges:
+        empty = np.empty(0)
+        return EdgeWindows([], empty, empty, empty)
+    length, tolerance, check_tol = stacked_edge_windows([p], options, edges)
+    return EdgeWindows(list(edges), length[0], tolerance[0], check_tol[0])
+
+
+def stacked_edge_windows(patterns: list[PreparedPattern], options: SearchOptions,
+                         edges: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(S, E) each edge's angle, the half-width of its length window and the check tolerance of the
+    hypotheses it generates, for each of ``patterns`` (one pattern seen at several focal lengths; the
+    same numbers as one at a time, in one set of numpy calls).
 
     The window is the edge's systematic error (``options.edge_tolerance_px``)
     plus 4 sigma of its two points' noise, and ~1e-4 of its length for the
@@ -243,20 +257,18 @@ def edge_windows(p: PreparedPattern, options: SearchOptions,
     so the check tolerance is the largest match tolerance plus that at the
     pattern's farthest point, capped at 10 pixels.
     """
-    if edges is None:
-        edges = ordered_pattern_edges(p.xy, p.camera, options.min_pair_separation_px)
-    if not edges:
-        empty = np.empty(0)
-        return EdgeWindows([], empty, empty, empty)
-    v = p.vectors
+    v = np.stack([q.vectors for q in patterns])  # (S, m, 3)
+    sigma = np.stack([q.sigma_px for q in patterns])
+    scale = np.array([q.scale for q in patterns])[:, None]
+    largest_match_tol = np.array([np.max(q.match_tol) for q in patterns])[:, None]
     first, second = np.array(edges).T
-    edge_sigma_px = np.hypot(p.sigma_px[first], p.sigma_px[second])
-    length = angle_between(v[first], v[second])
-    tolerance = (options.edge_tolerance_px + 4 * edge_sigma_px) * p.scale + 1.1e-4 * length
-    reach = np.arccos(np.clip(v @ v.T, -1, 1)).max(axis=1)[first]
-    check_tol = np.minimum(np.max(p.match_tol) + tolerance * np.maximum(1.0, reach / np.maximum(length, 1e-9)),
-                           10 * p.scale)
-    return EdgeWindows(list(edges), length, tolerance, check_tol)
+    edge_sigma_px = np.hypot(sigma[:, first], sigma[:, second])
+    length = angle_between(v[:, first], v[:, second])
+    tolerance = (options.edge_tolerance_px + 4 * edge_sigma_px) * scale + 1.1e-4 * length
+    reach = np.arccos(np.clip(v @ np.swapaxes(v, 1, 2), -1, 1)).max(axis=2)[:, first]
+    check_tol = np.minimum(largest_match_tol + tolerance * np.maximum(1.0, reach / np.maximum(length, 1e-9)),
+                           10 * scale)
+    return length, tolerance, check_tol
 
 
 def edge_batches(n_edges: int):
