@@ -1,5 +1,5 @@
 """The bright-pair hypotheses made where they are checked (app.identification.cells.check_pairs_kernel through
-verify.check_pair_hypotheses): the same hypotheses, matches and deviations as making every rotation and
+hypotheses.check_pair_hypotheses): the same hypotheses, matches and deviations as making every rotation and
 checking it with the KD-tree, and only those that match 3 points or more kept."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import pytest
 from app.camera import CAMERAS
 from app.extraction import extract
 from app.identification.candidates import prepare_pattern
-from app.identification.hypotheses import bright_pair_batches
+from app.identification.hypotheses import bright_pair_batches, check_pair_hypotheses
 from app.identification.options import SearchOptions
-from app.identification.verify import chord, chord_to_angle, check_pair_hypotheses
+from app.identification.verify import chord, chord_to_angle
 from app.simulate import simulate_sequence
 
 
@@ -38,8 +38,7 @@ def test_the_hypotheses_checked_where_they_are_made_are_those_that_catch_three_p
     kept_some = dropped_some = False
     for _ in range(3):
         hyp, tol, _ = next(batches)
-        rows, n_match, dev, rotations = check_pair_hypotheses(hyp.pattern_vectors, hyp.pattern_edge,
-                                                              hyp.catalogue_pair, hyp.index_vectors, p.field, tol)
+        rows, n_match, dev, rotations = check_pair_hypotheses(hyp, p.field, tol)
         all_match, all_dev = _tree_check(hyp.rotations, p, tol)
         expected = np.flatnonzero(all_match >= 3)
         assert np.array_equal(rows, expected)
@@ -59,10 +58,8 @@ def test_a_field_without_a_cell_map_gets_the_same_answer(sky):
     extraction = extract(sequence)
     p = prepare_pattern(extraction.pattern, camera, sequence.snapshots[extraction.reference].time, sky)
     hyp, tol, _ = next(bright_pair_batches(p, sky, SearchOptions()))
-    with_map = check_pair_hypotheses(hyp.pattern_vectors, hyp.pattern_edge, hyp.catalogue_pair, hyp.index_vectors,
-                                     p.field, tol)
-    without = check_pair_hypotheses(hyp.pattern_vectors, hyp.pattern_edge, hyp.catalogue_pair, hyp.index_vectors,
-                                    _without_cells(p.field), tol)
+    with_map = check_pair_hypotheses(hyp, p.field, tol)
+    without = check_pair_hypotheses(hyp, _without_cells(p.field), tol)
     assert len(with_map[0]) > 0
     for a, b in zip(with_map, without):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=0)

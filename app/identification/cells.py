@@ -399,14 +399,16 @@ def check_kernel(rotations, pattern_vectors, tolerance, star_vectors, bound, G, 
 
 
 @njit
-def check_pairs_kernel(pattern_vectors, pattern_edge, catalogue_pair, index_vectors, tolerance, min_matches,
+def check_pairs_kernel(pattern_vectors, steps, pattern_edge, catalogue_pair, index_vectors, tolerance, min_matches,
                        star_vectors, bound, G, words, word_rank, first, stars):
     """:func:`check_kernel` of the rotations of :func:`app.attitude.rotation_from_pair` (edge ``pattern_edge[h]``'s
-    points onto index stars ``catalogue_pair[h]``), each made where it is checked, keeping those that match
-    ``min_matches`` points or more: (their rows (K,), matches (K,), capped deviations (K,), rotations (K, 3, 3)).
+    points, seen at focal length ``steps[h]`` (``pattern_vectors`` (S, m, 3)), onto index stars
+    ``catalogue_pair[h]``), each made where it is checked, keeping those that match ``min_matches`` points or
+    more: (their rows (K,), matches (K,), capped deviations (K,), rotations (K, 3, 3)); a star is looked for
+    within chord ``bound[steps[h]]``.
 
-    The same numbers as making every rotation (the same triads and products) and checking it with
-    :func:`check_kernel`, without an (H, 3, 3) array of rotations or an (H m, 3) one of sky points.  Each
+    The same numbers as making every rotation (the same triads and products) and checking those of each focal
+    length with :func:`check_kernel`, without an (H, 3, 3) array of rotations or an (H m, 3) one of sky points.  Each
     hypothesis's points are put in their cells first, then the marked ones looked up in their cells' star
     lists (independent loads the processor overlaps; one pass with a branch per point took a fifth longer),
     the points off the edge first: the edge's own two land on their stars (the costliest look-ups), and are
@@ -414,7 +416,7 @@ def check_pairs_kernel(pattern_vectors, pattern_edge, catalogue_pair, index_vect
     pattern that matches nothing).  The deviation is summed in the points' order, as :func:`check_kernel`
     sums it.
     """
-    H, m = pattern_edge.shape[0], pattern_vectors.shape[0]
+    H, m = pattern_edge.shape[0], pattern_vectors.shape[1]
     rows = np.empty(H, dtype=np.int64)
     n_match = np.empty(H, dtype=np.int64)
     deviation = np.empty(H)
@@ -425,27 +427,27 @@ def check_pairs_kernel(pattern_vectors, pattern_edge, catalogue_pair, index_vect
     marked = np.empty(m, dtype=np.int64)  # the points whose cell is marked, off the edge first
     angles = np.empty(m)
     visit = np.empty(m, dtype=np.int64)  # the points off the edge in order, then the edge's two
-    last_i, last_j = -1, -1
+    last_step, last_i, last_j = -1, -1, -1
     Tb = (0.0,) * 9
     for h in range(H):
-        i, j = pattern_edge[h, 0], pattern_edge[h, 1]
-        if i != last_i or j != last_j:  # a batch holds each edge's pairs together: its triad once
-            Tb = pair_triad(pattern_vectors[i, 0], pattern_vectors[i, 1], pattern_vectors[i, 2],
-                            pattern_vectors[j, 0], pattern_vectors[j, 1], pattern_vectors[j, 2])
+        step, i, j = steps[h], pattern_edge[h, 0], pattern_edge[h, 1]
+        v = pattern_vectors[step]
+        if step != last_step or i != last_i or j != last_j:  # a batch holds each edge's pairs together
+            Tb = pair_triad(v[i, 0], v[i, 1], v[i, 2], v[j, 0], v[j, 1], v[j, 2])
             n = 0
             for k in range(m):
                 if k != i and k != j:
                     visit[n] = k
                     n += 1
             visit[m - 2], visit[m - 1] = i, j
-            last_i, last_j = i, j
+            last_step, last_i, last_j = step, i, j
         a, b = catalogue_pair[h, 0], catalogue_pair[h, 1]
         R = triads_rotation(Tb, pair_triad(index_vectors[a, 0], index_vectors[a, 1], index_vectors[a, 2],
                                            index_vectors[b, 0], index_vectors[b, 1], index_vectors[b, 2]))
         n_marked = 0
         for n in range(m):
             k = visit[n]
-            p0, p1, p2 = pattern_vectors[k, 0], pattern_vectors[k, 1], pattern_vectors[k, 2]
+            p0, p1, p2 = v[k, 0], v[k, 1], v[k, 2]
             x = p0 * R[0] + p1 * R[3] + p2 * R[6]
             y = p0 * R[1] + p1 * R[4] + p2 * R[7]
             z = p0 * R[2] + p1 * R[5] + p2 * R[8]
@@ -471,7 +473,7 @@ def check_pairs_kernel(pattern_vectors, pattern_edge, catalogue_pair, index_vect
                 dx, dy, dz = x - star_vectors[s, 0], y - star_vectors[s, 1], z - star_vectors[s, 2]
                 d2 = min(d2, (dx * dx + dy * dy) + dz * dz)  # a KD-tree's order, as _nearest_listed's
             d = np.sqrt(d2)
-            if d <= bound:
+            if d <= bound[step]:
                 angles[k] = 2.0 * np.arcsin(min(d / 2, 1.0))
                 off_edge += angles[k] <= tol and k != i and k != j
         if off_edge + 2 < min_matches:
@@ -501,4 +503,5 @@ def _warm_up_cells() -> None:
     cells.brightest_within(stars, stars, np.zeros(2), 0.01, 4)
     check_kernel(np.eye(3)[None], stars, np.array([0.01]), stars, 0.01, *cells.kernel_arrays())
     pair = np.array([[0, 1]])
-    check_pairs_kernel(stars, pair, pair, stars, np.array([0.01]), 3, stars, 0.01, *cells.kernel_arrays())
+    check_pairs_kernel(stars[None], np.zeros(1, dtype=np.int64), pair, pair, stars, np.array([0.01]), 3, stars,
+                       np.array([0.01]), *cells.kernel_arrays())

@@ -22,15 +22,15 @@ from app.camera import Camera
 from app.compiled import warm_up
 from app.identification.candidates import PreparedPattern, build_candidate, prepare_pattern, with_optics_uncertainty
 from app.identification.focal_estimate import CHECK_RADIUS_PX, FocalEstimate, focal_estimate
-from app.identification.focal_scan import FocalScan, ScanGroup
-from app.identification.hypotheses import PairHypotheses, ordered_pattern_edges
+from app.identification.focal_scan import FocalScan, ScanBatch, ScanGroup
+from app.identification.hypotheses import PairHypotheses, check_pair_hypotheses, ordered_pattern_edges
 from app.identification.methods import METHODS
 from app.identification.optics import focal_lengths_to_try, prepared_with_camera, refine_optics
 from app.identification.options import SearchOptions
 from app.identification.result import AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, FocalLengthContradiction, Solution
 from app.identification.scale_free import identify_unknown_scale
 from app.identification.sky import Sky
-from app.identification.verify import check_hypotheses, check_pair_hypotheses, refine, refine_many
+from app.identification.verify import check_hypotheses, refine, refine_many
 
 #: The bright triangles' focal length is searched first when it is at least this far from the declared one
 #: (a fraction): its estimates err by 0.05 % RMS, 0.13 % at most (144 simulated single snapshots and
@@ -352,14 +352,19 @@ class _Search:
 
     def _check(self, p, hyp, tol) -> _Caught:
         """Check hypotheses ``hyp`` of ``p`` with tolerances ``tol``, and keep those that caught 3 points or more
-        for :meth:`alternatives` (the rest never make a candidate: a candidate has 3 matches at least)."""
+        (:meth:`_keep`)."""
         if isinstance(hyp, PairHypotheses):  # made where they are checked, only the caught ones kept
-            at, n_match, dev, rotations = check_pair_hypotheses(hyp.pattern_vectors, hyp.pattern_edge,
-                                                                hyp.catalogue_pair, hyp.index_vectors, p.field, tol)
+            at, n_match, dev, rotations = check_pair_hypotheses(hyp, p.field, tol)
         else:
             n_match, dev = check_hypotheses(hyp.rotations, p.vectors, p.field, tol)
             at = np.flatnonzero(n_match >= 3)
             n_match, dev, rotations = n_match[at], dev[at], hyp.rotations[at]
+        return self._keep(p, hyp, tol, at, n_match, dev, rotations)
+
+    def _keep(self, p, hyp, tol, at, n_match, dev, rotations) -> _Caught:
+        """Keep the checked hypotheses ``hyp`` of ``p`` that caught 3 points or more (at ``at``, with their
+        matches, deviations and rotations) for :meth:`alternatives`, and count them all (the rest never make a
+        candidate: a candidate has 3 matches at least)."""
         offset = self.n_checked.get(id(p), 0)  # keys: positions among all of p's hypotheses
         self.n_checked[id(p)] = offset + len(hyp)
         caught = _Caught(at, offset + at, rotations, hyp.pattern_edge[at], hyp.catalogue_pair[at], n_match, dev,
@@ -411,13 +416,12 @@ class _Search:
             self.scan = FocalScan(patterns, self.sky, options)
             self.batches["scan"] = self.scan.batches()
             self.n_scales += len(patterns) - 1
-        for groups, used in self.batches["scan"]:
+        for batch, used in self.batches["scan"]:
             self.used = max(self.used, used)
             self.used_at["scan"] = used
-            checked = [self._check_group(g) for g in groups]
+            checked = self._check_batch(batch)
             # A pair whose hypothesis caught a third star is tried at the other focal lengths of its window.
-            checked += [self._check_group(more) for more in self.scan.elsewhere([(c.group, c.caught.at)
-                                                                                  for c in checked])]
+            checked += self._check_batch(self.scan.elsewhere([(c.group, c.caught.at) for c in checked]))
             if checked:
                 n_match = np.concatenate([c.caught.n_match for c in checked])
                 dev = np.concatenate([c.caught.dev for c in checked])
@@ -439,10 +443,20 @@ class _Search:
                 break
         return None
 
-    def _check_group(self, group: ScanGroup) -> _Checked:
-        """Check a group of the focal scan's hypotheses (made at one focal length) and keep them."""
-        p = self.scan.patterns[group.step]
-        return _Checked(group, p, self._check(p, group.hypotheses, group.check_tol))
+    def _check_batch(self, batch: ScanBatch) -> list[_Checked]:
+        """Check a batch of the focal scan's hypotheses (:mod:`.focal_scan`: every focal length's at once, one
+        compiled call) and keep each group's (made at one focal length) as :meth:`_check` keeps them."""
+        if not batch.groups:
+            return []
+        at, n_match, dev, rotations = check_pair_hypotheses(batch.hypotheses, self.scan.patterns[0].field,
+                                                            batch.check_tol)
+        ends = np.searchsorted(at, [g.start + len(g.hypotheses) for g in batch.groups]).tolist()
+        checked = []
+        for g, a, b in zip(batch.groups, [0] + ends[:-1], ends):
+            p = self.scan.patterns[g.step]
+            checked.append(_Checked(g, p, self._keep(p, g.hypotheses, g.check_tol, at[a:b] - g.start, n_match[a:b],
+                                                     dev[a:b], rotations[a:b])))
+        return checked
 
     def settled(self, p, used: int) -> bool:
         """Whether a refined hypothesis of ``p`` explains most of it, after ``used`` pattern features."""

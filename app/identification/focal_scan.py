@@ -57,6 +57,24 @@ class ScanGroup:
     hypotheses: PairHypotheses
     check_tol: np.ndarray  # (H,) radians
     pair_length: np.ndarray  # (H,) the catalogue pairs' lengths, radians
+    start: int  # position of the first in its batch
+
+
+@dataclass(frozen=True, eq=False)
+class ScanBatch:
+    """Hypotheses made at several searched focal lengths, in order of focal length: one stack, checked at once
+    (:attr:`hypotheses`, :attr:`check_tol`), and its groups, one per focal length (views of it; iterating a
+    batch gives them)."""
+
+    hypotheses: PairHypotheses
+    check_tol: np.ndarray
+    groups: list[ScanGroup]
+
+    def __iter__(self):
+        return iter(self.groups)
+
+    def __len__(self) -> int:
+        return len(self.groups)
 
 
 class FocalScan:
@@ -68,6 +86,7 @@ class FocalScan:
         declared = patterns[0]
         self.patterns, self.index, self.star_mask = patterns, sky.index, declared.star_mask
         self.edges = ordered_pattern_edges(declared.xy, declared.camera, options.min_pair_separation_px)
+        self.edge_array = np.array(self.edges, dtype=np.int64).reshape(-1, 2)
         self.vectors = np.stack([p.vectors for p in patterns])  # (S, m, 3)
         if self.edges:
             # (E, S): each edge's angle at each focal length, its window's half-width, its check tolerance.
@@ -75,27 +94,28 @@ class FocalScan:
                 np.ascontiguousarray(x.T) for x in stacked_edge_windows(patterns, options, self.edges))
 
     def batches(self):
-        """Yields (groups: the batch's hypotheses by focal length, a list of :class:`ScanGroup`, the pattern
-        features used so far), edge batches of growing size as :func:`.hypotheses.bright_pair_batches`."""
+        """Yields (the batch's hypotheses, a :class:`ScanBatch`, the pattern features used so far), edge
+        batches of growing size as :func:`.hypotheses.bright_pair_batches`."""
         for e0, stop in edge_batches(len(self.edges)):
             made = [self._nearest_step_hypotheses(e) for e in range(e0, stop)]
-            yield self._groups(*(np.concatenate(x) for x in zip(*made))), stop
+            yield self._batch(*(np.concatenate(x) for x in zip(*made))), stop
 
-    def _groups(self, steps: np.ndarray, pair_length: np.ndarray, e: np.ndarray, r1: np.ndarray,
-                r2: np.ndarray) -> list[ScanGroup]:
+    def _batch(self, steps: np.ndarray, pair_length: np.ndarray, e: np.ndarray, r1: np.ndarray,
+               r2: np.ndarray) -> ScanBatch:
         """Hypotheses of edges ``e`` onto index stars ``r1``, ``r2`` (pairs of length ``pair_length``), each at
-        its focal length ``steps``: one group per focal length."""
+        its focal length ``steps``, in order of focal length, with one group per focal length."""
         order = np.argsort(steps, kind="stable")
-        steps, pair_length, e, r1, r2 = steps[order], pair_length[order], e[order], r1[order], r2[order]
-        edge = np.array(self.edges, dtype=int).reshape(-1, 2)[e]
-        pair = np.column_stack([r1, r2]).astype(int)
-        starts = np.flatnonzero(np.r_[True, steps[1:] != steps[:-1]]) if len(steps) else np.empty(0, int)
-        groups = []
-        for a, b in zip(starts.tolist(), np.r_[starts[1:], len(steps)].tolist()):
-            step = int(steps[a])
-            hypotheses = PairHypotheses(self.vectors[step], self.index.vectors, edge[a:b], pair[a:b], e[a:b])
-            groups.append(ScanGroup(step, hypotheses, self.check_tol[e[a:b], step], pair_length[a:b]))
-        return groups
+        steps, pair_length, e = steps[order], pair_length[order], e[order]
+        edge = self.edge_array[e]
+        pair = np.column_stack([r1[order], r2[order]]).astype(int)
+        check_tol = self.check_tol[e, steps]
+        hypotheses = PairHypotheses(self.vectors, self.index.vectors, edge, pair, e, steps)
+        starts = np.flatnonzero(np.diff(steps, prepend=-1)).tolist()
+        groups = [ScanGroup(int(steps[a]), PairHypotheses(self.vectors, self.index.vectors, edge[a:b], pair[a:b],
+                                                          e[a:b], steps[a:b]),
+                            check_tol[a:b], pair_length[a:b], a)
+                  for a, b in zip(starts, starts[1:] + [len(steps)])]
+        return ScanBatch(hypotheses, check_tol, groups)
 
     def _nearest_step_hypotheses(self, e: int) -> tuple[np.ndarray, ...]:
         """Edge ``e``'s hypotheses, every index pair within one of its windows at the searched focal length
@@ -119,12 +139,12 @@ class FocalScan:
         return (np.concatenate([step, step]), np.concatenate([pair_length, pair_length]), np.full(2 * len(a), e),
                 np.concatenate([a, b]), np.concatenate([b, a]))
 
-    def elsewhere(self, picked: list[tuple[ScanGroup, np.ndarray]]) -> list[ScanGroup]:
+    def elsewhere(self, picked: list[tuple[ScanGroup, np.ndarray]]) -> ScanBatch:
         """The hypotheses picked (``(group, positions in it)`` pairs) at every other searched focal length
         (not the declared) whose window holds their pair, grouped by focal length."""
         picked = [(group, which) for group, which in picked if len(which)]
         if not picked:
-            return []
+            return self._batch(*(np.empty(0, dtype=np.int64),) * 5)
         e = np.concatenate([group.hypotheses.edge_number[which] for group, which in picked])
         pair = np.concatenate([group.hypotheses.catalogue_pair[which] for group, which in picked])
         pair_length = np.concatenate([group.pair_length[which] for group, which in picked])
@@ -133,4 +153,4 @@ class FocalScan:
         held[:, 0] = False
         held[np.arange(len(e)), own] = False
         h, steps = np.nonzero(held)
-        return self._groups(steps, pair_length[h], e[h], pair[h, 0], pair[h, 1])
+        return self._batch(steps, pair_length[h], e[h], pair[h, 0], pair[h, 1])

@@ -27,8 +27,10 @@ from app.attitude import angle_between, rotation_from_pair
 from app.camera import Camera
 from app.compiled import njit, warm_up_with
 from app.identification.candidates import PreparedPattern
+from app.identification.cells import check_pairs_kernel
 from app.identification.options import SearchOptions
 from app.identification.sky import Sky
+from app.identification.verify import StarField, cells_within, chord
 from app.index import BrightPairIndex
 
 
@@ -51,11 +53,12 @@ class PairHypotheses:
     given by their rows: a search makes the rotations where it checks them and keeps the few it refines
     (:func:`app.identification.verify.check_pair_hypotheses`); :attr:`rotations` makes them all."""
 
-    pattern_vectors: np.ndarray  # (m, 3) the pattern as seen at these hypotheses' focal length
+    pattern_vectors: np.ndarray  # (S, m, 3) the pattern as seen at each focal length of these hypotheses
     index_vectors: np.ndarray  # (n, 3) the index's stars
     pattern_edge: np.ndarray  # (H, 2) pattern rows i, j
     catalogue_pair: np.ndarray  # (H, 2) index rows mapped onto i, j
     edge_number: np.ndarray  # (H,) position of the generating edge in the edge list
+    steps: np.ndarray  # (H,) the focal length each is seen at: its position in ``pattern_vectors``
 
     def __len__(self) -> int:
         return int(self.pattern_edge.shape[0])
@@ -63,10 +66,38 @@ class PairHypotheses:
     @functools.cached_property
     def rotations(self) -> np.ndarray:
         """(H, 3, 3) every hypothesis's rotation (ICRS -> camera)."""
-        i, j = self.pattern_edge.T
-        a, b = self.catalogue_pair.T
-        return rotation_from_pair(self.pattern_vectors[i], self.pattern_vectors[j], self.index_vectors[a],
-                                  self.index_vectors[b])
+        (i, j), (a, b) = self.pattern_edge.T, self.catalogue_pair.T
+        return rotation_from_pair(self.pattern_vectors[self.steps, i], self.pattern_vectors[self.steps, j],
+                                  self.index_vectors[a], self.index_vectors[b])
+
+
+def check_pair_hypotheses(hypotheses: PairHypotheses, field: StarField, tolerance_rad: np.ndarray,
+                          min_matches: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`app.identification.verify.check_hypotheses` of :class:`PairHypotheses` (at one focal length or
+    several), keeping those that match ``min_matches`` points or more: (their rows (K,), matches (K,), capped
+    deviations (K,), rotations (K, 3, 3)).
+
+    Why.  A search that finds nothing makes and checks 50,000-70,000 such
+    rotations; one compiled loop makes each where it checks it
+    (:func:`app.identification.cells.check_pairs_kernel`) and keeps only those
+    that caught a third point, the only ones a search refines (a candidate
+    has 3 matches at least): no (H, 3, 3) array of them all.  The same numbers
+    as making them all and checking those of each focal length with
+    ``check_hypotheses``; the stars come from the field's cell map for the
+    largest tolerance (:func:`app.identification.verify.cells_within`: any
+    map that covers a tolerance gives its nearest star exactly).
+    """
+    tol = np.ascontiguousarray(tolerance_rad, dtype=float).reshape(-1)
+    if len(tol) == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, 3, 3))
+    steps = np.ascontiguousarray(hypotheses.steps, dtype=np.int64)
+    cap = np.zeros(len(hypotheses.pattern_vectors))  # the largest tolerance at each focal length
+    np.maximum.at(cap, steps, tol)
+    return check_pairs_kernel(np.ascontiguousarray(hypotheses.pattern_vectors, dtype=float), steps,
+                              np.ascontiguousarray(hypotheses.pattern_edge, dtype=np.int64),
+                              np.ascontiguousarray(hypotheses.catalogue_pair, dtype=np.int64),
+                              np.ascontiguousarray(hypotheses.index_vectors, dtype=float), tol, int(min_matches),
+                              field.vectors, chord(cap), *cells_within(field, float(np.max(cap))).kernel_arrays())
 
 
 def perturbed(xy: np.ndarray) -> np.ndarray:
@@ -189,7 +220,8 @@ def bright_pair_hypotheses(pattern_vectors: np.ndarray, edges: list[tuple[int, i
     stop = np.searchsorted(index.length_rad, length + tolerance, side="right")
     mask = np.ones(index.n_stars, dtype=np.bool_) if star_mask is None else star_mask
     pattern_edge, catalogue_pair, edge_number = _edge_pairs(edge, first, stop, index.star_a, index.star_b, mask)
-    return PairHypotheses(pattern_vectors, index.vectors, pattern_edge, catalogue_pair, edge_number)
+    return PairHypotheses(pattern_vectors[None], index.vectors, pattern_edge, catalogue_pair, edge_number,
+                          np.zeros(len(edge_number), dtype=np.int64))
 
 
 @njit

@@ -38,9 +38,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import bdtrc, chdtr  # binomial survival, chi-square CDF (scipy.stats' are 30x slower per call)
 
-from app.attitude.rotations import rotation_from_pair, wahba_rotation
+from app.attitude.rotations import wahba_rotation
 from app.compiled import njit, warm_up_with
-from app.identification.cells import NearStarCells, check_kernel, check_pairs_kernel, nearest_star
+from app.identification.cells import NearStarCells, check_kernel, nearest_star
 
 
 @dataclass(frozen=True, eq=False)
@@ -180,38 +180,6 @@ def check_hypotheses(rotations: np.ndarray, pattern_vectors: np.ndarray, field: 
     d, _ = field.tree.query(sky, k=1, distance_upper_bound=bound)
     ang = chord_to_angle(np.where(np.isfinite(d), d, 2.0)).reshape(H, -1)
     return (ang <= tol[:, None]).sum(axis=1), np.minimum(ang, tol[:, None]).sum(axis=1)
-
-
-def check_pair_hypotheses(pattern_vectors: np.ndarray, pattern_edge: np.ndarray, catalogue_pair: np.ndarray,
-                          index_vectors: np.ndarray, field: StarField, tolerance_rad: np.ndarray,
-                          min_matches: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`check_hypotheses` of the rotations mapping index stars ``catalogue_pair[h]`` onto pattern points
-    ``pattern_edge[h]`` (:func:`app.attitude.rotation_from_pair`), keeping those that match ``min_matches``
-    points or more: (their rows (K,), matches (K,), capped deviations (K,), rotations (K, 3, 3)).
-
-    Why.  A search that finds nothing makes and checks 50,000-70,000 such
-    rotations; one compiled loop makes each where it checks it
-    (:func:`app.identification.cells.check_pairs_kernel`) and keeps only those
-    that caught a third point, the only ones a search refines (a candidate
-    has 3 matches at least): no (H, 3, 3) array of them all.  The same numbers
-    as making them all and checking them.
-    """
-    tol = np.ascontiguousarray(tolerance_rad, dtype=float).reshape(-1)
-    edge = np.ascontiguousarray(pattern_edge, dtype=np.int64).reshape(-1, 2)
-    pair = np.ascontiguousarray(catalogue_pair, dtype=np.int64).reshape(-1, 2)
-    if len(tol) == 0:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, 3, 3))
-    cap = float(np.max(tol))
-    cells = field.cells(cap) if field.cells is not None else None
-    if cells is None:
-        rotations = rotation_from_pair(pattern_vectors[edge[:, 0]], pattern_vectors[edge[:, 1]],
-                                       index_vectors[pair[:, 0]], index_vectors[pair[:, 1]])
-        n_match, dev = check_hypotheses(rotations, pattern_vectors, field, tol)
-        rows = np.flatnonzero(n_match >= min_matches)
-        return rows, n_match[rows], dev[rows], rotations[rows]
-    return check_pairs_kernel(np.ascontiguousarray(pattern_vectors, dtype=float), edge, pair,
-                              np.ascontiguousarray(index_vectors, dtype=float), tol, int(min_matches), field.vectors,
-                              float(chord(cap)), *cells.kernel_arrays())
 
 
 @dataclass(frozen=True, eq=False)
