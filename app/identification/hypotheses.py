@@ -123,17 +123,29 @@ def ordered_pattern_edges(xy: np.ndarray, camera: Camera, min_separation_px: flo
     scenario, 0-5 % off) and the 25 real frames at 3 focal lengths; the
     other pairs (24 of a 10-point pattern's 45) were a quarter of the
     declared camera's search of 10 random points.
+
+    An identification asks for the same pattern's edges several times (the
+    declared camera's search, the focal scan, the notes): the last few
+    patterns' are kept.
     """
-    m = len(xy)
-    xy = np.asarray(xy, dtype=float)
+    xy = np.ascontiguousarray(xy, dtype=float).reshape(-1, 2)
+    return list(_ordered_edges_of(xy.tobytes(), len(xy), int(camera.width), int(camera.height),
+                                  float(min_separation_px)))
+
+
+@functools.lru_cache(maxsize=16)
+def _ordered_edges_of(xy_bytes: bytes, m: int, width: int, height: int,
+                      min_separation_px: float) -> tuple[tuple[int, int], ...]:
+    """:func:`ordered_pattern_edges` of the points ``xy_bytes`` ((m, 2) floats) on a sensor of that size."""
+    xy = np.frombuffer(xy_bytes).reshape(m, 2)
     # Points too close give no usable direction (and may be one star twice).
     ii, jj = np.triu_indices(m, k=1)
     usable_mask = np.hypot(*(xy[ii] - xy[jj]).T) >= min_separation_px
-    all_pairs = list(zip(ii[usable_mask].tolist(), jj[usable_mask].tolist()))
+    all_pairs = tuple(zip(ii[usable_mask].tolist(), jj[usable_mask].tolist()))
     if m < 3:
         return all_pairs
     p = perturbed(xy)
-    triangles = delaunay_triangles(xy, camera)
+    triangles = _delaunay_of(xy_bytes, m, width, height)
     if triangles is None:  # all points on a line
         return all_pairs
     tri, inside = triangles
@@ -148,7 +160,7 @@ def ordered_pattern_edges(xy: np.ndarray, camera: Camera, min_separation_px: flo
     length[ii, jj] = np.hypot(*(p[ii] - p[jj]).T)
 
     def by_length(edges):
-        return sorted(edges, key=lambda e: (length[e], e))
+        return tuple(sorted(edges, key=lambda e: (length[e], e)))
 
     return by_length(sure) + by_length(delaunay)
 
