@@ -43,6 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app.compiled import njit, warm_up_with
 from app.identification.candidates import PreparedPattern
 from app.identification.hypotheses import PairHypotheses, edge_batches, ordered_pattern_edges, stacked_edge_windows
 from app.identification.options import SearchOptions
@@ -103,18 +104,16 @@ class FocalScan:
     def _batch(self, steps: np.ndarray, pair_length: np.ndarray, e: np.ndarray, r1: np.ndarray,
                r2: np.ndarray) -> ScanBatch:
         """Hypotheses of edges ``e`` onto index stars ``r1``, ``r2`` (pairs of length ``pair_length``), each at
-        its focal length ``steps``, in order of focal length, with one group per focal length."""
-        order = np.argsort(steps, kind="stable")
-        steps, pair_length, e = steps[order], pair_length[order], e[order]
-        edge = self.edge_array[e]
-        pair = np.column_stack([r1[order], r2[order]]).astype(int)
-        check_tol = self.check_tol[e, steps]
+        its focal length ``steps``, in order of focal length (the order they came in within each), with one
+        group per focal length."""
+        steps, e, r1, r2 = (np.ascontiguousarray(x, dtype=np.int64) for x in (steps, e, r1, r2))
+        steps, pair_length, e, edge, pair, check_tol, starts = _by_focal_length(
+            steps, len(self.patterns), np.ascontiguousarray(pair_length, dtype=float), e, r1, r2, self.edge_array,
+            self.check_tol)
         hypotheses = PairHypotheses(self.vectors, self.index.vectors, edge, pair, e, steps)
-        starts = np.flatnonzero(np.diff(steps, prepend=-1)).tolist()
-        groups = [ScanGroup(int(steps[a]), PairHypotheses(self.vectors, self.index.vectors, edge[a:b], pair[a:b],
-                                                          e[a:b], steps[a:b]),
-                            check_tol[a:b], pair_length[a:b], a)
-                  for a, b in zip(starts, starts[1:] + [len(steps)])]
+        groups = [ScanGroup(step, PairHypotheses(self.vectors, self.index.vectors, edge[a:b], pair[a:b], e[a:b],
+                                                 steps[a:b]), check_tol[a:b], pair_length[a:b], a)
+                  for step, (a, b) in enumerate(zip(starts[:-1].tolist(), starts[1:].tolist())) if b > a]
         return ScanBatch(hypotheses, check_tol, groups)
 
     def _nearest_step_hypotheses(self, e: int) -> tuple[np.ndarray, ...]:
@@ -144,7 +143,8 @@ class FocalScan:
         (not the declared) whose window holds their pair, grouped by focal length."""
         picked = [(group, which) for group, which in picked if len(which)]
         if not picked:
-            return self._batch(*(np.empty(0, dtype=np.int64),) * 5)
+            none = np.empty(0, dtype=np.int64)
+            return self._batch(none, np.empty(0), none, none, none)
         e = np.concatenate([group.hypotheses.edge_number[which] for group, which in picked])
         pair = np.concatenate([group.hypotheses.catalogue_pair[which] for group, which in picked])
         pair_length = np.concatenate([group.pair_length[which] for group, which in picked])
@@ -154,3 +154,36 @@ class FocalScan:
         held[np.arange(len(e)), own] = False
         h, steps = np.nonzero(held)
         return self._batch(steps, pair_length[h], e[h], pair[h, 0], pair[h, 1])
+
+
+@njit
+def _by_focal_length(steps, n_steps, pair_length, e, r1, r2, edge_array, check_tol):
+    """Hypotheses (each at focal length ``steps[h]`` of ``n_steps``, edge ``e[h]``, stars ``r1[h]``, ``r2[h]``)
+    in order of focal length, the order they came in within each (a counting sort): (steps, pair lengths, edge
+    numbers, pattern edges (H, 2), catalogue pairs (H, 2), check tolerances, where each focal length's begin
+    (``n_steps + 1``)), in one pass where numpy's stable sort and gathers took ~0.5 ms a batch."""
+    H = steps.shape[0]
+    starts = np.zeros(n_steps + 1, dtype=np.int64)
+    for h in range(H):
+        starts[steps[h] + 1] += 1
+    for s in range(n_steps):
+        starts[s + 1] += starts[s]
+    at = starts[:-1].copy()
+    sorted_steps, sorted_length, sorted_e = np.empty(H, dtype=np.int64), np.empty(H), np.empty(H, dtype=np.int64)
+    edge, pair, tol = np.empty((H, 2), dtype=np.int64), np.empty((H, 2), dtype=np.int64), np.empty(H)
+    for h in range(H):
+        s = steps[h]
+        k = at[s]
+        at[s] += 1
+        sorted_steps[k], sorted_length[k], sorted_e[k] = s, pair_length[h], e[h]
+        edge[k, 0], edge[k, 1] = edge_array[e[h], 0], edge_array[e[h], 1]
+        pair[k, 0], pair[k, 1] = r1[h], r2[h]
+        tol[k] = check_tol[e[h], s]
+    return sorted_steps, sorted_length, sorted_e, edge, pair, tol, starts
+
+
+@warm_up_with
+def _warm_up_scan() -> None:
+    """Compile the scan's ordering for the types the searches pass."""
+    one = np.zeros(1, dtype=np.int64)
+    _by_focal_length(one, 1, np.zeros(1), one, one, one, np.zeros((1, 2), dtype=np.int64), np.zeros((1, 1)))
