@@ -248,7 +248,7 @@ def _popcount64(x):
 
 
 @njit
-def _cell(x, y, z, G):
+def cell_of(x, y, z, G):
     """:func:`cells_of` of one unit vector."""
     ax, ay, az = abs(x), abs(y), abs(z)
     if ax >= ay and ax >= az:
@@ -275,7 +275,7 @@ def _nearest_chords(points, star_vectors, bound, G, words, word_rank, first, sta
     cell = np.empty(n, dtype=np.int64)
     marked = np.empty(n, dtype=np.bool_)
     for i in range(n):
-        c = _cell(points[i, 0], points[i, 1], points[i, 2], G)
+        c = cell_of(points[i, 0], points[i, 1], points[i, 2], G)
         cell[i] = c
         marked[i] = (words[c >> 6] >> np.uint64(c & 63)) & np.uint64(1) != 0
     for i in range(n):
@@ -289,7 +289,7 @@ def _nearest_chords(points, star_vectors, bound, G, words, word_rank, first, sta
 
 
 @njit
-def _listed(c, words, word_rank, first):
+def listed_stars(c, words, word_rank, first):
     """(begin, end): where marked cell ``c``'s stars lie in the map's star list (its rank among the marked
     cells: its word's rank plus the marked bits below it in the word)."""
     word = words[c >> 6]
@@ -300,7 +300,7 @@ def _listed(c, words, word_rank, first):
 @njit
 def _nearest_listed(x, y, z, c, star_vectors, words, word_rank, first, stars):
     """(squared chord, star) of the nearest star listed for marked cell ``c`` of the unit vector (x, y, z)."""
-    begin, end = _listed(c, words, word_rank, first)
+    begin, end = listed_stars(c, words, word_rank, first)
     best, star = np.inf, -1
     for k in range(begin, end):
         s = np.int64(stars[k])
@@ -315,7 +315,7 @@ def _nearest_listed(x, y, z, c, star_vectors, words, word_rank, first, stars):
 def nearest_star(x, y, z, star_vectors, G, words, word_rank, first, stars):
     """(chord, star) from the unit vector (x, y, z) to its nearest star within the map's radius; (inf, -1)
     when none is that close (one point: a refinement's look-up)."""
-    c = _cell(x, y, z, G)
+    c = cell_of(x, y, z, G)
     if (words[c >> 6] >> np.uint64(c & 63)) & np.uint64(1) == 0:
         return np.inf, -1
     d2, star = _nearest_listed(x, y, z, c, star_vectors, words, word_rank, first, stars)
@@ -332,10 +332,10 @@ def _brightest_within_kernel(points, star_vectors, mag, bound, neighbours, G, wo
     near_star = np.empty(neighbours, dtype=np.int64)
     for i in range(n):
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        c = _cell(x, y, z, G)
+        c = cell_of(x, y, z, G)
         if (words[c >> 6] >> np.uint64(c & 63)) & np.uint64(1) == 0:
             continue
-        begin, end = _listed(c, words, word_rank, first)
+        begin, end = listed_stars(c, words, word_rank, first)
         count = 0
         for k in range(begin, end):
             s = np.int64(stars[k])
@@ -452,7 +452,7 @@ def check_pairs_kernel(pattern_vectors, steps, pattern_edge, catalogue_pair, ind
             y = p0 * R[1] + p1 * R[4] + p2 * R[7]
             z = p0 * R[2] + p1 * R[5] + p2 * R[8]
             sky[k, 0], sky[k, 1], sky[k, 2] = x, y, z
-            c = _cell(x, y, z, G)
+            c = cell_of(x, y, z, G)
             cell[k] = c
             angles[k] = np.pi
             marked[n_marked] = k
@@ -466,7 +466,7 @@ def check_pairs_kernel(pattern_vectors, steps, pattern_edge, catalogue_pair, ind
             # _nearest_listed's loop written out: a call here (its arrays passed field by field) cost a
             # quarter of the check.
             x, y, z = sky[k, 0], sky[k, 1], sky[k, 2]
-            begin, end = _listed(cell[k], words, word_rank, first)
+            begin, end = listed_stars(cell[k], words, word_rank, first)
             d2 = np.inf
             for q in range(begin, end):
                 s = np.int64(stars[q])
