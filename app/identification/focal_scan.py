@@ -98,8 +98,7 @@ class FocalScan:
         """Yields (the batch's hypotheses, a :class:`ScanBatch`, the pattern features used so far), edge
         batches of growing size as :func:`.hypotheses.bright_pair_batches`."""
         for e0, stop in edge_batches(len(self.edges)):
-            made = [self._nearest_step_hypotheses(e) for e in range(e0, stop)]
-            yield self._batch(*(np.concatenate(x) for x in zip(*made))), stop
+            yield self._batch(*self._nearest_step_hypotheses(e0, stop)), stop
 
     def _batch(self, steps: np.ndarray, pair_length: np.ndarray, e: np.ndarray, r1: np.ndarray,
                r2: np.ndarray) -> ScanBatch:
@@ -116,27 +115,20 @@ class FocalScan:
                   for step, (a, b) in enumerate(zip(starts[:-1].tolist(), starts[1:].tolist())) if b > a]
         return ScanBatch(hypotheses, check_tol, groups)
 
-    def _nearest_step_hypotheses(self, e: int) -> tuple[np.ndarray, ...]:
-        """Edge ``e``'s hypotheses, every index pair within one of its windows at the searched focal length
-        (not the declared) whose length of the edge is nearest the pair's, kept when within that window:
-        (steps, the pairs' lengths, edge numbers, first stars, second stars), both orientations of each pair
-        as in :func:`app.identification.hypotheses.bright_pair_hypotheses`."""
-        lengths, windows, index = self.lengths[e, 1:], self.tolerance[e, 1:], self.index
-        rows = index.pairs_with_length(float(np.min(lengths - windows)), float(np.max(lengths + windows)))
-        a, b, pair_length = index.star_a[rows], index.star_b[rows], index.length_rad[rows]
-        if self.star_mask is not None:
-            keep = self.star_mask[a] & self.star_mask[b]
-            a, b, pair_length = a[keep], b[keep], pair_length[keep]
-        # The nearest of the lengths in order: the one at the pair's place among them, or the one before.
-        order = np.argsort(lengths, kind="stable")
-        below = np.clip(np.searchsorted(lengths[order], pair_length) - 1, 0, len(order) - 1)
-        above = np.minimum(below + 1, len(order) - 1)
-        nearer_below = np.abs(pair_length - lengths[order][below]) <= np.abs(lengths[order][above] - pair_length)
-        step = order[np.where(nearer_below, below, above)]
-        keep = np.abs(pair_length - lengths[step]) <= windows[step]
-        a, b, step, pair_length = a[keep], b[keep], step[keep] + 1, pair_length[keep]
-        return (np.concatenate([step, step]), np.concatenate([pair_length, pair_length]), np.full(2 * len(a), e),
-                np.concatenate([a, b]), np.concatenate([b, a]))
+    def _nearest_step_hypotheses(self, e0: int, stop: int) -> tuple[np.ndarray, ...]:
+        """Edges ``e0:stop``'s hypotheses, every index pair within one of an edge's windows at the searched
+        focal length (not the declared) whose length of the edge is nearest the pair's, kept when within that
+        window: (steps, the pairs' lengths, edge numbers, first stars, second stars), edge after edge, both
+        orientations of each pair as in :func:`app.identification.hypotheses.bright_pair_hypotheses`.  Each
+        edge's pairs are a run of the index (sorted by length), found for all edges at once; one compiled
+        loop (:func:`_nearest_step_pairs`) takes each pair to its focal length."""
+        lengths, windows, index = self.lengths[e0:stop, 1:], self.tolerance[e0:stop, 1:], self.index
+        first = np.searchsorted(index.length_rad, np.min(lengths - windows, axis=1), side="left")
+        last = np.searchsorted(index.length_rad, np.max(lengths + windows, axis=1), side="right")
+        mask = np.ones(index.n_stars, dtype=np.bool_) if self.star_mask is None else self.star_mask
+        return _nearest_step_pairs(np.ascontiguousarray(lengths), np.ascontiguousarray(windows),
+                                   np.argsort(lengths, axis=1, kind="stable"), first, last, e0, index.star_a,
+                                   index.star_b, index.length_rad, mask)
 
     def elsewhere(self, picked: list[tuple[ScanGroup, np.ndarray]]) -> ScanBatch:
         """The hypotheses picked (``(group, positions in it)`` pairs) at every other searched focal length
@@ -182,8 +174,49 @@ def _by_focal_length(steps, n_steps, pair_length, e, r1, r2, edge_array, check_t
     return sorted_steps, sorted_length, sorted_e, edge, pair, tol, starts
 
 
+@njit
+def _nearest_step_pairs(lengths, windows, order, first, last, e0, star_a, star_b, length_rad, star_mask):
+    """See :meth:`FocalScan._nearest_step_hypotheses`: for edge ``e0 + r`` (its angle ``lengths[r, s]`` and
+    window ``windows[r, s]`` at searched focal length ``s + 1``, ``order[r]`` those lengths in order), each
+    index row in ``first[r]:last[r]`` whose stars are both in ``star_mask`` goes to the nearest of the lengths
+    (the one at the pair's place among them or the one before, the one before on a tie) when within its
+    window."""
+    E, S = lengths.shape
+    total = 0
+    for r in range(E):
+        total += last[r] - first[r]
+    steps, pair_length = np.empty(2 * total, dtype=np.int64), np.empty(2 * total)
+    edge_number, r1, r2 = np.empty(2 * total, dtype=np.int64), np.empty(2 * total, dtype=np.int64), \
+        np.empty(2 * total, dtype=np.int64)
+    h = 0
+    for r in range(E):
+        start = h
+        for row in range(first[r], last[r]):
+            a, b, length = star_a[row], star_b[row], length_rad[row]
+            if not (star_mask[a] and star_mask[b]):
+                continue
+            place = 0  # how many of the lengths lie below the pair's (np.searchsorted, side "left")
+            while place < S and lengths[r, order[r, place]] < length:
+                place += 1
+            below = min(max(place - 1, 0), S - 1)
+            above = min(below + 1, S - 1)
+            near_below = abs(length - lengths[r, order[r, below]]) <= abs(lengths[r, order[r, above]] - length)
+            step = order[r, below] if near_below else order[r, above]
+            if abs(length - lengths[r, step]) <= windows[r, step]:
+                steps[h], pair_length[h], edge_number[h], r1[h], r2[h] = step + 1, length, e0 + r, a, b
+                h += 1
+        n = h - start
+        for k in range(start, h):  # the other orientation
+            steps[k + n], pair_length[k + n], edge_number[k + n], r1[k + n], r2[k + n] = \
+                steps[k], pair_length[k], edge_number[k], r2[k], r1[k]
+        h += n
+    return steps[:h], pair_length[:h], edge_number[:h], r1[:h], r2[:h]
+
+
 @warm_up_with
 def _warm_up_scan() -> None:
     """Compile the scan's ordering for the types the searches pass."""
     one = np.zeros(1, dtype=np.int64)
     _by_focal_length(one, 1, np.zeros(1), one, one, one, np.zeros((1, 2), dtype=np.int64), np.zeros((1, 1)))
+    _nearest_step_pairs(np.zeros((1, 1)), np.ones((1, 1)), one.reshape(1, 1), one, one + 1, 0, one, one + 1,
+                        np.zeros(1), np.ones(2, dtype=np.bool_))
