@@ -51,6 +51,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from app.config import settings
+from app.locks import exclusive
 
 log = logging.getLogger(__name__)
 
@@ -152,24 +153,9 @@ def _cache_lock() -> Iterator[Path | None]:
     so several processes compiled the same callees, and three processes on two cores took 78 s to be warm
     against 37 s taking turns (one run each on a busy machine, 2026-11-25).  The first process's helpers
     are as many as the cores, and take the warm-ups callees first."""
-    try:
-        import fcntl
-    except ImportError:  # not POSIX: each process compiles for itself
-        yield None
-        return
     directory = Path(os.environ["NUMBA_CACHE_DIR"])
-    try:
-        directory.mkdir(parents=True, exist_ok=True)
-        lock = open(directory / "warm-up.lock", "a")
-    except OSError:  # a read-only cache: nothing to share
-        yield None
-        return
-    with lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        try:
-            yield directory
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
+    with exclusive(directory / "warm-up.lock") as locked:
+        yield directory if locked else None
 
 
 def _take_turns(functions: list[Callable[[], None]], directory: Path,

@@ -46,6 +46,7 @@ from scipy.spatial import cKDTree
 
 from app.catalogue import Catalogue, load_catalogue
 from app.config import settings
+from app.locks import exclusive
 
 log = logging.getLogger(__name__)
 
@@ -277,17 +278,38 @@ def index_cache_path(mag_limit: float = DEFAULT_INDEX_MAG_LIMIT, max_edge_deg: f
 def load_index(mag_limit: float = DEFAULT_INDEX_MAG_LIMIT, max_edge_deg: float = DEFAULT_MAX_EDGE_DEG,
                epoch_jyear: float = DEFAULT_INDEX_EPOCH, cache_dir: Path | None = None,
                rebuild: bool = False) -> BrightPairIndex:
-    """The index from the disk cache, building (and caching) it when missing."""
+    """The index from the disk cache, building (and caching) it when missing.
+
+    Processes wanting it at once take turns (:func:`app.locks.exclusive` on the file's lock): the first
+    builds it, the others load what it wrote (a server's workers start while the server builds it).
+    """
     path = index_cache_path(mag_limit, max_edge_deg, epoch_jyear, cache_dir)
-    if path.exists() and not rebuild:
-        try:
-            with np.load(path) as z:
-                return BrightPairIndex(star_a=z["star_a"], star_b=z["star_b"], length_rad=z["length_rad"],
-                                       vectors=z["vectors"], hip=z["hip"], mag=z["mag"],
-                                       mag_limit=float(z["mag_limit"]), max_edge_rad=float(z["max_edge_rad"]),
-                                       epoch_jyear=float(z["epoch_jyear"]))
-        except (OSError, KeyError, ValueError) as exc:  # a damaged cache is rebuilt, never trusted
-            log.warning("index cache %s unreadable (%s); rebuilding", path, exc)
+    if not rebuild:
+        cached = _cached_index(path)
+        if cached is not None:
+            return cached
+    with exclusive(path.with_suffix(".lock")):
+        cached = None if rebuild else _cached_index(path)  # built by another process while this one waited
+        return cached if cached is not None else _build_and_keep(path, mag_limit, max_edge_deg, epoch_jyear)
+
+
+def _cached_index(path: Path) -> BrightPairIndex | None:
+    """The index kept at ``path``; None when there is none (or it cannot be read: then it is built again)."""
+    if not path.exists():
+        return None
+    try:
+        with np.load(path) as z:
+            return BrightPairIndex(star_a=z["star_a"], star_b=z["star_b"], length_rad=z["length_rad"],
+                                   vectors=z["vectors"], hip=z["hip"], mag=z["mag"],
+                                   mag_limit=float(z["mag_limit"]), max_edge_rad=float(z["max_edge_rad"]),
+                                   epoch_jyear=float(z["epoch_jyear"]))
+    except (OSError, KeyError, ValueError) as exc:  # a damaged cache is rebuilt, never trusted
+        log.warning("index cache %s unreadable (%s); rebuilding", path, exc)
+        return None
+
+
+def _build_and_keep(path: Path, mag_limit: float, max_edge_deg: float, epoch_jyear: float) -> BrightPairIndex:
+    """Build the index and keep it at ``path`` (through a temporary file and an atomic rename)."""
     t0 = time.perf_counter()
     log.info("building the bright-pair index (stars to Hp %.1f, edges to %.0f deg)...", mag_limit, max_edge_deg)
     index = build_index(mag_limit=mag_limit, max_edge_deg=max_edge_deg, epoch_jyear=epoch_jyear)

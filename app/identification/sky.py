@@ -21,6 +21,7 @@ from app.identification.cells import MAX_SPACECRAFT_SPEED_KM_S, MAX_YEARS, NearS
 from app.identification.triangle_index import BrightTriangles, bright_triangles
 from app.identification.verify import StarField, chord
 from app.index import BrightPairIndex, load_index
+from app.locks import exclusive
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +42,18 @@ def _observer_key(velocity_km_s):
     if velocity_km_s is None or is_mean_place(velocity_km_s):
         return velocity_km_s
     return tuple(np.round(velocity_km_s, 3))
+
+
+def _kept_arrays(path: Path) -> dict[str, np.ndarray] | None:
+    """The arrays kept at ``path``; None when there are none (or they cannot be read: then made again)."""
+    try:
+        with np.load(path) as z:
+            return {k: z[k] for k in z.files}
+    except FileNotFoundError:
+        return None
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
+        log.warning("cache %s unreadable (%s); making it again", path, exc)
+        return None
 
 
 class Sky:
@@ -184,13 +197,16 @@ class Sky:
 
         digest = hashlib.sha256(json.dumps(params, sort_keys=True).encode()).hexdigest()[:16]
         path = Path(settings().cache_dir) / f"{name}-{digest}.npz"
-        try:
-            with np.load(path) as z:
-                return {k: z[k] for k in z.files}
-        except FileNotFoundError:
-            pass
-        except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
-            log.warning("cache %s unreadable (%s); making it again", path, exc)
+        arrays = _kept_arrays(path)
+        if arrays is not None:
+            return arrays
+        with exclusive(path.with_suffix(".lock")):  # processes wanting it at once: the first makes it
+            arrays = _kept_arrays(path)  # made by another process while this one waited
+            return arrays if arrays is not None else self._make_and_keep(path, name, make)
+
+    @staticmethod
+    def _make_and_keep(path: Path, name: str, make) -> dict[str, np.ndarray]:
+        """``make()``, written to ``path`` (through a temporary file and an atomic rename)."""
         arrays = make()
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -204,10 +220,11 @@ class Sky:
         files = sorted(path.parent.glob(f"{name}-*.npz"), key=lambda f: f.stat().st_mtime, reverse=True)
         for old in files[MAX_CACHED_FILES:]:
             if old != path:
-                try:
-                    old.unlink()
-                except OSError:  # another process removed it first
-                    pass
+                for gone in (old, old.with_suffix(".lock")):
+                    try:
+                        gone.unlink()
+                    except OSError:  # another process removed it first (or it had no lock file)
+                        pass
         return arrays
 
     def _stars_digest(self) -> str:

@@ -196,15 +196,19 @@ def _worker_main(conn, server_pid: int, load_sky: bool, niceness: int, kernel_mo
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     if niceness:
         _lower_priority(niceness)
+    # The compiled kernels, before the worker says it is ready: loaded from their cache (0.2-0.3 s), or
+    # compiled on the first run after an install.  Compiling while a job waits would run it past its hard
+    # limit (a worker killed mid-compilation, measured).  The server logs the report: a worker has no log.
+    # Before the catalogue: on a first start the server builds the indexes meanwhile.
+    warmed = _warm_up_kernels(kernel_modules, say=False)
     sky = None
     if load_sky:
         from app.identification import Sky
 
-        sky = Sky().with_every_depth()  # loaded from the cache the server made (narrow fields need Hp 8)
-    # The compiled kernels, before the worker says it is ready: loaded from their cache (0.2-0.3 s), or
-    # compiled on the first run after an install.  Compiling while a job waits would run it past its hard
-    # limit (a worker killed mid-compilation, measured).  The server logs the report: a worker has no log.
-    conn.send(("ready", _warm_up_kernels(kernel_modules, say=False)))
+        # From the cache the server made (narrow fields need Hp 8); on a first start, once the server has
+        # built it (the index's lock, app.locks).
+        sky = Sky().with_every_depth()
+    conn.send(("ready", warmed))
     worker_context = WorkerContext(sky=sky)
     while True:
         try:

@@ -118,15 +118,16 @@ def build_context(*, database: str | None = None, host: str = "127.0.0.1",
         if sky is None:
             from app.identification import Sky
 
+            if config.search_processes:
+                # Before the Sky: the workers load (a first start: compile) their kernels while this process
+                # loads (builds) the indexes, then load the indexes it wrote (their lock, app.locks).  Not
+                # waited for: the server answers while the workers get ready (compute.kernels_ready).
+                compute = ComputePool(config.search_workers, bulk_processes=config.bulk_workers,
+                                      hard_limit_s=3 * config.search_timeout_s)
             log.info("loading the star catalogue and the bright-pair index...")
             sky = Sky().with_every_depth()  # a first start builds the deeper index the workers then load
             log.info("catalogue ready: %d stars to Hp %.1f, %d bright pairs", sky.index.n_stars,
                      sky.index.mag_limit, sky.index.n_pairs)
-            if config.search_processes:
-                # After the Sky: on a first start it built the index cache the workers now load.  Not waited
-                # for: the server answers while the workers load their kernels (compute.kernels_ready).
-                compute = ComputePool(config.search_workers, bulk_processes=config.bulk_workers,
-                                      hard_limit_s=3 * config.search_timeout_s)
     except BaseException:
         if compute is not None:
             compute.shutdown()

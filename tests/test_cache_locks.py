@@ -1,0 +1,48 @@
+"""Processes wanting the same derived data at once take turns (app.locks): the first builds, the others load.
+
+A server's workers now start while the server builds the bright-pair index on a first start: without the
+lock each would build it too.  The test holds the index's lock itself, as a first builder would, while
+another process asks for the same index; that process must load what the test wrote, not build its own.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from app.index import DEFAULT_INDEX_EPOCH, _build_and_keep, index_cache_path, load_index
+from app.locks import exclusive
+
+ROOT = Path(__file__).resolve().parents[1]
+
+ASK = '''
+import logging, sys
+from pathlib import Path
+logging.basicConfig(level=logging.INFO, format="%(message)s")
+from app.index import load_index
+print("asking", flush=True)
+index = load_index(mag_limit=2.5, max_edge_deg=30.0, cache_dir=Path(sys.argv[1]))
+print("pairs", index.n_pairs, flush=True)
+'''
+
+
+def test_a_process_asking_for_an_index_another_is_building_waits_and_loads_it(tmp_path):
+    path = index_cache_path(2.5, 30.0, cache_dir=tmp_path)
+    env = {**os.environ, "STARID_CACHE_DIR": str(tmp_path)}
+    with exclusive(path.with_suffix(".lock")) as locked:
+        assert locked
+        asking = subprocess.Popen([sys.executable, "-c", ASK, str(tmp_path)], cwd=ROOT, env=env, text=True,
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        assert asking.stdout.readline().strip() == "asking"  # it has looked, or is about to: no file yet
+        built = _build_and_keep(path, 2.5, 30.0, DEFAULT_INDEX_EPOCH)  # as the first builder does
+        assert asking.poll() is None  # still waiting for the lock
+    out, err = asking.communicate(timeout=120)
+    assert asking.returncode == 0, err
+    assert f"pairs {built.n_pairs}" in out
+    assert "building the bright-pair index" not in err  # loaded what the test wrote
+    again = load_index(mag_limit=2.5, max_edge_deg=30.0, cache_dir=tmp_path)
+    assert np.array_equal(again.star_a, built.star_a) and np.array_equal(again.length_rad, built.length_rad)
