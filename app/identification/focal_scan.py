@@ -95,8 +95,8 @@ class FocalScan:
                 np.ascontiguousarray(x.T) for x in stacked_edge_windows(patterns, options, self.edges))
 
     def batches(self):
-        """Yields (the batch's hypotheses, a :class:`ScanBatch`, the pattern features used so far), edge
-        batches of growing size as :func:`.hypotheses.bright_pair_batches`."""
+        """Yields (the batch's hypotheses by focal length, a :class:`ScanBatch`, the pattern features used so
+        far), edge batches of growing size as :func:`.hypotheses.bright_pair_batches`."""
         for e0, stop in edge_batches(len(self.edges)):
             yield self._batch(*self._nearest_step_hypotheses(e0, stop)), stop
 
