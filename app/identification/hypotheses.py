@@ -51,7 +51,7 @@ class Hypotheses:
 class PairHypotheses:
     """Hypotheses each mapping a catalogue pair onto a pattern edge (:func:`app.attitude.rotation_from_pair`),
     given by their rows: a search makes the rotations where it checks them and keeps the few it refines
-    (:func:`app.identification.verify.check_pair_hypotheses`); :attr:`rotations` makes them all."""
+    (:func:`check_pair_hypotheses`); :attr:`rotations` makes them all."""
 
     pattern_vectors: np.ndarray  # (S, m, 3) the pattern as seen at each focal length of these hypotheses
     index_vectors: np.ndarray  # (n, 3) the index's stars
