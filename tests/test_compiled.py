@@ -204,3 +204,43 @@ def test_a_warm_up_held_too_long_by_another_process_is_run_here_after_the_bound(
         waited = time.monotonic() - t0
     assert ran == [True] and Helper.killed and 0.3 <= waited < 5.0
     assert "._warm_held was held by another process for 0 s: compiled here" in caplog.text
+
+
+RUN_LAZY = '''
+import json, logging, sys
+logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+sys.path.insert(0, sys.argv[1])
+import tiny_kernels
+from app.compiled import warm_up
+report = warm_up(eager=False)
+before = sum(tiny_kernels.twice.stats.cache_hits.values()) + sum(tiny_kernels.twice.stats.cache_misses.values())
+value = tiny_kernels.twice(4.0)
+print(json.dumps({"report": report, "before_call": before, "value": value,
+                  "loaded_at_call": sum(tiny_kernels.twice.stats.cache_hits.values()),
+                  "compiled_at_call": sum(tiny_kernels.twice.stats.cache_misses.values())}))
+'''
+
+
+def test_a_search_s_warm_up_compiles_a_stale_cache_at_once_and_leaves_a_complete_one_to_load_as_used(tmp_path):
+    """warm_up(eager=False), a search's own call: with no cache it compiles every kernel before the search (one
+    line); with the cache complete it loads nothing itself, and a kernel loads from the cache at its first
+    call (nothing compiled there)."""
+    (tmp_path / "tiny_kernels.py").write_text(MODULE)
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env["STARID_CACHE_DIR"] = str(tmp_path / "cache")
+
+    def run() -> tuple[dict, str]:
+        done = subprocess.run([sys.executable, "-c", RUN_LAZY, str(tmp_path)], cwd=ROOT, env=env,
+                              capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, done.stderr
+        return json.loads(done.stdout.strip().splitlines()[-1]), done.stderr
+
+    first, log = run()
+    assert first["report"]["compiled"] == 1 and not first["report"].get("cached") and first["value"] == 8.0
+    assert first["before_call"] == 1 and first["compiled_at_call"] == 1  # compiled by the warm-up, before the call
+    assert sum("compiled 1 numba kernels in" in line for line in log.splitlines()) == 1
+    second, log = run()
+    assert second["report"] == {**second["report"], "cached": True, "compiled": 0, "loaded": 0}
+    assert second["before_call"] == 0  # nothing loaded by the warm-up ...
+    assert second["loaded_at_call"] == 1 and second["compiled_at_call"] == 0 and second["value"] == 8.0  # ... at the call
+    assert sum("each loads at its first call" in line for line in log.splitlines()) == 1 and "WARNING" not in log

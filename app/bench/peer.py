@@ -637,16 +637,19 @@ t2 = time.perf_counter()
 solved = solve_sequence(load_telemetry_file(sys.argv[1]), sky)
 t3 = time.perf_counter()
 print(json.dumps({"import_s": t1 - t0, "index_load_s": t2 - t1, "first_answer_s": t3 - t2,
-                  "status": solved.solution.status}))
+                  "status": solved.solution.status, "answered_at": time.time()}))
 """
 
 
 def measure_startup(seed: int, runs: int = STARTUP_RUNS) -> dict:
     """Our warm start in a fresh interpreter: imports, index load (Sky) and the first answer.
 
-    ``total_s`` is the subprocess's wall time, interpreter start included,
-    ``cpu_s`` its CPU time (less moved by other work on a shared machine);
-    the median and the worst of ``runs`` runs.  Warm as a user's second run
+    ``answer_s`` is the time from the subprocess's launch to its answer
+    (interpreter start, imports, index, the first sequence solved: what a
+    user waits for), ``total_s`` its whole wall time (the interpreter's
+    teardown after the answer included: ~0.15 s, freeing numba's compiled
+    code and the arrays), ``cpu_s`` its CPU time (less moved by other work
+    on a shared machine); the median and the worst of ``runs`` runs.  Warm as a user's second run
     is: a first run, not counted (``first_run_s``), leaves every cache warm -
     the index, the compiled kernels (it compiles them when their code
     changed), and Python's bytecode, which an install compiles or a first run
@@ -687,10 +690,10 @@ def measure_startup(seed: int, runs: int = STARTUP_RUNS) -> dict:
     good = [r for r in runs_out if "error" not in r]
     out = {"first_run_s": round(first["total_s"], 3) if "total_s" in first else first.get("error"),
            "runs": [{k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()} for r in runs_out]}
-    out.update(install_run_s=round(install["total_s"], 2) if "total_s" in install else None,
+    out.update(install_run_s=round(install["answer_s"], 2) if "answer_s" in install else None,
                install_cpu_s=round(install["cpu_s"], 1) if "cpu_s" in install else None,
                install_said=install.get("said") or install.get("error"))
-    for key in ("import_s", "index_load_s", "first_answer_s", "total_s", "cpu_s"):
+    for key in ("import_s", "index_load_s", "first_answer_s", "answer_s", "total_s", "cpu_s"):
         values = [r[key] for r in good]
         out[f"{key}_median"] = round(float(np.median(values)), 3) if values else None
         out[f"{key}_max"] = round(float(np.max(values)), 3) if values else None
@@ -700,7 +703,7 @@ def measure_startup(seed: int, runs: int = STARTUP_RUNS) -> dict:
 def _run_startup(path: Path, repo: Path, env: dict, children_cpu_s) -> dict:
     """One fresh process of :data:`_STARTUP_CODE` on ``path``: its report with ``total_s`` (wall) and
     ``cpu_s``, and ``said`` (the kernels' warm-up line it logged), or ``{"error": ...}``."""
-    t0, cpu0 = time.perf_counter(), children_cpu_s()
+    t0, cpu0, launched = time.perf_counter(), children_cpu_s(), time.time()
     try:
         done = subprocess.run([sys.executable, "-c", _STARTUP_CODE, str(path)], capture_output=True,
                               text=True, timeout=300, cwd=repo, env=env)
@@ -710,7 +713,8 @@ def _run_startup(path: Path, repo: Path, env: dict, children_cpu_s) -> dict:
     if done.returncode != 0:
         return {"error": _tail(done.stderr)}
     said = [line for line in done.stderr.splitlines() if "numba kernels" in line]
-    return {**json.loads(done.stdout.strip().splitlines()[-1]), "total_s": total, "cpu_s": cpu,
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    return {**report, "answer_s": report.pop("answered_at") - launched, "total_s": total, "cpu_s": cpu,
             "said": said[-1].strip() if said else None}
 
 
@@ -784,7 +788,7 @@ def run(n_sequences: int = 100, seed: int = 1) -> dict:
         "single_max_le_100ms": single["ours"]["ms_max"] is not None and single["ours"]["ms_max"] <= GOAL_SINGLE_MAX_MS,
         "sequence_median_le_1x_peer_single_median": ratios["sequence_median_vs_peer_single_median"] is not None
         and ratios["sequence_median_vs_peer_single_median"] <= GOAL_SEQUENCE_MEDIAN_RATIO,
-        "startup_le_1s": startup["total_s_max"] is not None and startup["total_s_max"] <= GOAL_STARTUP_S,
+        "startup_le_1s": startup["answer_s_max"] is not None and startup["answer_s_max"] <= GOAL_STARTUP_S,
         "first_run_after_install_le_15s": startup["install_run_s"] is not None
         and startup["install_run_s"] <= GOAL_FIRST_RUN_S,
         "no_star_p95_per_frame_le_1x_peer": all(row["per_frame_ratio_p95"] is not None
@@ -855,10 +859,11 @@ def format_table(result: dict) -> str:
               f"{f(r['sequence_median_vs_peer_single_median'], '.2f')}x, p95 "
               f"{f(r['sequence_p95_vs_peer_single_median'], '.2f')}x (CPU time: median "
               f"{f(r['sequence_median_vs_peer_single_median_cpu'], '.2f')}x)",
-              f"our start-up in a fresh process (median / worst of {len(s['runs'])}): total "
-              f"{f(s['total_s_median'], '.2f')} / {f(s['total_s_max'], '.2f')} s = imports "
+              f"our start-up in a fresh process (median / worst of {len(s['runs'])}): to the first answer "
+              f"{f(s['answer_s_median'], '.2f')} / {f(s['answer_s_max'], '.2f')} s = interpreter start + imports "
               f"{f(s['import_s_median'], '.2f')} s + index load {f(s['index_load_s_median'], '.2f')} s + first answer "
-              f"{f(s['first_answer_s_median'], '.2f')} s + interpreter start",
+              f"{f(s['first_answer_s_median'], '.2f')} s; the process ends at {f(s['total_s_median'], '.2f')} / "
+              f"{f(s['total_s_max'], '.2f')} s",
               f"the first run after an install (no compiled kernel cached): {f(s['install_run_s'], '.1f')} s to the "
               f"first answer, {f(s['install_cpu_s'], '.1f')} s of CPU; it said: {s['install_said']}",
               "speed goals: " + ", ".join(f"{k} {'met' if v else 'NOT met'}" for k, v in result["goals"].items())]

@@ -122,8 +122,9 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
     if METHODS[method].needs_prior and prior is None:
         raise ValueError(f"the {method} method needs a prior attitude")
     # Every kernel, the extraction's too, before the extraction runs: a first run compiles them all at once on
-    # every core (app.compiled) instead of the extraction's one by one at its first calls.
-    warm_up()
+    # every core (app.compiled) instead of the extraction's one by one at its first calls; with the cache
+    # complete, each loads at its first call.
+    warm_up(eager=False)
     extraction = extraction if extraction is not None else extract(sequence)
     pattern = pattern if pattern is not None else extraction.pattern
     t = sequence.snapshots[extraction.reference].time

@@ -66,7 +66,9 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     (:mod:`.scale_free`).  ``hypotheses_before`` counts hypotheses a caller tried already for this pattern
     (a search over scales): they enter the false-match probability.
     """
-    warm_up()  # the compiled kernels, once a process: compiling (a first run) never counts against the search's time
+    # The compiled kernels, once a process: compiling (a first run) never counts against the search's time;
+    # with the cache complete, each loads at its first call (app.compiled.warm_up).
+    warm_up(eager=False)
     generator = METHODS[method].hypotheses if method in METHODS else None
     if generator is None:
         lost_in_space = [name for name, m in METHODS.items() if m.hypotheses is not None]
