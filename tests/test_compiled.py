@@ -68,28 +68,33 @@ from app.compiled import njit, warm_up_with
 
 
 @njit
-def twice(x):
+def first(x):
+    return 1.0 * x
+
+
+@njit
+def middle(x):
     return 2.0 * x
 
 
 @njit
-def thrice(x):
+def last(x):
     return 3.0 * x
 
 
 @warm_up_with
-def _warm_twice():  # registered first: a helper's first pick
-    twice(1.5)
+def _warm_first():  # registered first: the first process's first pick; the helpers wait for it
+    first(1.5)
 
 
-def _twice_taken() -> bool:
-    """Whether another process holds _warm_twice's lock, or has compiled it (its cache index is written)."""
+def _last_taken() -> bool:
+    """Whether another process holds _warm_last's lock, or has compiled it (its cache index is written)."""
     import fcntl
 
     directory = Path(os.environ["NUMBA_CACHE_DIR"])
-    if list(directory.rglob("*twice*.nbi")):
+    if list(directory.rglob("*last*.nbi")):
         return True
-    with open(directory / f"warm-up.{__name__}._warm_twice.lock", "a") as lock:
+    with open(directory / f"warm-up.{__name__}._warm_last.lock", "a") as lock:
         try:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -99,32 +104,37 @@ def _twice_taken() -> bool:
 
 
 @warm_up_with
-def _warm_thrice():  # registered last: the first process's first pick, held until a helper has taken the other
-    thrice(1.5)
+def _warm_middle():  # the first process's second pick, held until a helper has taken the last
+    middle(1.5)
     deadline = time.monotonic() + 60.0
-    while not _twice_taken():
+    while not _last_taken():
         if time.monotonic() > deadline:
-            raise RuntimeError("no helper took the other warm-up within 60 s")
+            raise RuntimeError("no helper took the last warm-up within 60 s")
         time.sleep(0.01)
+
+
+@warm_up_with
+def _warm_last():  # registered last: a helper's first pick once the first is done
+    last(1.5)
 '''
 
 SHARED_RUN = '''
 import json, logging, sys
 logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
 sys.path.insert(0, sys.argv[1])
-import shared_kernels
+import shared_kernels as k
 from app.compiled import warm_up
 report = warm_up()
-print(json.dumps({"report": report, "values": [shared_kernels.twice(4.0), shared_kernels.thrice(4.0)],
-                  "twice_loaded": sum(shared_kernels.twice.stats.cache_hits.values()),
-                  "thrice_compiled": sum(shared_kernels.thrice.stats.cache_misses.values())}))
+print(json.dumps({"report": report, "values": [k.first(4.0), k.middle(4.0), k.last(4.0)],
+                  "compiled_here": [sum(f.stats.cache_misses.values()) for f in (k.first, k.middle, k.last)],
+                  "loaded_here": [sum(f.stats.cache_hits.values()) for f in (k.first, k.middle, k.last)]}))
 '''
 
 
 def test_a_first_run_shares_the_compiling_with_a_helper_process_and_the_next_starts_none(tmp_path):
-    """Two warm-ups, two processes: the first process takes the last registered, its helper the first; the
-    first then loads what the helper compiled.  (The first's warm-up holds on until the helper has the other, so
-    that the sharing is not left to how fast a process starts.)"""
+    """Three warm-ups, two processes: the first process takes them in order, its helper waits for the first then
+    takes the last; the first process then loads what the helper compiled.  (Its second warm-up holds on until
+    the helper has the last, so that the sharing is not left to how fast a process starts.)"""
     (tmp_path / "shared_kernels.py").write_text(SHARED_MODULE)
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
     env.update(STARID_CACHE_DIR=str(tmp_path / "cache"), STARID_COMPILE_PROCESSES="2")
@@ -136,15 +146,15 @@ def test_a_first_run_shares_the_compiling_with_a_helper_process_and_the_next_sta
         return json.loads(done.stdout.strip().splitlines()[-1]), done.stderr
 
     out, log = run()
-    assert out["values"] == [8.0, 12.0]
-    assert out["thrice_compiled"] == 1 and out["twice_loaded"] == 1  # the helper compiled twice, this loaded it
-    assert out["report"]["compiled"] == 2 and out["report"]["loaded"] == 0 and out["report"]["processes"] == 2
+    assert out["values"] == [4.0, 8.0, 12.0]
+    assert out["compiled_here"] == [1, 1, 0] and out["loaded_here"] == [0, 0, 1]  # the helper compiled the last
+    assert out["report"]["compiled"] == 3 and out["report"]["loaded"] == 0 and out["report"]["processes"] == 2
     said = [line for line in log.splitlines() if "numba kernels" in line or "compiled kernels" in line]
-    assert len(said) == 1 and said[0].startswith("WARNING compiled 2 numba kernels in ") and "on 2 cores" in said[0]
-    # The cache now holds both as their sources are: the next process loads them, alone.
+    assert len(said) == 1 and said[0].startswith("WARNING compiled 3 numba kernels in ") and "on 2 cores" in said[0]
+    # The cache now holds them as their sources are: the next process loads them, alone.
     out, log = run()
-    assert out["report"] == {**out["report"], "compiled": 0, "loaded": 2, "processes": 1}
-    assert sum("loaded 2 compiled kernels" in line for line in log.splitlines()) == 1
+    assert out["report"] == {**out["report"], "compiled": 0, "loaded": 3, "processes": 1}
+    assert sum("loaded 3 compiled kernels" in line for line in log.splitlines()) == 1
 
 
 def test_searches_call_every_kernel_only_with_types_the_warm_up_compiled():
