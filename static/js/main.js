@@ -352,7 +352,10 @@ function setupSearch() {
     $(id).addEventListener("input", () => { $("prior-given").checked = true; });
   }
   $("prior-from-candidate").addEventListener("click", () => {
-    const c = state.view?.candidate;
+    // The shown rank's candidate of the latest search: its detail is current as soon as the search is (the
+    // candidate's view, with its sky, arrives a request later; a click between took no prior and a
+    // tracking search then found nothing).
+    const c = state.detail?.search?.candidates?.[(state.rank ?? 1) - 1] ?? state.view?.candidate;
     if (!c) { toast("No candidate shown to start from", "error"); return; }
     $("prior-ra").value = fmt(c.ra_deg, 4); $("prior-dec").value = fmt(c.dec_deg, 4); $("prior-roll").value = fmt(c.roll_deg, 3);
     $("prior-given").checked = true;
