@@ -114,9 +114,9 @@ def warm_up(say: bool = True, eager: bool = True) -> dict:
     ``eager=False`` (a search's own call, :func:`app.identification.solve_sequence`): when the cache holds
     every kernel as its source is now (:func:`_cache_current`), none is loaded here; each loads from the cache
     at its first call (~10 ms; a nominal sequence's solve uses 15 of 24), and the report says ``"loaded": 0,
-    "cached": True``.  A fresh process answered its first sequence in 0.63 s instead of 0.94 (in-process,
-    2026-11-26).  Otherwise (a first run) as eager: every kernel compiled now, before the search's clock.  A
-    server's workers and a batch's warm up eagerly: they start once and answer many.
+    "cached": True``: a fresh process's first sequence took 0.31-0.32 s instead of 0.36-0.38 (its answer 0.96 s
+    after launch, 2026-11-26).  Otherwise (a first run) as eager: every kernel compiled now, before the
+    search's clock.  A server's workers and a batch's warm up eagerly: they start once and answer many.
     """
     global _warmed, _report
     if _warmed or (_report.get("cached") and not eager):
@@ -173,8 +173,8 @@ def _cache_lock() -> Iterator[Path | None]:
 
     Not the warm-up locks alone, letting every process take warm-ups at once: the kernels call one another,
     so several processes compiled the same callees, and three processes on two cores took 78 s to be warm
-    against 37 s taking turns (one run each on a busy machine, 2026-11-25).  The first process's helpers
-    are as many as the cores, and take the warm-ups callees first."""
+    against 37 s taking turns (one run each on a busy machine, 2026-11-25).  Only the first process's own
+    helpers share its warm-ups (:func:`_take_turns`)."""
     directory = Path(os.environ["NUMBA_CACHE_DIR"])
     with exclusive(directory / "warm-up.lock") as locked:
         yield directory if locked else None
