@@ -49,8 +49,9 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import IO, Callable, Iterator
 
 from app.config import settings
 from app.locks import exclusive
@@ -180,8 +181,16 @@ def _cache_lock() -> Iterator[Path | None]:
         yield directory if locked else None
 
 
-def _take_turns(functions: list[Callable[[], None]], directory: Path,
-                helpers: list[subprocess.Popen] | None = None) -> None:
+@dataclass(frozen=True)
+class _Helper:
+    """A compile helper process and the temporary files its output goes to."""
+
+    process: subprocess.Popen
+    out: IO[str]
+    err: IO[str]
+
+
+def _take_turns(functions: list[Callable[[], None]], directory: Path, helpers: list[_Helper] | None = None) -> None:
     """Run each warm-up that no other process holds, holding its lock file meanwhile.  With ``helpers`` (the
     first process's; none: it started none), then the ones skipped, each once its holder is done (a load
     from the cache it wrote), or after :data:`WARM_UP_WAIT_S` without it (the helpers are stopped and it
@@ -193,7 +202,7 @@ def _take_turns(functions: list[Callable[[], None]], directory: Path,
     for function in skipped:
         if not _run_holding_its_lock(function, directory, deadline):
             for helper in helpers:
-                helper.kill()
+                helper.process.kill()
             log.warning("%s.%s was held by another process for %.0f s: compiled here", function.__module__,
                         function.__qualname__, WARM_UP_WAIT_S)
             function()
@@ -232,7 +241,7 @@ def _compile_processes() -> int:
     return max(1, min(cores, MAX_COMPILE_PROCESSES))
 
 
-def _start_helpers(functions: list[Callable[[], None]]) -> list[subprocess.Popen]:
+def _start_helpers(functions: list[Callable[[], None]]) -> list[_Helper]:
     """Start :func:`_compile_processes` - 1 helper processes taking warm-ups from ``functions``' modules
     (:func:`helper_main`); none where they cannot start (said in the log: this process compiles alone).
 
@@ -247,15 +256,14 @@ def _start_helpers(functions: list[Callable[[], None]]) -> list[subprocess.Popen
     for _ in range(_compile_processes() - 1):
         out, err = tempfile.TemporaryFile("w+"), tempfile.TemporaryFile("w+")
         try:
-            helper = subprocess.Popen([sys.executable, "-c", _HELPER, *modules], env=env, stdout=out, stderr=err,
-                                      text=True)
+            process = subprocess.Popen([sys.executable, "-c", _HELPER, *modules], env=env, stdout=out, stderr=err,
+                                       text=True)
         except OSError as exc:
             out.close()
             err.close()
             log.warning("a compile helper could not start (%s): compiling in one process", exc)
             break
-        helper.output_files = (out, err)
-        helpers.append(helper)
+        helpers.append(_Helper(process, out, err))
     return helpers
 
 
@@ -264,8 +272,8 @@ _HELPER = "import sys; from app.compiled import helper_main; helper_main(sys.arg
 
 
 def helper_main(modules: list[str]) -> None:
-    """A compile helper (:func:`_start_helpers`): import ``modules``, take the warm-ups no other process holds
-    (never waiting for one), print ``{"compiled": n}``."""
+    """A compile helper (:func:`_start_helpers`): import ``modules``, wait for the first warm-up, take the others
+    no other process holds (from the last), print ``{"compiled": n}``."""
     import importlib
     import json
 
@@ -282,17 +290,17 @@ def helper_main(modules: list[str]) -> None:
     print(json.dumps({"compiled": sum(sum(k.stats.cache_misses.values()) for k in _kernels)}))
 
 
-def _joined(helper: subprocess.Popen) -> int:
+def _joined(helper: _Helper) -> int:
     """Wait for a helper (at most :data:`HELPER_GRACE_S`: every warm-up is done by now, it only finishes
     loading); the kernels it compiled (0 if it failed: said in the log)."""
     import json
 
     try:
-        helper.wait(timeout=HELPER_GRACE_S)
+        helper.process.wait(timeout=HELPER_GRACE_S)
     except subprocess.TimeoutExpired:
-        helper.kill()
-        helper.wait()
-    out, err = helper.output_files
+        helper.process.kill()
+        helper.process.wait()
+    out, err = helper.out, helper.err
     with out, err:
         out.seek(0)
         err.seek(0)
@@ -300,7 +308,7 @@ def _joined(helper: subprocess.Popen) -> int:
         try:
             return int(json.loads(lines[-1])["compiled"])
         except (ValueError, KeyError, IndexError):
-            log.warning("a compile helper failed (exit %s): %s", helper.returncode, err.read().strip()[-500:])
+            log.warning("a compile helper failed (exit %s): %s", helper.process.returncode, err.read().strip()[-500:])
             return 0
 
 

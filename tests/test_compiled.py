@@ -199,20 +199,20 @@ def test_a_warm_up_held_too_long_by_another_process_is_run_here_after_the_bound(
     def _warm_held():
         ran.append(True)
 
-    class Helper:
+    class Process:  # a helper's process as far as the bound sees it
         killed = False
 
         def kill(self):
-            Helper.killed = True
+            Process.killed = True
 
     monkeypatch.setattr(compiled, "WARM_UP_WAIT_S", 0.3)
     with open(tmp_path / f"warm-up.{_warm_held.__module__}.{_warm_held.__qualname__}.lock", "a") as held:
         fcntl.flock(held, fcntl.LOCK_EX)  # another open file: flock conflicts as with another process
         t0 = time.monotonic()
         with caplog.at_level(logging.WARNING, logger="app.compiled"):
-            compiled._take_turns([_warm_held], tmp_path, [Helper()])
+            compiled._take_turns([_warm_held], tmp_path, [compiled._Helper(Process(), None, None)])
         waited = time.monotonic() - t0
-    assert ran == [True] and Helper.killed and 0.3 <= waited < 5.0
+    assert ran == [True] and Process.killed and 0.3 <= waited < 5.0
     assert "._warm_held was held by another process for 0 s: compiled here" in caplog.text
 
 
