@@ -35,11 +35,12 @@ print(json.dumps({"first": first, "again": again, "value": tiny_kernels.twice(4.
 '''
 
 
-def _run(tmp_path: Path) -> tuple[dict, str]:
+def _run(tmp_path: Path, program: str = RUN, **env_extra: str) -> tuple[dict, str]:
+    """``program`` in a fresh interpreter, its kernel cache in ``tmp_path``: its last line's JSON and its log."""
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
-    env["STARID_CACHE_DIR"] = str(tmp_path / "cache")
-    done = subprocess.run([sys.executable, "-c", RUN, str(tmp_path)], cwd=ROOT, env=env, capture_output=True,
-                          text=True, timeout=120)
+    env.update(STARID_CACHE_DIR=str(tmp_path / "cache"), **env_extra)
+    done = subprocess.run([sys.executable, "-c", program, str(tmp_path)], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=180)
     assert done.returncode == 0, done.stderr
     return json.loads(done.stdout.strip().splitlines()[-1]), done.stderr
 
@@ -136,14 +137,9 @@ def test_a_first_run_shares_the_compiling_with_a_helper_process_and_the_next_sta
     takes the last; the first process then loads what the helper compiled.  (Its second warm-up holds on until
     the helper has the last, so that the sharing is not left to how fast a process starts.)"""
     (tmp_path / "shared_kernels.py").write_text(SHARED_MODULE)
-    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
-    env.update(STARID_CACHE_DIR=str(tmp_path / "cache"), STARID_COMPILE_PROCESSES="2")
 
     def run() -> tuple[dict, str]:
-        done = subprocess.run([sys.executable, "-c", SHARED_RUN, str(tmp_path)], cwd=ROOT, env=env,
-                              capture_output=True, text=True, timeout=180)
-        assert done.returncode == 0, done.stderr
-        return json.loads(done.stdout.strip().splitlines()[-1]), done.stderr
+        return _run(tmp_path, SHARED_RUN, STARID_COMPILE_PROCESSES="2")
 
     out, log = run()
     assert out["values"] == [4.0, 8.0, 12.0]
@@ -236,14 +232,9 @@ def test_a_search_s_warm_up_compiles_a_stale_cache_at_once_and_leaves_a_complete
     line); with the cache complete it loads nothing itself, and a kernel loads from the cache at its first
     call (nothing compiled there)."""
     (tmp_path / "tiny_kernels.py").write_text(MODULE)
-    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
-    env["STARID_CACHE_DIR"] = str(tmp_path / "cache")
 
     def run() -> tuple[dict, str]:
-        done = subprocess.run([sys.executable, "-c", RUN_LAZY, str(tmp_path)], cwd=ROOT, env=env,
-                              capture_output=True, text=True, timeout=120)
-        assert done.returncode == 0, done.stderr
-        return json.loads(done.stdout.strip().splitlines()[-1]), done.stderr
+        return _run(tmp_path, RUN_LAZY)
 
     first, log = run()
     assert first["report"]["compiled"] == 1 and not first["report"].get("cached") and first["value"] == 8.0
