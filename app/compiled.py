@@ -54,7 +54,7 @@ from pathlib import Path
 from typing import IO, Callable, Iterator
 
 from app.config import settings
-from app.locks import exclusive
+from app.cache import exclusive
 
 log = logging.getLogger(__name__)
 

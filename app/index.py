@@ -36,7 +36,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,7 +45,7 @@ from scipy.spatial import cKDTree
 
 from app.catalogue import Catalogue, load_catalogue
 from app.config import settings
-from app.locks import exclusive
+from app.cache import exclusive, keep_arrays, kept_arrays
 
 log = logging.getLogger(__name__)
 
@@ -280,7 +279,7 @@ def load_index(mag_limit: float = DEFAULT_INDEX_MAG_LIMIT, max_edge_deg: float =
                rebuild: bool = False) -> BrightPairIndex:
     """The index from the disk cache, building (and caching) it when missing.
 
-    Processes wanting it at once take turns (:func:`app.locks.exclusive` on the file's lock): the first
+    Processes wanting it at once take turns (:func:`app.cache.exclusive` on the file's lock): the first
     builds it, the others load what it wrote (a server's workers start while the server builds it).
     """
     path = index_cache_path(mag_limit, max_edge_deg, epoch_jyear, cache_dir)
@@ -295,30 +294,26 @@ def load_index(mag_limit: float = DEFAULT_INDEX_MAG_LIMIT, max_edge_deg: float =
 
 def _cached_index(path: Path) -> BrightPairIndex | None:
     """The index kept at ``path``; None when there is none (or it cannot be read: then it is built again)."""
-    if not path.exists():
+    z = kept_arrays(path)
+    if z is None:
         return None
     try:
-        with np.load(path) as z:
-            return BrightPairIndex(star_a=z["star_a"], star_b=z["star_b"], length_rad=z["length_rad"],
-                                   vectors=z["vectors"], hip=z["hip"], mag=z["mag"],
-                                   mag_limit=float(z["mag_limit"]), max_edge_rad=float(z["max_edge_rad"]),
-                                   epoch_jyear=float(z["epoch_jyear"]))
-    except (OSError, KeyError, ValueError) as exc:  # a damaged cache is rebuilt, never trusted
-        log.warning("index cache %s unreadable (%s); rebuilding", path, exc)
+        return BrightPairIndex(star_a=z["star_a"], star_b=z["star_b"], length_rad=z["length_rad"], vectors=z["vectors"],
+                               hip=z["hip"], mag=z["mag"], mag_limit=float(z["mag_limit"]),
+                               max_edge_rad=float(z["max_edge_rad"]), epoch_jyear=float(z["epoch_jyear"]))
+    except KeyError as exc:  # an older layout: rebuilt, never trusted
+        log.warning("index cache %s lacks %s; rebuilding", path, exc)
         return None
 
 
 def _build_and_keep(path: Path, mag_limit: float, max_edge_deg: float, epoch_jyear: float) -> BrightPairIndex:
-    """Build the index and keep it at ``path`` (through a temporary file and an atomic rename)."""
+    """Build the index and keep it at ``path`` (:func:`app.cache.keep_arrays`)."""
     t0 = time.perf_counter()
     log.info("building the bright-pair index (stars to Hp %.1f, edges to %.0f deg)...", mag_limit, max_edge_deg)
     index = build_index(mag_limit=mag_limit, max_edge_deg=max_edge_deg, epoch_jyear=epoch_jyear)
     log.info("bright-pair index: %d stars, %d pairs (%.1f per star), built in %.2f s",
              index.n_stars, index.n_pairs, index.n_pairs / max(1, index.n_stars), time.perf_counter() - t0)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")  # one per process: two may build at once
-    np.savez(tmp, star_a=index.star_a, star_b=index.star_b, length_rad=index.length_rad,
-             vectors=index.vectors, hip=index.hip, mag=index.mag, mag_limit=index.mag_limit,
-             max_edge_rad=index.max_edge_rad, epoch_jyear=index.epoch_jyear)
-    tmp.replace(path)  # atomic: a concurrent reader never sees half a file
+    keep_arrays(path, star_a=index.star_a, star_b=index.star_b, length_rad=index.length_rad, vectors=index.vectors,
+                hip=index.hip, mag=index.mag, mag_limit=index.mag_limit, max_edge_rad=index.max_edge_rad,
+                epoch_jyear=index.epoch_jyear)
     return index

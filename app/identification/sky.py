@@ -6,8 +6,6 @@ import hashlib
 import json
 import logging
 import math
-import os
-import zipfile
 from collections import OrderedDict
 from datetime import datetime
 from pathlib import Path
@@ -21,7 +19,7 @@ from app.identification.cells import MAX_SPACECRAFT_SPEED_KM_S, MAX_YEARS, NearS
 from app.identification.triangle_index import BrightTriangles, bright_triangles
 from app.identification.verify import StarField, chord
 from app.index import BrightPairIndex, load_index
-from app.locks import exclusive
+from app.cache import exclusive, keep_arrays, kept_arrays
 
 log = logging.getLogger(__name__)
 
@@ -42,18 +40,6 @@ def _observer_key(velocity_km_s):
     if velocity_km_s is None or is_mean_place(velocity_km_s):
         return velocity_km_s
     return tuple(np.round(velocity_km_s, 3))
-
-
-def _kept_arrays(path: Path) -> dict[str, np.ndarray] | None:
-    """The arrays kept at ``path``; None when there are none (or they cannot be read: then made again)."""
-    try:
-        with np.load(path) as z:
-            return {k: z[k] for k in z.files}
-    except FileNotFoundError:
-        return None
-    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
-        log.warning("cache %s unreadable (%s); making it again", path, exc)
-        return None
 
 
 class Sky:
@@ -197,24 +183,18 @@ class Sky:
 
         digest = hashlib.sha256(json.dumps(params, sort_keys=True).encode()).hexdigest()[:16]
         path = Path(settings().cache_dir) / f"{name}-{digest}.npz"
-        arrays = _kept_arrays(path)
+        arrays = kept_arrays(path)
         if arrays is not None:
             return arrays
         with exclusive(path.with_suffix(".lock")):  # processes wanting it at once: the first makes it
-            arrays = _kept_arrays(path)  # made by another process while this one waited
+            arrays = kept_arrays(path)  # made by another process while this one waited
             return arrays if arrays is not None else self._make_and_keep(path, name, make)
 
     @staticmethod
     def _make_and_keep(path: Path, name: str, make) -> dict[str, np.ndarray]:
-        """``make()``, written to ``path`` (through a temporary file and an atomic rename)."""
+        """``make()``, kept at ``path`` (:func:`app.cache.keep_arrays`)."""
         arrays = make()
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
-            np.savez(tmp, **arrays)
-            tmp.replace(path)  # atomic: a concurrent reader never sees half a file
-        except OSError as exc:
-            log.info("cache %s not written (%s)", path, exc)
+        keep_arrays(path, **arrays)
         # The least recently made beyond MAX_CACHED_FILES go: a camera uses one or two maps, and ever new
         # cameras must not fill the disk.
         files = sorted(path.parent.glob(f"{name}-*.npz"), key=lambda f: f.stat().st_mtime, reverse=True)

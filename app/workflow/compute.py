@@ -206,7 +206,7 @@ def _worker_main(conn, server_pid: int, load_sky: bool, niceness: int, kernel_mo
         from app.identification import Sky
 
         # From the cache the server made (narrow fields need Hp 8); on a first start, once the server has
-        # built it (the index's lock, app.locks).
+        # built it (the index's lock, app.cache).
         sky = Sky().with_every_depth()
     conn.send(("ready", warmed))
     worker_context = WorkerContext(sky=sky)

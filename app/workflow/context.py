@@ -120,7 +120,7 @@ def build_context(*, database: str | None = None, host: str = "127.0.0.1",
 
             if config.search_processes:
                 # Before the Sky: the workers load (a first start: compile) their kernels while this process
-                # loads (builds) the indexes, then load the indexes it wrote (their lock, app.locks).  Not
+                # loads (builds) the indexes, then load the indexes it wrote (their lock, app.cache).  Not
                 # waited for: the server answers while the workers get ready (compute.kernels_ready).
                 compute = ComputePool(config.search_workers, bulk_processes=config.bulk_workers,
                                       hard_limit_s=3 * config.search_timeout_s)

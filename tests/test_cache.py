@@ -1,4 +1,4 @@
-"""Processes wanting the same derived data at once take turns (app.locks): the first builds, the others load.
+"""Processes wanting the same derived data at once take turns (app.cache): the first builds, the others load.
 
 A server's workers now start while the server builds the bright-pair index on a first start: without the
 lock each would build it too.  The test holds the index's lock itself, as a first builder would, while
@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from app.index import DEFAULT_INDEX_EPOCH, _build_and_keep, index_cache_path, load_index
-from app.locks import exclusive
+from app.cache import exclusive
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -46,3 +46,23 @@ def test_a_process_asking_for_an_index_another_is_building_waits_and_loads_it(tm
     assert "building the bright-pair index" not in err  # loaded what the test wrote
     again = load_index(mag_limit=2.5, max_edge_deg=30.0, cache_dir=tmp_path)
     assert np.array_equal(again.star_a, built.star_a) and np.array_equal(again.length_rad, built.length_rad)
+
+
+def test_a_damaged_index_is_built_again_and_an_unwritable_cache_is_only_said(tmp_path, caplog):
+    """The index and the sky's maps share one loader and one writer (app.cache): a truncated file is made
+    again, never trusted (the index once let numpy's BadZipFile through), and a cache directory that cannot
+    be written leaves the index built in memory, said in the log."""
+    import logging
+
+    built = load_index(mag_limit=2.5, max_edge_deg=30.0, cache_dir=tmp_path)
+    path = index_cache_path(2.5, 30.0, cache_dir=tmp_path)
+    path.write_bytes(path.read_bytes()[:100])  # truncated: not a zip archive any more
+    with caplog.at_level(logging.WARNING, logger="app.cache"):
+        again = load_index(mag_limit=2.5, max_edge_deg=30.0, cache_dir=tmp_path)
+    assert "unreadable" in caplog.text and np.array_equal(again.star_a, built.star_a)
+    blocked = tmp_path / "not-a-directory"
+    blocked.write_text("a file where the cache directory should be")
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="app.cache"):
+        made = load_index(mag_limit=2.5, max_edge_deg=30.0, cache_dir=blocked)
+    assert np.array_equal(made.length_rad, built.length_rad) and "not written" in caplog.text
