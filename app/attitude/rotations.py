@@ -159,6 +159,14 @@ def triads_rotation(b, r):
 
 
 @njit
+def rotation_into(out, R):
+    """Write :func:`triads_rotation`'s nine numbers (row by row) into the (3, 3) array ``out``."""
+    out[0, 0], out[0, 1], out[0, 2] = R[0], R[1], R[2]
+    out[1, 0], out[1, 1], out[1, 2] = R[3], R[4], R[5]
+    out[2, 0], out[2, 1], out[2, 2] = R[6], R[7], R[8]
+
+
+@njit
 def _rotations_from_pairs(b1, b2, r1, r2):
     """:func:`rotation_from_pair` of (N, 3) stacks: (N, 3, 3)."""
     N = b1.shape[0]
@@ -166,9 +174,7 @@ def _rotations_from_pairs(b1, b2, r1, r2):
     for k in range(N):
         R = triads_rotation(pair_triad(b1[k, 0], b1[k, 1], b1[k, 2], b2[k, 0], b2[k, 1], b2[k, 2]),
                             pair_triad(r1[k, 0], r1[k, 1], r1[k, 2], r2[k, 0], r2[k, 1], r2[k, 2]))
-        out[k, 0, 0], out[k, 0, 1], out[k, 0, 2] = R[0], R[1], R[2]
-        out[k, 1, 0], out[k, 1, 1], out[k, 1, 2] = R[3], R[4], R[5]
-        out[k, 2, 0], out[k, 2, 1], out[k, 2, 2] = R[6], R[7], R[8]
+        rotation_into(out[k], R)
     return out
 
 

@@ -35,7 +35,7 @@ import math
 
 import numpy as np
 
-from app.attitude.rotations import pair_triad, triads_rotation
+from app.attitude.rotations import pair_triad, rotation_into, triads_rotation
 from app.compiled import njit, warm_up_with
 
 #: The map holds for observation times within this many years of the stars' epoch ...
@@ -487,9 +487,7 @@ def check_pairs_kernel(pattern_vectors, steps, pattern_edge, catalogue_pair, ind
                 total += tol
         if count >= min_matches:
             rows[kept], n_match[kept], deviation[kept] = h, count, total
-            rotations[kept, 0, 0], rotations[kept, 0, 1], rotations[kept, 0, 2] = R[0], R[1], R[2]
-            rotations[kept, 1, 0], rotations[kept, 1, 1], rotations[kept, 1, 2] = R[3], R[4], R[5]
-            rotations[kept, 2, 0], rotations[kept, 2, 1], rotations[kept, 2, 2] = R[6], R[7], R[8]
+            rotation_into(rotations[kept], R)
             kept += 1
     return rows[:kept], n_match[:kept], deviation[:kept], rotations[:kept]
 

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import bdtrc  # binomial survival function
 
-from app.attitude.rotations import pair_triad, triads_rotation, wahba_rotation
+from app.attitude.rotations import pair_triad, rotation_into, triads_rotation, wahba_rotation
 from app.compiled import njit, warm_up_with
 from app.identification.candidates import PreparedPattern
 from app.identification.cells import NearStarCells, cell_of, listed_stars, nearest_star
@@ -79,14 +79,6 @@ class FocalEstimate:
     rotation: np.ndarray  # (3, 3) ICRS -> camera, fitted with the focal length on the caught points
     pattern_edge: tuple[int, int]  # the matched triangle's longest side: pattern rows ...
     catalogue_pair: tuple[int, int]  # ... and the star rows matched to them
-
-
-def _directions(plane: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """(H, m, 3) unit vectors of the points ``plane`` (m, 2) (normalised coordinates at the declared focal
-    length) seen at each of the focal lengths ``declared / scale`` (``scale`` (H,))."""
-    xy = plane[None] * np.asarray(scale, dtype=float)[:, None, None]
-    v = np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], axis=2)
-    return v / np.linalg.norm(v, axis=2, keepdims=True)
 
 
 def _namings(triangle: np.ndarray, sides: np.ndarray, error: float) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -134,7 +126,8 @@ def estimate_focal_length(pattern_triangles: np.ndarray, plane: np.ndarray, foca
     shape matches checked appended (also when none passes: a search over scales counts them all).
     """
     m = plane.shape[0]
-    v = _directions(plane, np.ones(1))[0]
+    v = np.column_stack([plane, np.ones(m)])
+    v /= np.linalg.norm(v, axis=1, keepdims=True)  # the points' directions at the declared focal length
     named = [(c, sides, float(err))
              for t, s, err in zip(pattern_triangles, sides_of(v[pattern_triangles]), side_error_rad)
              for c, sides in _namings(t, s, float(err))]
@@ -221,7 +214,8 @@ def _fitted_focal_length(plane, declared_px, start_px, stars):
 
 @njit
 def _seen_at(plane, scale, out):
-    """:func:`_directions` of one scale, written into ``out`` (m, 3)."""
+    """The unit vectors (m, 3) of the points ``plane`` (normalised coordinates at the declared focal length)
+    seen at the focal length ``declared / scale``, written into ``out``."""
     for k in range(plane.shape[0]):
         x, y = plane[k, 0] * scale, plane[k, 1] * scale
         norm = np.sqrt(x * x + y * y + 1.0)
@@ -244,9 +238,7 @@ def _pair_rotation(v, c0, c1, a, b):
     R = triads_rotation(pair_triad(v[c0, 0], v[c0, 1], v[c0, 2], v[c1, 0], v[c1, 1], v[c1, 2]),
                         pair_triad(a[0], a[1], a[2], b[0], b[1], b[2]))
     out = np.empty((3, 3))
-    for r in range(3):
-        for c in range(3):
-            out[r, c] = R[3 * r + c]
+    rotation_into(out, R)
     return out
 
 
