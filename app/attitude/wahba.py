@@ -34,23 +34,14 @@ def wahba_covariance(body: np.ndarray, sigma_rad: np.ndarray) -> np.ndarray:
         body, w = body.reshape(-1, 3), w.reshape(-1)
     if body.ndim == 2:  # one attitude (a candidate asks for one at a time, six a search): compiled, 1 us not 23
         return _covariance_of_one(np.ascontiguousarray(body), np.ascontiguousarray(w))
-    info = w.sum(axis=-1)[..., None, None] * np.eye(3) - np.einsum("...n,...ni,...nj->...ij", w, body, body)
-    # The inverse by cofactors, stack-wide (numpy's inverse raises for the whole stack on one
-    # singular matrix; a 3x3 adjugate is also cheaper than its call overhead).
-    a, b, c = info[..., 0, 0], info[..., 0, 1], info[..., 0, 2]
-    d, e, f = info[..., 1, 0], info[..., 1, 1], info[..., 1, 2]
-    g, h, i = info[..., 2, 0], info[..., 2, 1], info[..., 2, 2]
-    adjugate = np.stack([e * i - f * h, c * h - b * i, b * f - c * e,
-                         f * g - d * i, a * i - c * g, c * d - a * f,
-                         d * h - e * g, b * g - a * h, a * e - b * d], axis=-1).reshape(info.shape)
-    det = a * adjugate[..., 0, 0] + b * adjugate[..., 1, 0] + c * adjugate[..., 2, 0]
-    # A singular information matrix (fewer than two usable directions): inf, not a huge number.
-    well_posed = np.abs(det) > 1e-12 * np.abs(a + e + i) ** 3
-    with np.errstate(all="ignore"):
-        cov = adjugate / np.where(well_posed, det, np.nan)[..., None, None]
-    bad = ~well_posed | ~np.isfinite(cov).all(axis=(-2, -1)) | (np.diagonal(cov, axis1=-2, axis2=-1) < 0).any(axis=-1)
-    cov[bad] = np.inf
-    return cov
+    # A stack (a sequence fit's snapshots): one compiled inverse per attitude.
+    body, w = np.broadcast_arrays(body, w[..., None])
+    stack = np.array(body.reshape(-1, *body.shape[-2:]))  # writable copies: the one signature compiled
+    weights = np.array(w[..., 0].reshape(-1, body.shape[-2]))
+    cov = np.empty((len(stack), 3, 3))
+    for k in range(len(stack)):
+        cov[k] = _covariance_of_one(stack[k], weights[k])
+    return cov.reshape(body.shape[:-2] + (3, 3))
 
 
 def cross_boresight_and_roll_sigma(cov: np.ndarray) -> tuple[float, float]:
@@ -62,9 +53,9 @@ def cross_boresight_and_roll_sigma(cov: np.ndarray) -> tuple[float, float]:
 def _covariance_of_one(body: np.ndarray, w: np.ndarray) -> np.ndarray:
     """:func:`wahba_covariance` of one attitude: ``body`` (N, 3), weights ``w`` (N,) = 1 / sigma^2.
 
-    The information matrix summed point by point, then the same adjugate,
-    determinant test and checks as the stack-wide code (its values to the
-    last bits: the sums' order differs).
+    The information matrix summed point by point, inverted by its adjugate
+    (cheaper than a call of a general inverse on nine numbers); a singular
+    one (fewer than two usable directions) gives ``inf``, not a huge number.
     """
     info = np.zeros((3, 3))
     total = 0.0
