@@ -151,7 +151,7 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
                 c = fit_sequence_camera(sequence, extraction, c, sky.for_camera(c.camera or sequence.camera))
             fit = fit_sequence(sequence, extraction, pattern, c, sky.for_camera(c.camera or sequence.camera))
             if fit is not None and isinstance(pattern_fit, CameraAttitudeFit):
-                fit = _with_optics_uncertainty(fit, pattern_fit, c.camera_fit)
+                fit = _fit_with_optics_uncertainty(fit, pattern_fit, c.camera_fit)
         rate_deg_s = math.degrees(float(np.linalg.norm(fit.rate_rad_s))) if fit is not None else 0.0
         if rate_deg_s > MAX_PLAUSIBLE_RATE_DEG_S:
             notes.append(f"the sequence fit of candidate {c.rank} gives a body rate of {rate_deg_s:,.0f} deg/s, "
@@ -386,7 +386,7 @@ def fit_sequence_camera(sequence: Sequence, extraction: Extraction, candidate: C
     return replace(candidate, camera=result.camera if adopt else None, camera_fit=result)
 
 
-def _with_optics_uncertainty(fit: SequenceFit, pattern_fit: CameraAttitudeFit, camera_fit) -> SequenceFit:
+def _fit_with_optics_uncertainty(fit: SequenceFit, pattern_fit: CameraAttitudeFit, camera_fit) -> SequenceFit:
     """The sequence fit with what its optics leave open added to its attitude's covariance
     (:func:`app.identification.candidates.optics_attitude_covariance`): the attitude's regression on the
     optics from the pattern's joint fit, the optics' covariance from the sequence's own calibration where
