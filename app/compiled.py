@@ -28,16 +28,13 @@ its workers, or in a thread of its own, while the server answers.
 Compiling on every core.  A process that expects to compile (the cache
 does not hold its kernels' sources as they are: :func:`_cache_current`)
 starts helper processes, one per further core (:data:`MAX_COMPILE_PROCESSES`
-in all), and they share the warm-ups out: each takes the next warm-up no one
-holds (a lock file per warm-up), the first process then goes back for the
-ones it skipped and, once their holder is done, loads them from the cache.
-A warm-up calling another's kernel loads it from the cache when it is
-there, else compiles it too: the first process takes the warm-ups in the
-modules' import order (callees first), its helpers wait for the first (the
-rotations nearly every kernel calls) and take the rest from the last (the
-callers, the heaviest).  Other processes warming up at once (a server's
-second worker) wait on a lock of the cache directory and load what the
-first wrote.
+in all), and they share the warm-ups out (:func:`_take_turns`): each takes
+the next warm-up no one holds (a lock file per warm-up) whose prerequisites
+are done (a marker file per warm-up: the kernels its kernels call are in the
+cache, so that no process compiles a callee again), the longest chain of
+kernels first; the first process then loads the ones its helpers compiled.
+Other processes warming up at once (a server's second worker) wait on a lock
+of the cache directory and load what the first wrote.
 """
 
 from __future__ import annotations
@@ -140,8 +137,11 @@ def warm_up(say: bool = True, eager: bool = True) -> dict:
                     function()
                 helpers_compiled, processes = 0, 1
             else:
-                helpers = [] if _cache_current(directory) else _start_helpers(functions)
-                _take_turns(functions, directory, helpers)  # the callees first, its helpers the callers
+                helpers = []
+                if not _cache_current(directory):
+                    _forget_done(directory)
+                    helpers = _start_helpers(functions)
+                _take_turns(functions, directory, helpers)
                 helpers_compiled = sum(_joined(helper) for helper in helpers)
                 processes = 1 + len(helpers)
                 _write_stamp(directory)
@@ -190,43 +190,147 @@ class _Helper:
     err: IO[str]
 
 
-def _take_turns(functions: list[Callable[[], None]], directory: Path, helpers: list[_Helper] | None = None) -> None:
-    """Run each warm-up that no other process holds, holding its lock file meanwhile.  With ``helpers`` (the
-    first process's; none: it started none), then the ones skipped, each once its holder is done (a load
-    from the cache it wrote), or after :data:`WARM_UP_WAIT_S` without it (the helpers are stopped and it
-    compiles here: a bound, never expected to be reached)."""
-    skipped = [function for function in functions if not _run_holding_its_lock(function, directory, None)]
-    if helpers is None:
-        return
+def _take_turns(functions: list[Callable[[], None]], directory: Path, helpers: list[_Helper], *,
+                own: bool = True) -> None:
+    """Run the warm-ups ``functions``, sharing them with the other processes compiling now.
+
+    Each turn takes, of the warm-ups whose prerequisites are done (:func:`_prerequisites`: compiling a caller
+    before its callees are in the cache compiles them again in this process), the one with the longest chain
+    of kernels after it (:func:`_priorities`: the first run's time is its critical path's, the refinement's
+    and the focal estimate's behind the cell maps' and the rotations'), and runs it holding its lock file,
+    then marks it done (:func:`_done_marker`).  ``own`` (the first process, ``helpers`` its helpers) runs
+    every warm-up: one another process marked done loads from the cache it wrote, whenever; a helper
+    (``own=False``) runs only those no one has done.
+
+    Bounded: with no turn to take for :data:`WARM_UP_WAIT_S` (another process holding a warm-up, or a
+    prerequisite, that long), the first process stops its helpers and runs the rest here; a helper stops.
+    """
+    prerequisites, priority = _prerequisites(functions), _priorities(functions)
+    remaining = sorted(functions, key=lambda function: -priority[function])  # stable: registration order next
     deadline = time.monotonic() + WARM_UP_WAIT_S
-    for function in skipped:
-        if not _run_holding_its_lock(function, directory, deadline):
-            for helper in helpers:
-                helper.process.kill()
-            log.warning("%s.%s was held by another process for %.0f s: compiled here", function.__module__,
-                        function.__qualname__, WARM_UP_WAIT_S)
-            function()
+    while remaining:
+        for function in remaining:
+            done = _done_marker(function, directory).exists()
+            if done and not own:
+                remaining.remove(function)
+                break
+            if not done and not all(_done_marker(p, directory).exists() for p in prerequisites[function]):
+                continue
+            if _run_holding_its_lock(function, directory, rerun_done=own):
+                remaining.remove(function)
+                break
+        else:  # every warm-up left is held by another process or waits for one
+            if time.monotonic() < deadline:
+                time.sleep(LOCK_POLL_S)
+                continue
+            if own:
+                for helper in helpers:
+                    helper.process.kill()
+                log.warning("%s: held by another process, or waiting for one, for %.0f s: compiled here",
+                            ", ".join(f"{f.__module__}.{f.__qualname__}" for f in remaining), WARM_UP_WAIT_S)
+                for function in remaining:
+                    function()
+            return
+        deadline = time.monotonic() + WARM_UP_WAIT_S
 
 
-def _run_holding_its_lock(function: Callable[[], None], directory: Path, deadline: float | None) -> bool:
-    """Run ``function`` holding its lock file; False (not run) when another process holds it, at once
-    (``deadline`` None) or at ``deadline`` (``time.monotonic()``; looked at every :data:`LOCK_POLL_S`)."""
+def _run_holding_its_lock(function: Callable[[], None], directory: Path, rerun_done: bool) -> bool:
+    """Run ``function`` holding its lock file and mark it done; False (not run) when another process holds it.
+    Found done once held (another process finished it meanwhile): run again only if ``rerun_done`` (a load)."""
     import fcntl
 
     with open(directory / f"warm-up.{function.__module__}.{function.__qualname__}.lock", "a") as lock:
-        while True:
-            try:
-                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:  # another process compiles it now
-                if deadline is None or time.monotonic() >= deadline:
-                    return False
-                time.sleep(LOCK_POLL_S)
         try:
-            function()
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:  # another process compiles it now
+            return False
+        try:
+            marker = _done_marker(function, directory)
+            if rerun_done or not marker.exists():
+                function()
+                marker.touch()
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
     return True
+
+
+def _done_marker(function: Callable[[], None], directory: Path) -> Path:
+    """The file saying a process has run ``function`` since the first process found the cache stale (and
+    removed them all: :func:`_forget_done`): its kernels are in the cache."""
+    return directory / f"warm-up.{function.__module__}.{function.__qualname__}.done"
+
+
+def _forget_done(directory: Path) -> None:
+    for marker in directory.glob("warm-up.*.done"):
+        with contextlib.suppress(OSError):
+            marker.unlink()
+
+
+def _prerequisites(functions: list[Callable[[], None]]) -> dict[Callable[[], None], list[Callable[[], None]]]:
+    """Each warm-up's prerequisites: the warm-ups, registered before it, of the other modules whose kernels
+    its module's kernels call (:func:`_called_kernels`).  Modules, not kernels: a warm-up's kernels are known
+    once it has run.  Only earlier ones: the registration order (the modules' import order) breaks a cycle."""
+    of_module: dict[str, list[Callable[[], None]]] = {}
+    for function in functions:
+        of_module.setdefault(function.__module__, []).append(function)
+    calls: dict[str, set[str]] = {}
+    for kernel in _kernels:
+        module = kernel.py_func.__module__
+        calls.setdefault(module, set()).update(k.py_func.__module__ for k in _called_kernels(kernel))
+    out = {}
+    for position, function in enumerate(functions):
+        earlier = functions[:position]
+        called = calls.get(function.__module__, set()) - {function.__module__}
+        out[function] = [f for module in called for f in of_module.get(module, []) if f in earlier]
+    return out
+
+
+def _priorities(functions: list[Callable[[], None]]) -> dict[Callable[[], None], float]:
+    """Each warm-up's critical path: its kernels and those of the longest chain of warm-ups waiting on it.
+
+    A warm-up's kernels are its module's shared among the module's warm-ups (a kernel's compile time is
+    0.2-0.7 s whatever the module; measured 2026-11-26: 0.1-0.5 s of CPU a kernel, a module 0.2-5.6 s)."""
+    kernels: dict[str, int] = {}
+    for kernel in _kernels:
+        kernels[kernel.py_func.__module__] = kernels.get(kernel.py_func.__module__, 0) + 1
+    warm_ups: dict[str, int] = {}
+    for function in functions:
+        warm_ups[function.__module__] = warm_ups.get(function.__module__, 0) + 1
+    prerequisites = _prerequisites(functions)
+    after: dict[Callable[[], None], float] = {}
+    for function in reversed(functions):  # a warm-up's dependents are registered after it
+        waiting = [after[f] for f in functions if function in prerequisites[f]]
+        own = kernels.get(function.__module__, 0) / warm_ups[function.__module__]
+        after[function] = own + max(waiting, default=0.0)
+    return after
+
+
+def _called_kernels(kernel) -> set:
+    """The kernels ``kernel``'s code calls: a global that is a kernel, or a kernel read from a module global
+    (``rotations.rotation_into``), in its bytecode and its nested functions'."""
+    import dis
+    import types
+
+    codes, found = [kernel.py_func.__code__], set()
+    namespace, kernels = kernel.py_func.__globals__, {id(k): k for k in _kernels}
+    while codes:
+        code = codes.pop()
+        codes += [c for c in code.co_consts if isinstance(c, types.CodeType)]
+        module = None
+        for instruction in dis.get_instructions(code):
+            if instruction.opname == "LOAD_GLOBAL":
+                value = namespace.get(instruction.argval)
+                module = value if isinstance(value, types.ModuleType) else None
+                if id(value) in kernels:
+                    found.add(kernels[id(value)])
+            elif instruction.opname in ("LOAD_ATTR", "LOAD_METHOD") and module is not None:
+                value = getattr(module, instruction.argval, None)
+                module = value if isinstance(value, types.ModuleType) else None
+                if id(value) in kernels:
+                    found.add(kernels[id(value)])
+            else:
+                module = None
+    return found - {kernel}
 
 
 def _compile_processes() -> int:
@@ -272,8 +376,8 @@ _HELPER = "import sys; from app.compiled import helper_main; helper_main(sys.arg
 
 
 def helper_main(modules: list[str]) -> None:
-    """A compile helper (:func:`_start_helpers`): import ``modules``, wait for the first warm-up, take the others
-    no other process holds (from the last), print ``{"compiled": n}``."""
+    """A compile helper (:func:`_start_helpers`): import ``modules``, take the warm-ups no other process has
+    done (:func:`_take_turns`), print ``{"compiled": n}``."""
     import importlib
     import json
 
@@ -281,13 +385,11 @@ def helper_main(modules: list[str]) -> None:
         os.nice(HELPER_NICENESS)
     for name in modules:
         importlib.import_module(name)
-    functions, directory = list(_warm_ups), Path(os.environ["NUMBA_CACHE_DIR"])
-    # The first registered (the attitude's rotations, which nearly every kernel calls) once the first process
-    # has compiled it, then the others from the last registered (the callers, the heaviest): compiling a caller
-    # while another process compiles its callees compiles them twice (1-2 s of CPU, measured).
-    if functions and _run_holding_its_lock(functions[0], directory, time.monotonic() + WARM_UP_WAIT_S):
-        _take_turns(functions[:0:-1], directory)
-    print(json.dumps({"compiled": sum(sum(k.stats.cache_misses.values()) for k in _kernels)}))
+    _take_turns(list(_warm_ups), Path(os.environ["NUMBA_CACHE_DIR"]), [], own=False)
+    print(json.dumps({"compiled": sum(sum(k.stats.cache_misses.values()) for k in _kernels)}), flush=True)
+    # Gone at once: the interpreter's teardown (numba freeing its compiled code) took 0.3-0.5 s that the first
+    # process waited for (2026-11-26); everything it made is on disk.
+    os._exit(0)
 
 
 def _joined(helper: _Helper) -> int:

@@ -60,11 +60,7 @@ def test_a_first_run_compiles_once_says_so_in_one_line_and_the_next_loads_the_ca
     assert "WARNING" not in log and sum("loaded 1 compiled kernels" in line for line in log.splitlines()) == 1
 
 
-SHARED_MODULE = '''
-import os
-import time
-from pathlib import Path
-
+SHARED_BASE = '''
 from app.compiled import njit, warm_up_with
 
 
@@ -73,19 +69,28 @@ def first(x):
     return 1.0 * x
 
 
+@warm_up_with
+def _warm_first():  # the others' prerequisite: their kernels call this one
+    first(1.5)
+'''
+
+SHARED_MODULE = '''
+import os
+import time
+from pathlib import Path
+
+import shared_base
+from app.compiled import njit, warm_up_with
+
+
 @njit
 def middle(x):
-    return 2.0 * x
+    return 2.0 * shared_base.first(x)
 
 
 @njit
 def last(x):
-    return 3.0 * x
-
-
-@warm_up_with
-def _warm_first():  # registered first: the first process's first pick; the helpers wait for it
-    first(1.5)
+    return 3.0 * shared_base.first(x)
 
 
 def _last_taken() -> bool:
@@ -115,7 +120,7 @@ def _warm_middle():  # the first process's second pick, held until a helper has 
 
 
 @warm_up_with
-def _warm_last():  # registered last: a helper's first pick once the first is done
+def _warm_last():  # a helper's pick once the first is done
     last(1.5)
 '''
 
@@ -123,19 +128,22 @@ SHARED_RUN = '''
 import json, logging, sys
 logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
 sys.path.insert(0, sys.argv[1])
-import shared_kernels as k
+import shared_base as b, shared_kernels as k
 from app.compiled import warm_up
 report = warm_up()
-print(json.dumps({"report": report, "values": [k.first(4.0), k.middle(4.0), k.last(4.0)],
-                  "compiled_here": [sum(f.stats.cache_misses.values()) for f in (k.first, k.middle, k.last)],
-                  "loaded_here": [sum(f.stats.cache_hits.values()) for f in (k.first, k.middle, k.last)]}))
+print(json.dumps({"report": report, "values": [b.first(4.0), k.middle(4.0), k.last(4.0)],
+                  "compiled_here": [sum(f.stats.cache_misses.values()) for f in (b.first, k.middle, k.last)],
+                  "loaded_here": [sum(f.stats.cache_hits.values()) for f in (b.first, k.middle, k.last)]}))
 '''
 
 
 def test_a_first_run_shares_the_compiling_with_a_helper_process_and_the_next_starts_none(tmp_path):
-    """Three warm-ups, two processes: the first process takes them in order, its helper waits for the first then
-    takes the last; the first process then loads what the helper compiled.  (Its second warm-up holds on until
-    the helper has the last, so that the sharing is not left to how fast a process starts.)"""
+    """Three warm-ups, two processes: the first process takes the prerequisite (the kernel the others call) then
+    the middle; its helper waits for the prerequisite to be done, then takes the last, loading the kernel it calls
+    from the cache (compiled once in all: three kernels, not four); the first process then loads the last.  (Its
+    middle warm-up holds on until the helper has the last, so that the sharing is not left to how fast a process
+    starts.)"""
+    (tmp_path / "shared_base.py").write_text(SHARED_BASE)
     (tmp_path / "shared_kernels.py").write_text(SHARED_MODULE)
 
     def run() -> tuple[dict, str]:
@@ -151,6 +159,32 @@ def test_a_first_run_shares_the_compiling_with_a_helper_process_and_the_next_sta
     out, log = run()
     assert out["report"] == {**out["report"], "compiled": 0, "loaded": 3, "processes": 1}
     assert sum("loaded 3 compiled kernels" in line for line in log.splitlines()) == 1
+
+
+def test_a_warm_up_waits_for_the_warm_ups_of_the_kernels_its_kernels_call_the_longest_chain_first():
+    """The prerequisites read from the kernels' code (a kernel named as a global, or read from a module) against
+    the modules' imports checked by hand: the refinement's kernels call the cell maps' and the rotations', the
+    cell maps' the rotations', the rotations' none; the rotations start the longest chain."""
+    import app.identification  # noqa: F401  (registers every kernel module's warm-up)
+    from app.compiled import _called_kernels, _kernels, _prerequisites, _priorities, _warm_ups
+
+    def named(functions) -> set[str]:
+        return {f"{f.__module__}.{f.__name__}" for f in functions}
+
+    prerequisites, priority = _prerequisites(_warm_ups), _priorities(_warm_ups)
+    by_name = {f"{f.__module__}.{f.__name__}": f for f in _warm_ups}
+    rotations = {"app.attitude.rotations._warm_up_svd", "app.attitude.rotations._warm_up_pairs"}
+    assert not prerequisites[by_name["app.attitude.rotations._warm_up_svd"]]
+    assert named(prerequisites[by_name["app.identification.cells._warm_up_cells"]]) == rotations
+    assert named(prerequisites[by_name["app.identification.verify._warm_up_refine"]]) == {
+        "app.identification.cells._warm_up_cells", *rotations}
+    assert not prerequisites[by_name["app.identification.focal_scan._warm_up_scan"]]
+    assert max(_warm_ups, key=priority.get).__module__ == "app.attitude.rotations"
+    # (A kernel read from a module, `shared_base.first(x)`, is the helper test's: no kernel of ours calls one so.)
+    refine = next(k for k in _kernels if k.py_func.__name__ == "_refine_kernel")
+    assert {"_look_up", "_assign_kernel", "_wahba_kernel"} <= {k.py_func.__name__ for k in _called_kernels(refine)}
+    for function, needs in prerequisites.items():  # registered before: no cycle can stall a first run
+        assert all(_warm_ups.index(need) < _warm_ups.index(function) for need in needs)
 
 
 def test_searches_call_every_kernel_only_with_types_the_warm_up_compiled():
@@ -209,7 +243,7 @@ def test_a_warm_up_held_too_long_by_another_process_is_run_here_after_the_bound(
             compiled._take_turns([_warm_held], tmp_path, [compiled._Helper(Process(), None, None)])
         waited = time.monotonic() - t0
     assert ran == [True] and Process.killed and 0.3 <= waited < 5.0
-    assert "._warm_held was held by another process for 0 s: compiled here" in caplog.text
+    assert "._warm_held: held by another process, or waiting for one, for 0 s: compiled here" in caplog.text
 
 
 RUN_LAZY = '''
