@@ -134,6 +134,8 @@ def rotation_from_pair(b1: np.ndarray, b2: np.ndarray, r1: np.ndarray, r2: np.nd
     b1, b2, r1, r2 = (np.asarray(x, dtype=float) for x in (b1, b2, r1, r2))
     shape = np.broadcast_shapes(b1.shape, b2.shape, r1.shape, r2.shape)
     flat = [np.ascontiguousarray(np.broadcast_to(x, shape)).reshape(-1, 3) for x in (b1, b2, r1, r2)]
+    for x in flat:  # all read-only (a broadcast copied is writable, one that was not a view): one compilation
+        x.flags.writeable = False
     return _rotations_from_pairs(*flat).reshape(shape[:-1] + (3, 3))
 
 
@@ -308,9 +310,8 @@ def _warm_up_svd() -> None:
 
 @warm_up_with
 def _warm_up_pairs() -> None:
-    """Compile :func:`_rotations_from_pairs` for the stacks the searches pass: one pattern pair against many
-    catalogue pairs (the pattern's two broadcast into writable copies, the catalogue's read-only views), and
-    stacks on both sides (the focal scan's, the extraction's: all four read-only views)."""
+    """Compile :func:`_rotations_from_pairs` (its four stacks always read-only: :func:`rotation_from_pair`) for one
+    pattern pair against many catalogue pairs, and stacks on both sides (the focal scan's, the extraction's)."""
     e = np.eye(3)
     rotation_from_pair(e[0], e[1], e[:2], e[1:])
     rotation_from_pair(e[:2], e[1:], e[:2], e[1:])
