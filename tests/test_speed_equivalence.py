@@ -203,10 +203,14 @@ def test_the_cell_map_answers_as_a_bounded_tree_query_at_any_epoch(sky, year):
         d, _ = field.tree.query(points, k=1, distance_upper_bound=bound)
         assert np.array_equal(cells.nearest_within(points, field.vectors, bound), d)
         assert not (np.isfinite(d) & ~cells.maybe_near(points)).any()
-    # The nearest star however far, through the stars' places at the index epoch: the tree's chords.
+    # The nearest star however far: the tree's chords, from the far map within its radius and through the stars'
+    # places at the index epoch beyond it (the five points farthest from any star are there).
     assert field.epoch_places is not None
-    some = points[::40]
-    assert np.array_equal(field.nearest_chords(some), field.tree.query(some, k=1)[0])
+    everywhere = field.tree.query(points, k=1)[0]
+    some = np.vstack([points[::40], points[np.argsort(everywhere)[-5:]]])
+    expected = field.tree.query(some, k=1)[0]
+    assert (expected > chord(field.far_radius())).any() and (expected <= chord(field.far_radius())).any()
+    assert np.array_equal(field.nearest_chords(some), expected)
     # Each edge star is the nearest star of every point closer to it than alone_within.
     stars = rng.integers(0, len(field.vectors), 3000)
     offset = rng.normal(size=(3000, 3))

@@ -79,14 +79,42 @@ class StarField:
     def nearest_chords(self, points: np.ndarray) -> np.ndarray:
         """(N,) chord from each unit vector (N, 3) to its nearest star, however far.
 
-        Through :attr:`epoch_places` when the field has them, so that a new
-        observation time needs no tree of its own: a star whose place moved
-        by at most ``shift`` (a chord) is, if it is a point's nearest, within
-        ``d0 + 2 shift`` of the point at the fixed epoch (``d0``: the point's
-        nearest star there), by the triangle inequality twice; those few are
-        measured at their places now, as the tree would measure them.
+        First from the field's cell map for :meth:`far_radius` (a compiled
+        look-up of the few stars listed for each point's cell, the tree's
+        answer bit for bit: :mod:`app.identification.cells`); a query of the
+        tree costs ~0.1 ms whatever the points, and a search asks for the
+        nearest star of its refinements' unmatched points hundreds of times
+        on a frame that matches nothing.  The points with no star that close
+        (a few in a thousand), or every point where the field has no map, ask
+        the tree: through :attr:`epoch_places` when the field has them, so
+        that a new observation time needs no tree of its own: a star whose
+        place moved by at most ``shift`` (a chord) is, if it is a point's
+        nearest, within ``d0 + 2 shift`` of the point at the fixed epoch
+        (``d0``: the point's nearest star there), by the triangle inequality
+        twice; those few are measured at their places now, as the tree would
+        measure them.
         """
         points = np.asarray(points, dtype=float).reshape(-1, 3)
+        radius = self.far_radius()
+        cells = self.cells(radius) if self.cells is not None and len(points) else None
+        if cells is None:
+            return self._tree_nearest_chords(points)
+        out = cells.nearest_within(points, self.vectors, float(chord(radius)))
+        beyond = np.flatnonzero(np.isinf(out))
+        if len(beyond):
+            out[beyond] = self._tree_nearest_chords(points[beyond])
+        return out
+
+    def far_radius(self) -> float:
+        """The radius of the cell map :meth:`nearest_chords` asks first: 1.5 times the stars' mean spacing
+        (``1 / sqrt(density)``), within the largest map made (0.1 rad).  Measured 2026-11-26 on the points
+        whose nearest star a search asked for (20 single snapshots and 20 noise frames per camera): within it
+        99.98 % of the 20 deg camera's (6,019 stars, 3.9 deg), 99.97 % of the 12 deg camera's (7,982 stars,
+        3.4 deg), 99.4 % of the 30 deg camera's (1,979 stars, 5.7 deg)."""
+        return float(min(0.1, 1.5 / np.sqrt(max(self.density_per_sr, 1e-9))))
+
+    def _tree_nearest_chords(self, points: np.ndarray) -> np.ndarray:
+        """:meth:`nearest_chords` by the KD-trees alone."""
         if self.epoch_places is None or len(points) == 0:
             return self.tree.query(points, k=1)[0].reshape(len(points))
         tree, shift = self.epoch_places
