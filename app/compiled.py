@@ -18,8 +18,8 @@ before numba is first imported.
 Compiling.  Each kernel module registers a warm-up (:func:`warm_up_with`: a
 call of each kernel on tiny inputs of the types the program uses).
 :func:`warm_up` runs them all once per process and says in ONE log line
-whether it compiled (the first run after an install: 22-24 s of CPU for
-the 43 kernels of 2026-11-26) or loaded the cache (0.2-0.3 s, most of it
+whether it compiled (the first run after an install: 24-25 s of CPU for
+the 57 kernels of 2026-11-26, in one process) or loaded the cache (0.2-0.3 s, most of it
 numba setting itself up for its first kernel).
 :func:`app.identification.identify` warms up before its search's clock
 starts; a server's compute pool (:mod:`app.workflow.compute`) warms up in
