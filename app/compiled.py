@@ -205,7 +205,8 @@ def _take_turns(functions: list[Callable[[], None]], directory: Path, helpers: l
     Bounded: with no turn to take for :data:`WARM_UP_WAIT_S` (another process holding a warm-up, or a
     prerequisite, that long), the first process stops its helpers and runs the rest here; a helper stops.
     """
-    prerequisites, priority = _prerequisites(functions), _priorities(functions)
+    prerequisites = _prerequisites(functions)
+    priority = _priorities(functions, prerequisites)
     remaining = sorted(functions, key=lambda function: -priority[function])  # stable: registration order next
     deadline = time.monotonic() + WARM_UP_WAIT_S
     while remaining:
@@ -285,18 +286,18 @@ def _prerequisites(functions: list[Callable[[], None]]) -> dict[Callable[[], Non
     return out
 
 
-def _priorities(functions: list[Callable[[], None]]) -> dict[Callable[[], None], float]:
-    """Each warm-up's critical path: its kernels and those of the longest chain of warm-ups waiting on it.
-
-    A warm-up's kernels are its module's shared among the module's warm-ups (a kernel's compile time is
-    0.2-0.7 s whatever the module; measured 2026-11-26: 0.1-0.5 s of CPU a kernel, a module 0.2-5.6 s)."""
+def _priorities(functions: list[Callable[[], None]],
+                prerequisites: dict[Callable[[], None], list[Callable[[], None]]]) -> dict[Callable[[], None], float]:
+    """Each warm-up's critical path, counted in kernels: its own and those of the longest chain of warm-ups
+    waiting on it (``prerequisites``: :func:`_prerequisites`).  A warm-up's own are its module's, shared
+    among the module's warm-ups: a kernel takes 0.1-0.5 s of CPU to compile (measured 2026-11-26), a count
+    is near enough to order them."""
     kernels: dict[str, int] = {}
     for kernel in _kernels:
         kernels[kernel.py_func.__module__] = kernels.get(kernel.py_func.__module__, 0) + 1
     warm_ups: dict[str, int] = {}
     for function in functions:
         warm_ups[function.__module__] = warm_ups.get(function.__module__, 0) + 1
-    prerequisites = _prerequisites(functions)
     after: dict[Callable[[], None], float] = {}
     for function in reversed(functions):  # a warm-up's dependents are registered after it
         waiting = [after[f] for f in functions if function in prerequisites[f]]
@@ -307,7 +308,7 @@ def _priorities(functions: list[Callable[[], None]]) -> dict[Callable[[], None],
 
 def _called_kernels(kernel) -> set:
     """The kernels ``kernel``'s code calls: a global that is a kernel, or a kernel read from a module global
-    (``rotations.rotation_into``), in its bytecode and its nested functions'."""
+    (``module.kernel(...)``), in its bytecode and its nested functions'."""
     import dis
     import types
 

@@ -171,7 +171,8 @@ def test_a_warm_up_waits_for_the_warm_ups_of_the_kernels_its_kernels_call_the_lo
     def named(functions) -> set[str]:
         return {f"{f.__module__}.{f.__name__}" for f in functions}
 
-    prerequisites, priority = _prerequisites(_warm_ups), _priorities(_warm_ups)
+    prerequisites = _prerequisites(_warm_ups)
+    priority = _priorities(_warm_ups, prerequisites)
     by_name = {f"{f.__module__}.{f.__name__}": f for f in _warm_ups}
     rotations = {"app.attitude.rotations._warm_up_svd", "app.attitude.rotations._warm_up_pairs"}
     assert not prerequisites[by_name["app.attitude.rotations._warm_up_svd"]]
