@@ -50,13 +50,21 @@ async function action(label, fn) {
   }
 }
 
-async function writeView(changes) {
-  try {
-    const doc = await api.put(viewPath(), changes);
-    state.viewRevision = Math.max(state.viewRevision, doc.revision);
-  } catch (err) {
-    toast(`Could not store this console's selection: ${errorText(err)}`, "error");
-  }
+// This console's writes of its view state go out one at a time, in the order made: two in flight can reach the
+// server in either order (a sequence opened, and Next pressed before its write was answered: the rank written
+// first, then the new sequence's rank 1 over it, the session left on another rank than the console shows).
+let viewWrites = Promise.resolve();
+
+function writeView(changes) {
+  viewWrites = viewWrites.then(async () => {
+    try {
+      const doc = await api.put(viewPath(), changes);
+      state.viewRevision = Math.max(state.viewRevision, doc.revision);
+    } catch (err) {
+      toast(`Could not store this console's selection: ${errorText(err)}`, "error");
+    }
+  });
+  return viewWrites;
 }
 
 // The same rule as app/viewer/scene.py toggle_track: with every track selected (include null)

@@ -180,8 +180,12 @@ def test_two_consoles_keep_their_own_sequences_while_both_click_around(server, a
         expect_text(a.page.locator("#seq-title"), "01-clean-tab-a")
         expect_text(a.page.locator("#cand-rank"), rf"rank {rank_a} of {n_x}")
         assert a.page.locator("#sequence-list li.selected").get_attribute("data-id") in (str(x_id), None)
-        state_a = api(f"/api/view?session={a_session}")
-        state_b = api(f"/api/view?session={b_session}")
+        # The server's session state follows (a console may show the rank before its write is answered: B's
+        # opening of the sequence drew the rank its Next had set while the Next's write waited its turn).
+        state_a = wait_for(lambda: api(f"/api/view?session={a_session}"),
+                           lambda doc: (doc["sequence"], doc["rank"]) == (x_id, rank_a))
+        state_b = wait_for(lambda: api(f"/api/view?session={b_session}"),
+                           lambda doc: (doc["sequence"], doc["rank"]) == (b_seq, 2))
         assert (state_a["sequence"], state_a["rank"]) == (x_id, rank_a)
         assert (state_b["sequence"], state_b["rank"]) == (b_seq, 2)
         k += 1
