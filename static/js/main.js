@@ -139,7 +139,22 @@ function setupOperator() {
 
 // ---------------------------------------------------------------- the selected sequence
 
-async function selectSequence(id) {
+// The operator's moves (opening a sequence, stepping or choosing its candidates) are made one at a time, in
+// the order given, each on what the one before left: a Next pressed while a sequence opens steps the sequence
+// being opened, not the one it replaces (which the opening then reset to rank 1: the Next was lost).
+let moves = Promise.resolve();
+
+function inTurn(move) {
+  const done = moves.then(move);
+  moves = done.catch(() => {});
+  return done;
+}
+
+function selectSequence(id) {
+  return inTurn(() => openSequence(id));
+}
+
+async function openSequence(id) {
   moved();
   await action("Opening the sequence", async () => {
     cancelSteps();
@@ -454,7 +469,11 @@ function opticsText(fit, foundFocalLength = false) {
   return `${parts.join(", ")}; rms ${fmt(fit.rms_px, 2)} px over the ${fit.over}; ${fit.adopted ? "used" : foundFocalLength ? "not used: the field of view above is kept" : "declared camera kept"}`;
 }
 
-async function goToRank(rank) {
+function goToRank(rank) {
+  return inTurn(() => showRank(rank));
+}
+
+async function showRank(rank) {
   const d = state.detail;
   if (!d || !d.search || !d.search.candidates.length) return;
   rank = Math.min(Math.max(1, rank), d.search.candidates.length);
@@ -469,15 +488,17 @@ async function goToRank(rank) {
   });
 }
 
-async function stepCandidate(delta) {
-  const d = state.detail;
-  if (!d || !d.search || !d.search.candidates.length) return;
-  const rank = Math.min(Math.max(1, state.rank + delta), d.search.candidates.length);
-  if (rank === state.rank) {
-    toast(delta > 0 ? "This is the last candidate" : "This is the first candidate", "ok", { untilMove: true });
-    return;
-  }
-  await goToRank(rank);
+function stepCandidate(delta) {
+  return inTurn(async () => {
+    const d = state.detail;
+    if (!d || !d.search || !d.search.candidates.length) return;
+    const rank = Math.min(Math.max(1, state.rank + delta), d.search.candidates.length);
+    if (rank === state.rank) {
+      toast(delta > 0 ? "This is the last candidate" : "This is the first candidate", "ok", { untilMove: true });
+      return;
+    }
+    await showRank(rank);
+  });
 }
 
 // The words for another console's search replacing the candidates shown (state.rank already set).
@@ -573,6 +594,10 @@ function toggleHelp(show) {
 // the sequence itself (confirmed work goes to the end of "needs an operator first"): stepping from where
 // it went would jump into finished work instead of to the sequence that followed it.
 function nextSequence(delta) {
+  return inTurn(() => openNext(delta));
+}
+
+function openNext(delta) {
   const ids = state.queueIds;
   if (!ids.length) return;
   const current = state.detail?.id;
@@ -589,7 +614,7 @@ function nextSequence(delta) {
     toast(delta > 0 ? "Last sequence of this page" : "First sequence of this page", "ok", { untilMove: true });
     return;
   }
-  selectSequence(next);
+  return openSequence(next);
 }
 
 function setupKeys() {

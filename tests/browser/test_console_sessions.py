@@ -279,6 +279,33 @@ def test_no_valid_attitude_is_recorded_with_its_reason(server, api, new_page, tm
     assert watched.errors == []
 
 
+def test_a_next_pressed_while_a_sequence_opens_steps_the_sequence_being_opened(server, api, new_page, tmp_path):
+    """An operator's moves are taken in the order made: a sequence clicked and Next clicked at once (one script,
+    no time between: the opening's reads are still out) leave the new sequence at rank 2, on screen and in the
+    session the 3D view draws.  Before, the Next stepped the sequence being left, and the opening then put the
+    new one at rank 1: the Next was lost (a fresh-user trial, 10 of 10 times with the clicks 10 ms apart)."""
+    y_id, _ = upload_and_search(api, fresh_copy("04-big-dipper.json", "moves", tmp_path))
+    z_id, z_search = upload_and_search(api, fresh_copy("09-wide-30deg.json", "moves2", tmp_path))
+    assert len(z_search["candidates"]) >= 2
+    watched, session = console(new_page, server)
+    page = watched.page
+    open_sequence(page, y_id, "04-big-dipper-moves")
+    page.fill("#filter-search", "-moves")  # both sequences in the queue
+    expect_visible(page.locator(f"#sequence-list li[data-id='{z_id}']"))
+    for _ in range(3):
+        for seq_id, name in ((z_id, "09-wide-30deg-moves2"), (y_id, "04-big-dipper-moves")):
+            page.evaluate("""(id) => {
+                document.querySelector(`#sequence-list li[data-id='${id}']`).click();
+                document.querySelector('#cand-next').click();
+            }""", seq_id)
+            expect_text(page.locator("#seq-title"), re.escape(name))
+            expect_text(page.locator("#cand-rank"), r"rank 2 of")
+            view = wait_for(lambda: api(f"/api/view?session={session}"),
+                            lambda doc, seq_id=seq_id: (doc["sequence"], doc["rank"]) == (seq_id, 2))
+            assert (view["sequence"], view["rank"]) == (seq_id, 2)
+    assert watched.errors == []
+
+
 def test_a_search_finishing_between_the_two_reads_of_a_sequence_still_shows_its_verdicts(server, api, new_page,
                                                                                         tmp_path):
     """The console reads a sequence and its verdicts in parallel; an upload's queued search can finish
