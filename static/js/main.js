@@ -670,7 +670,12 @@ async function followView(doc) {
       $("mag-label").textContent = doc.mag.toFixed(1);
     }
     if (selectionChanged) state.rank = doc.rank;
-    else if (searchChanged) state.rank = doc.n_candidates ? 1 : null;
+    else if (searchChanged) {
+      state.rank = doc.n_candidates ? 1 : null;
+      // The session's rank was of the search replaced (or none, before a first search): written, so that the
+      // session (and the 3D view drawing it) shows the rank this console shows.
+      if (doc.rank !== state.rank) await writeView({ rank: state.rank });
+    }
     // Announce what changed elsewhere rather than swap it silently.
     const notes = [];
     if (searchChanged && !d?.search) toast(`${d?.sequence_id || "The sequence"} was searched: ${statusText(doc.status)}`);

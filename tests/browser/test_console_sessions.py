@@ -306,6 +306,23 @@ def test_a_next_pressed_while_a_sequence_opens_steps_the_sequence_being_opened(s
     assert watched.errors == []
 
 
+def test_a_search_made_elsewhere_puts_the_console_and_its_session_at_rank_1(server, api, new_page, tmp_path):
+    """A sequence open before it was ever searched (an upload's queued search still running, or another console
+    searching it): when the search lands the console shows rank 1, and the session the 3D view draws says
+    rank 1 too.  Before, the session kept no rank (a fresh-user trial: "rank": null while the page showed
+    "rank 1 of 5", until the operator picked a rank)."""
+    seq_id = api("/api/sequences", "POST", raw=fresh_copy("01-clean.json", "elsewhere", tmp_path).read_bytes())["id"]
+    watched, session = console(new_page, server)
+    page = watched.page
+    open_sequence(page, seq_id, "01-clean-elsewhere")
+    assert api(f"/api/view?session={session}")["rank"] is None  # nothing searched yet
+    search = api(f"/api/sequences/{seq_id}/search", "POST", body={})
+    expect_text(page.locator("#cand-rank"), rf"rank 1 of {len(search['candidates'])}")
+    view = wait_for(lambda: api(f"/api/view?session={session}"), lambda doc: doc["rank"] == 1)
+    assert (view["sequence"], view["rank"], view["search_id"]) == (seq_id, 1, search["search_id"])
+    assert watched.errors == []
+
+
 def test_a_search_finishing_between_the_two_reads_of_a_sequence_still_shows_its_verdicts(server, api, new_page,
                                                                                         tmp_path):
     """The console reads a sequence and its verdicts in parallel; an upload's queued search can finish
