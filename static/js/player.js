@@ -30,8 +30,14 @@ export class SnapshotPlayer {
     const first = !this.detail || this.detail.id !== detail.id;
     this.detail = detail;
     const cam = detail.telemetry.camera;
-    this.scale = this.canvas.width / cam.width;
-    this.canvas.height = Math.round(cam.height * this.scale);
+    // The sensor fitted into a canvas of one size whatever the camera: the panels below keep their place
+    // from sequence to sequence (a taller sensor made the canvas taller, and a click meant for Next, where it
+    // had been, landed on the player and took a track out of the pattern).
+    this.scale = Math.min(this.canvas.width / cam.width, this.canvas.height / cam.height);
+    this.ox = (this.canvas.width - cam.width * this.scale) / 2;
+    this.oy = (this.canvas.height - cam.height * this.scale) / 2;
+    this.sensor = [cam.width * this.scale, cam.height * this.scale];
+    this.canvas.dataset.mapping = JSON.stringify({ scale: this.scale, ox: this.ox, oy: this.oy });
     const n = detail.telemetry.snapshots.length;
     this.slider.max = Math.max(0, n - 1);
     if (first) { this.stop(); this.index = detail.extraction.reference_snapshot ?? 0; this.highlight = null; }
@@ -79,7 +85,7 @@ export class SnapshotPlayer {
     $("play").innerHTML = "&#9654; Play";
   }
 
-  toCanvas(x, y) { return [(x + 0.5) * this.scale, (y + 0.5) * this.scale]; }
+  toCanvas(x, y) { return [this.ox + (x + 0.5) * this.scale, this.oy + (y + 0.5) * this.scale]; }
 
   // Sources of snapshot i with their extraction verdicts.
   sourcesOf(i) {
@@ -96,6 +102,10 @@ export class SnapshotPlayer {
     this.labels = [];
     canvas.dataset.labels = "[]";
     if (!this.detail) return;
+    if (this.ox > 0.5 || this.oy > 0.5) {   // the sensor's edges, where it does not fill the canvas
+      ctx.strokeStyle = "rgba(150,150,160,0.35)"; ctx.lineWidth = 1;
+      ctx.strokeRect(this.ox, this.oy, ...this.sensor);
+    }
     const snapshots = this.detail.telemetry.snapshots;
     const ex = this.detail.extraction;
     this.slider.value = this.index;
@@ -191,7 +201,8 @@ export class SnapshotPlayer {
     const rect = this.canvas.getBoundingClientRect();
     const cssScale = this.canvas.width / rect.width;
     const cx = (e.clientX - rect.left) * cssScale, cy = (e.clientY - rect.top) * cssScale;
-    return { x: cx / this.scale - 0.5, y: cy / this.scale - 0.5, cssPerSensor: this.scale / cssScale };
+    return { x: (cx - this.ox) / this.scale - 0.5, y: (cy - this.oy) / this.scale - 0.5,
+      cssPerSensor: this.scale / cssScale };
   }
 
   click(e) {

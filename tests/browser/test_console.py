@@ -74,11 +74,15 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(a @ b.T) - 1) / 2, -1, 1))))
 
 
-def canvas_point(page, canvas_id: str, x: float, y: float, sensor_width: int) -> tuple[float, float]:
-    """Viewport coordinates of sensor pixel (x, y) on the player canvas (pixel centres at +0.5)."""
-    box = page.locator(f"#{canvas_id}").bounding_box()
-    scale = box["width"] / sensor_width
-    return box["x"] + (x + 0.5) * scale, box["y"] + (y + 0.5) * scale
+def canvas_point(page, canvas_id: str, x: float, y: float) -> tuple[float, float]:
+    """Viewport coordinates of sensor pixel (x, y) on the player canvas (pixel centres at +0.5), through the
+    mapping the player drew with (the sensor fitted into the canvas, ``data-mapping``, canvas pixels)."""
+    canvas = page.locator(f"#{canvas_id}")
+    box = canvas.bounding_box()
+    mapping = json.loads(canvas.get_attribute("data-mapping"))
+    css = box["width"] / int(canvas.get_attribute("width"))
+    return (box["x"] + (mapping["ox"] + (x + 0.5) * mapping["scale"]) * css,
+            box["y"] + (mapping["oy"] + (y + 0.5) * mapping["scale"]) * css)
 
 
 def test_invalid_upload_shows_located_problems(server, new_page, tmp_path):
@@ -196,7 +200,6 @@ def test_operator_flow(server, api, new_page):
     watched.screenshot("01-uploaded")
 
     detail = api(f"/api/sequences/{seq_id}")
-    width = detail["camera"]["width"]
     track = track_to_take_out(detail)
     version = detail["pattern"]["version"]
 
@@ -208,11 +211,11 @@ def test_operator_flow(server, api, new_page):
         page.locator("#snapshot-slider").fill(str(sighting["snapshots"][0]))
         k = 0
     x, y = sighting["xy"][k]
-    page.mouse.click(*canvas_point(page, "player-canvas", x, y, width))
+    page.mouse.click(*canvas_point(page, "player-canvas", x, y))
     expect_text(page.locator("#pattern-caption"), rf"version {version + 1} ")
     assert api(f"/api/sequences/{seq_id}")["pattern"]["definition"]["exclude_tracks"] == [track]
     # ... and clicking it again puts it back.
-    page.mouse.click(*canvas_point(page, "player-canvas", x, y, width))
+    page.mouse.click(*canvas_point(page, "player-canvas", x, y))
     expect_text(page.locator("#pattern-caption"), rf"version {version + 2} ")
     assert api(f"/api/sequences/{seq_id}")["pattern"]["definition"]["exclude_tracks"] == []
 
