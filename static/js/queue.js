@@ -77,7 +77,7 @@ async function uploadFiles(files) {
   // A pass of frames counts as one upload, beside the spot-list files.
   const unit = images.length ? "upload" : "file";
   toast(failures ? `${done.length} of ${results.length} ${unit}s stored${note}; see the errors next to the files`
-    : `${plural(done.length, unit)} uploaded${note}`, failures ? "error" : "ok");
+    : `${plural(done.length, unit)} stored${note}`, failures ? "error" : "ok");   // not "1 upload uploaded"
   await Promise.all([loadSequences(), loadSpacecraft()]);
   if (done.length) await onSelect(done.at(-1).id);
 }
