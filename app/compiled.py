@@ -132,18 +132,17 @@ def warm_up(say: bool = True, eager: bool = True) -> dict:
             return _report
         functions = list(_warm_ups)
         with _cache_lock() as directory:
-            if directory is None:  # no cache to share (not POSIX, or read-only): each process for itself
+            helpers = []
+            if directory is not None and not _cache_current(directory):
+                _forget_done(directory)
+                helpers = _start_helpers(functions)
+            if helpers:
+                _take_turns(functions, directory, helpers)
+            else:  # alone (no cache to share, or its other users wait on its lock): in order, callees first
                 for function in functions:
                     function()
-                helpers_compiled, processes = 0, 1
-            else:
-                helpers = []
-                if not _cache_current(directory):
-                    _forget_done(directory)
-                    helpers = _start_helpers(functions)
-                _take_turns(functions, directory, helpers)
-                helpers_compiled = sum(_joined(helper) for helper in helpers)
-                processes = 1 + len(helpers)
+            helpers_compiled, processes = sum(_joined(helper) for helper in helpers), 1 + len(helpers)
+            if directory is not None:
                 _write_stamp(directory)
         own_hits = sum(sum(k.stats.cache_hits.values()) for k in _kernels)
         _report = {"seconds": time.perf_counter() - t0,
