@@ -50,13 +50,23 @@ async function action(label, fn) {
   }
 }
 
+// A queue of asynchronous steps: each starts once the one before is done, whether it failed or not.
+function oneAtATime() {
+  let last = Promise.resolve();
+  return (step) => {
+    const done = last.then(step);
+    last = done.catch(() => {});
+    return done;
+  };
+}
+
 // This console's writes of its view state go out one at a time, in the order made: two in flight can reach the
 // server in either order (a sequence opened, and Next pressed before its write was answered: the rank written
 // first, then the new sequence's rank 1 over it, the session left on another rank than the console shows).
-let viewWrites = Promise.resolve();
+const inWriteOrder = oneAtATime();
 
 function writeView(changes) {
-  viewWrites = viewWrites.then(async () => {
+  return inWriteOrder(async () => {
     try {
       const doc = await api.put(viewPath(), changes);
       state.viewRevision = Math.max(state.viewRevision, doc.revision);
@@ -64,7 +74,6 @@ function writeView(changes) {
       toast(`Could not store this console's selection: ${errorText(err)}`, "error");
     }
   });
-  return viewWrites;
 }
 
 // The same rule as app/viewer/scene.py toggle_track: with every track selected (include null)
@@ -141,14 +150,9 @@ function setupOperator() {
 
 // The operator's moves (opening a sequence, stepping or choosing its candidates) are made one at a time, in
 // the order given, each on what the one before left: a Next pressed while a sequence opens steps the sequence
-// being opened, not the one it replaces (which the opening then reset to rank 1: the Next was lost).
-let moves = Promise.resolve();
-
-function inTurn(move) {
-  const done = moves.then(move);
-  moves = done.catch(() => {});
-  return done;
-}
+// being opened, not the one it replaces (which the opening then reset to rank 1: the Next was lost).  (Not the
+// writes' queue: a move waits for its own writes.)
+const inTurn = oneAtATime();
 
 function selectSequence(id) {
   return inTurn(() => openSequence(id));
