@@ -196,13 +196,40 @@ class Camera:
         return _pixels_to_vectors(xy, float(self.focal_length_px), float(self.cx), float(self.cy), float(self.k1),
                                   float(self.k2))
 
-    def vectors_to_pixels(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(N, 3) camera-frame vectors -> ((N, 2) pixels, (N,) in-front mask).
+    @property
+    def fold_radius(self) -> float:
+        """Normalised (pinhole) radius beyond which the distortion model folds the image over (inf if never).
 
-        Points behind the camera (z <= 0) get NaN pixels and False.
+        The radial map ``r -> r (1 + k1 r^2 + k2 r^4)`` increases while its
+        slope ``1 + 3 k1 r^2 + 5 k2 r^4`` is positive; past the first radius
+        where the slope vanishes, directions further off axis land nearer
+        the centre again (barrel distortion, ``k1 < 0``: at ``r^2 = -1 / (3
+        k1)`` when ``k2 = 0``), and a star 60 deg off a 20 deg field's axis
+        would land on its sensor.  The slope is a quadratic in ``u = r^2``:
+        its smallest positive root.
+        """
+        k1, k2 = float(self.k1), float(self.k2)
+        if k2 == 0.0:
+            return math.inf if k1 >= 0.0 else math.sqrt(-1.0 / (3.0 * k1))
+        disc = 9.0 * k1 * k1 - 20.0 * k2
+        if disc < 0.0:
+            return math.inf  # the slope never vanishes (k2 > 0)
+        roots = [u for u in ((-3.0 * k1 - sign * math.sqrt(disc)) / (10.0 * k2) for sign in (1.0, -1.0)) if u > 0.0]
+        return math.sqrt(min(roots)) if roots else math.inf
+
+    def vectors_to_pixels(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 3) camera-frame vectors -> ((N, 2) pixels, (N,) imaged mask).
+
+        Points behind the camera (z <= 0), or beyond the :attr:`fold_radius`
+        of a distorted camera (where the model would fold them back onto the
+        sensor), get NaN pixels and False.
         """
         v = np.asarray(v, dtype=float).reshape(-1, 3)
         front = v[:, 2] > 1e-9
+        fold = self.fold_radius
+        if math.isfinite(fold):
+            with np.errstate(invalid="ignore"):
+                front &= v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] < (fold * v[:, 2]) ** 2
         z = np.where(front, v[:, 2], np.nan)
         a, b = self._distort(v[:, 0] / z, v[:, 1] / z)
         xy = np.column_stack([self.cx + self.focal_length_px * a,

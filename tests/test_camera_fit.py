@@ -180,6 +180,35 @@ def test_pixels_to_vectors_inverts_the_projection_to_rounding(corner_fraction):
     assert np.abs(back - xy).max() < 1e-10
 
 
+@pytest.mark.parametrize("k1, k2", [(-0.2, 0.0), (0.0, -1.0), (0.1, -0.5), (-0.4, 0.05), (0.2, 0.0), (0.0, 0.3)])
+def test_the_fold_radius_is_where_the_radial_map_first_stops_increasing(k1, k2):
+    """The closed form (the smallest positive root of ``1 + 3 k1 u + 5 k2 u^2``, ``u = r^2``) against a
+    brute-force scan of the radial map ``r (1 + k1 r^2 + k2 r^4)`` on a fine grid."""
+    camera = DECLARED.with_optics(k1=k1, k2=k2)
+    r = np.linspace(0.0, 10.0, 2_000_001)
+    mapped = r * (1 + k1 * r * r + k2 * r ** 4)
+    falling = np.flatnonzero(np.diff(mapped) <= 0)
+    expected = r[falling[0]] if len(falling) else math.inf
+    assert camera.fold_radius == pytest.approx(expected, abs=1e-5)
+
+
+def test_a_direction_beyond_the_fold_is_not_imaged_where_the_model_would_fold_it_onto_the_sensor():
+    """Barrel distortion of 1 % at the corner of the 20 deg camera (k1 = -0.2) folds the image over at a
+    normalised radius of 1/sqrt(0.6) (52 deg off axis): a star 65 deg off axis (r = 2.2) would land
+    0.07 f = 150 px from the centre, on the sensor, by the polynomial; it is not imaged.  A star inside the
+    fold still projects and comes back."""
+    camera = DECLARED.with_optics(k1=-0.2)
+    far = np.array([[2.2, 0.0, 1.0]]) / math.hypot(2.2, 1.0)
+    folded = camera.cx + camera.focal_length_px * 2.2 * (1 - 0.2 * 2.2 ** 2)
+    assert -0.5 < folded < DECLARED.width - 0.5  # the polynomial puts it on the sensor ...
+    xy, imaged = camera.vectors_to_pixels(far)
+    assert not imaged[0] and np.isnan(xy).all()  # ... the camera does not
+    near = np.array([[0.15, -0.1, 1.0]]) / math.hypot(0.15, 0.1, 1.0)
+    xy, imaged = camera.vectors_to_pixels(near)
+    assert imaged[0]
+    np.testing.assert_allclose(camera.pixels_to_vectors(xy), near, atol=1e-12)
+
+
 def test_parameter_choice_by_star_count_and_names():
     assert parameters_for(2) == ()
     assert parameters_for(3) == parameters_for(5) == ("focal_length_px",)

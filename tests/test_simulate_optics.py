@@ -73,6 +73,26 @@ def test_noise_free_sources_are_exactly_where_the_true_camera_puts_the_truth_sta
     assert np.percentile(np.hypot(*declared_offsets.T), 90) > 6.0
 
 
+def test_barrel_distortion_brings_no_star_from_beyond_the_field_onto_the_sensor(catalogue):
+    """With k1 < 0 the radial polynomial folds far off-axis directions back onto the sensor (a star 60 deg
+    away would be drawn among the field's): every star source of a sequence simulated with barrel
+    distortion lies within the sensor's half diagonal of the boresight, where the true camera puts it."""
+    true = true_optics(DECLARED, k1=k1_for_corner_distortion(DECLARED, -0.01))
+    exact = SensorModel(position_sigma_px=0.0, integer_pixels=False, blend_radius_px=0.0)
+    rows = catalogue.index_of_hip()
+    limit = math.cos(1.01 * true.diagonal_fov_rad / 2)
+    for seed in range(3):
+        sequence, truth = simulate_sequence(np.random.default_rng(seed), DECLARED, "single", sensor=exact,
+                                            true_camera=true)
+        vectors = catalogue.apparent_vectors(datetime.fromisoformat(truth["times"][0].replace("Z", "+00:00")))
+        R = np.asarray(truth["rotation_matrices"][0])
+        boresight_cos = [float((vectors[rows[label["hip"]]] @ R.T)[2]) for label in truth["sources"][0]
+                         if label["kind"] == "star"]
+        assert len(boresight_cos) >= 5 and min(boresight_cos) >= limit
+        offsets = star_offsets(sequence, truth, true, catalogue)
+        assert offsets.max() < 1e-6
+
+
 def test_cli_true_optics_files_declare_the_nominal_camera(tmp_path, catalogue, capsys):
     code = cli_main(["simulate", str(tmp_path), "--n", "2", "--seed", "5", "--camera", DECLARED.name,
                      "--focal-error", "0.03", "--corner-distortion", "0.01", "--cx-offset", "2.5"])

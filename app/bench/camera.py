@@ -7,9 +7,11 @@ sequences per row, whose true optics differ from the declared camera
 * focal length 0, 1, 3 and 5 % off (the sign alternates from one sequence to
   the next: half are longer, half shorter than declared), no distortion, on
   the 20 deg camera;
-* undeclared barrel distortion of 1 % of the field radius at the corner
-  (k1 = 0.01 / r_corner^2), exact focal length, on the 20 deg and the 30 deg
-  cameras;
+* undeclared radial distortion of 1 % of the field radius at the corner,
+  pincushion (k1 = 0.01 / r_corner^2) and barrel (k1 = -0.01 / r_corner^2,
+  most lenses' kind), exact focal length, on the 20 deg and the 30 deg
+  cameras; and barrel distortion with the focal length 3 % off, as real
+  optics come, on the 20 deg camera;
 * focal length 8 % and 10 % off, beyond the declared 5 % tolerance: nothing may be
   identified (optics outside the declaration are never credible), and the
   search should name the focal length the stars fit
@@ -56,8 +58,10 @@ CALIBRATION_SIZES = (20, 50, 200)
 def _optics_rows() -> list[tuple[str, str, float, float]]:
     """(label, camera, focal error, corner distortion) of each identification row."""
     rows = [(f"focal {e:+.0%}".replace("+0%", "0%"), "tubsat-752x582-20deg", e, 0.0) for e in FOCAL_ERRORS]
-    rows += [(f"k1: {CORNER_DISTORTION:.0%} at corner", name, 0.0, CORNER_DISTORTION)
+    rows += [(f"k1: {corner:+.0%} at corner", name, 0.0, corner)
+             for corner in (CORNER_DISTORTION, -CORNER_DISTORTION)
              for name in ("tubsat-752x582-20deg", "liebe-576x604-30deg")]
+    rows += [(f"focal 3%, k1: {-CORNER_DISTORTION:+.0%}", "tubsat-752x582-20deg", 0.03, -CORNER_DISTORTION)]
     rows += [(f"focal {e:+.0%} (tolerance 5%)", "tubsat-752x582-20deg", e, 0.0) for e in BEYOND_TOLERANCE]
     return rows
 
@@ -70,8 +74,8 @@ def _true_camera(camera, focal_error: float, corner: float):
 def run_row(sky: Sky, label: str, camera_name: str, focal_error: float, corner: float, scenario: str,
             n: int, seed: int) -> dict:
     camera = CAMERAS[camera_name]
-    rng = np.random.default_rng([seed, int(focal_error * 1000), int(corner * 1000), scenario == "single",
-                                 sorted(CAMERAS).index(camera_name)])
+    rng = np.random.default_rng([seed, int(focal_error * 1000), int(abs(corner) * 1000), scenario == "single",
+                                 sorted(CAMERAS).index(camera_name)] + [1] * (corner < 0))
     rows = []
     for i in range(n):
         sign = 1 if i % 2 == 0 else -1
