@@ -389,3 +389,19 @@ def test_a_no_star_frame_is_one_snapshot_of_sources_that_are_not_stars(kind):
         ours = peer._ours(sky, sequence, None)
         assert not ours.claimed and not ours.correct
     assert peer._verdict(np.eye(3), None) == (False, None, None)
+
+
+def test_a_middle_snapshot_is_one_snapshot_with_its_own_truth():
+    """The few-star row's frame: the sequence's middle snapshot, renumbered 0, with the truth of that
+    snapshot (its attitude, its sources' labels, its time), not the first one's."""
+    from app.simulate import simulate_sequence
+
+    sequence, truth = simulate_sequence(np.random.default_rng(9), CAMERA, "sparse")
+    middle = len(sequence.snapshots) // 2
+    one, one_truth = peer.middle_snapshot(sequence, truth)
+    (snapshot,) = one.snapshots
+    assert snapshot.index == 0 and snapshot.time == sequence.snapshots[middle].time
+    np.testing.assert_array_equal(snapshot.xy, sequence.snapshots[middle].xy)
+    assert one_truth["rotation_matrices"] == [truth["rotation_matrices"][middle]]
+    assert one_truth["sources"] == [truth["sources"][middle]] and one_truth["times"] == [truth["times"][middle]]
+    assert len(one_truth["sources"][0]) == snapshot.n_sources
