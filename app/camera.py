@@ -66,6 +66,28 @@ def _pixels_to_vectors(xy, f, cx, cy, k1, k2):
     return out
 
 
+def fold_radius(k1: float, k2: float) -> float:
+    """Normalised (pinhole) radius beyond which the distortion ``k1``, ``k2`` folds the image over (inf if never).
+
+    The radial map ``r -> r (1 + k1 r^2 + k2 r^4)`` increases while its
+    slope ``1 + 3 k1 r^2 + 5 k2 r^4`` is positive; past the first radius
+    where the slope vanishes, directions further off axis land nearer
+    the centre again (barrel distortion, ``k1 < 0``: at ``r^2 = -1 / (3
+    k1)`` when ``k2 = 0``), and a star 60 deg off a 20 deg field's axis
+    would land on its sensor.  The slope is a quadratic in ``u = r^2``:
+    its smallest positive root.  A usable lens folds nowhere on its sensor
+    (the telemetry's and the simulator's checks).
+    """
+    k1, k2 = float(k1), float(k2)
+    if k2 == 0.0:
+        return math.inf if k1 >= 0.0 else math.sqrt(-1.0 / (3.0 * k1))
+    disc = 9.0 * k1 * k1 - 20.0 * k2
+    if disc < 0.0:
+        return math.inf  # the slope never vanishes (k2 > 0)
+    roots = [u for u in ((-3.0 * k1 - sign * math.sqrt(disc)) / (10.0 * k2) for sign in (1.0, -1.0)) if u > 0.0]
+    return math.sqrt(min(roots)) if roots else math.inf
+
+
 @warm_up_with
 def _warm_up_pixels() -> None:
     _pixels_to_vectors(np.zeros((1, 2)), 100.0, 1.0, 1.0, 0.1, 0.0)
@@ -198,24 +220,8 @@ class Camera:
 
     @property
     def fold_radius(self) -> float:
-        """Normalised (pinhole) radius beyond which the distortion model folds the image over (inf if never).
-
-        The radial map ``r -> r (1 + k1 r^2 + k2 r^4)`` increases while its
-        slope ``1 + 3 k1 r^2 + 5 k2 r^4`` is positive; past the first radius
-        where the slope vanishes, directions further off axis land nearer
-        the centre again (barrel distortion, ``k1 < 0``: at ``r^2 = -1 / (3
-        k1)`` when ``k2 = 0``), and a star 60 deg off a 20 deg field's axis
-        would land on its sensor.  The slope is a quadratic in ``u = r^2``:
-        its smallest positive root.
-        """
-        k1, k2 = float(self.k1), float(self.k2)
-        if k2 == 0.0:
-            return math.inf if k1 >= 0.0 else math.sqrt(-1.0 / (3.0 * k1))
-        disc = 9.0 * k1 * k1 - 20.0 * k2
-        if disc < 0.0:
-            return math.inf  # the slope never vanishes (k2 > 0)
-        roots = [u for u in ((-3.0 * k1 - sign * math.sqrt(disc)) / (10.0 * k2) for sign in (1.0, -1.0)) if u > 0.0]
-        return math.sqrt(min(roots)) if roots else math.inf
+        """Normalised radius beyond which this camera's distortion folds the image over (:func:`fold_radius`)."""
+        return fold_radius(self.k1, self.k2)
 
     def vectors_to_pixels(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, 3) camera-frame vectors -> ((N, 2) pixels, (N,) imaged mask).

@@ -394,6 +394,21 @@ def test_all_problems_are_collected_and_reported():
     json.dumps(as_dict)  # serialisable as is
 
 
+def test_a_distortion_that_folds_the_image_over_before_the_corner_is_refused():
+    """By hand, for the 752 x 582 sensor at f = 1000 px (its corner at r^2 = 0.2261): k1 = 1.8, k2 = -9
+    stop ``r (1 + k1 r^2 + k2 r^4)`` increasing where ``1 + 5.4 u - 45 u^2 = 0``, u = r^2 = 0.2207, inside
+    the sensor, though they move the corner by only -5.3 %; with k2 = -8 it turns back at u = 0.2394,
+    beyond the corner, and the camera is kept."""
+    doc = valid_doc()
+    doc["camera"].update(focal_length_px=1000.0, k1=1.8, k2=-9.0)
+    with pytest.raises(TelemetryError) as info:
+        parse_doc(doc, filename="A-0427.json")
+    (problem,) = info.value.problems
+    assert problem.location == "camera.k1" and "fold the image over before the sensor corner" in problem.message
+    doc["camera"]["k2"] = -8.0
+    assert parse_doc(doc, filename="A-0427.json").camera.k2 == -8.0
+
+
 def test_problems_are_capped():
     doc = valid_doc()
     doc["snapshots"][0]["sources"] = [{"x": "bad", "y": "bad", "brightness": 1}] * 60

@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from app.camera import CAMERAS, Camera
+from app.camera import CAMERAS, Camera, fold_radius
 from app.config import MAX_SNAPSHOTS, MAX_SOURCES_PER_SNAPSHOT, settings
 from app.telemetry.errors import Problem, ProblemCollector, TelemetryError
 from app.telemetry.model import FORMAT_NAME, Sequence, Snapshot
@@ -476,8 +476,7 @@ def _check_physical_bounds(values: dict[str, Any], where: Callable[[str], str], 
                    max(values["cy"] + 0.5, height - 0.5 - values["cy"])) / focal
     corner = k1 * r**2 + k2 * r**4
     # d/dr [r (1 + k1 r^2 + k2 r^4)] > 0 out to the corner: else two directions land on one pixel.
-    radii_sq = np.linspace(0.0, r, 65) ** 2
-    increasing = bool(np.all(1.0 + 3.0 * k1 * radii_sq + 5.0 * k2 * radii_sq**2 > 0.0))
+    increasing = fold_radius(k1, k2) > r
     key = "k2" if k1 == 0.0 else "k1"
     if abs(corner) > MAX_CORNER_DISTORTION:
         problems.add(where(key), f"k1 = {k1:g}, k2 = {k2:g} move the sensor corner by {100 * corner:.3g} % of its "
