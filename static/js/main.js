@@ -247,12 +247,21 @@ function renderPattern() {
       el("td", {}, `◆ hand ${k}`), el("td", { title: `picked in ${snapshotName(m.snapshot, { snapshots: d.telemetry.snapshots, count: true })}` }, `snap. ${m.snapshot}`), el("td", {}, `${fmt(m.x, 1)}, ${fmt(m.y, 1)}`), el("td", {}, "")));
   });
   $("pattern-rows").replaceChildren(...rows);
+  notePatternMore();
+  $("pattern-caption").textContent = `version ${pattern.version ?? "-"} (${pattern.kind}${pattern.operator ? `, ${pattern.operator}` : ""}): ` +
+    `${pattern.points.length} points, reference ${snapshotName(pattern.reference_snapshot, { snapshots: d.telemetry.snapshots })}`;
+}
+
+// "N rows: scroll the table for M more" under a pattern table longer than its box.  The box takes what its card
+// (the snapshots' height) leaves under the search box and above the notes, so this is counted again whenever
+// its size changes (another sequence's notes, the prior's fields shown): see setupSearch.
+function notePatternMore() {
   const wrap = $("pattern-wrap");
+  if (!wrap.clientHeight) return;   // not laid out (the other tab shown): counted when it is
+  const rows = [...$("pattern-rows").children];
   const hiddenRows = rows.filter((r) => r.offsetTop + r.offsetHeight > wrap.scrollTop + wrap.clientHeight + 1).length;
   $("pattern-more").hidden = !hiddenRows;
   $("pattern-more").textContent = `${rows.length} rows: scroll the table for ${hiddenRows} more`;
-  $("pattern-caption").textContent = `version ${pattern.version ?? "-"} (${pattern.kind}${pattern.operator ? `, ${pattern.operator}` : ""}): ` +
-    `${pattern.points.length} points, reference ${snapshotName(pattern.reference_snapshot, { snapshots: d.telemetry.snapshots })}`;
 }
 
 // A search method as the method menu names it ("triangle features", not "tf").
@@ -375,6 +384,8 @@ function setupSearch() {
     if (state.detail) renderSearchReplaces();
   });
   showPrior();
+  // In the next frame: the count shows or hides a line, which changes the box again.
+  new ResizeObserver(() => requestAnimationFrame(notePatternMore)).observe($("pattern-wrap"));
   for (const id of ["prior-ra", "prior-dec", "prior-roll", "prior-sigma"]) {
     $(id).addEventListener("input", () => { $("prior-given").checked = true; });
   }

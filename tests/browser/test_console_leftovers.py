@@ -1,7 +1,7 @@
 """The console's known leftovers of an operator trial, fixed, in a real Chromium: the sky chart's labels keep
 clear of the tracks' circles, a point off the chart is drawn whole inside it, a success message is read
-whole in the status line, a message about where the operator is goes when they move, and a comment leaves
-with the candidate it was typed for.
+whole in the status line, a message about where the operator is goes when they move, a comment leaves
+with the candidate it was typed for, and Next stays in its place from sequence to sequence.
 
 Facts are read back from the server's API (the candidate view's pixels, the stored confirmation), never from
 the page alone.  Screenshots: /tmp/leftovers-*.png.
@@ -250,3 +250,61 @@ def test_a_comment_typed_here_leaves_with_its_candidate(server, api, new_page, t
     confirmation = api(f"/api/sequences/{seq_id}/review")["confirmation"]
     assert (confirmation["rank"], confirmation["comment"]) == (2, "written for rank 2")
     assert watched.errors == []
+
+
+def test_next_candidate_stays_in_its_place_from_sequence_to_sequence(server, api, new_page, tmp_path):
+    """The candidate card's head (‹ Prev, Next ›) sat under the pattern card, whose length follows its rows and
+    notes: from one sequence to the next Next moved by up to 200 px, and a click meant for it landed on the
+    snapshots and took a track out of the pattern.  The pattern card now keeps the snapshots' height, its table
+    and notes scrolling inside it, and an image pass's frame panel comes after the candidates, so Next is at
+    the same place of the page for a long pattern, a short one and a pass of frames, at 1280 and 1920 px."""
+    from test_console_frames import upload_pass, wait_for_frame
+
+    # Long: 09-wide-30deg's 22 tracks and ten points picked by hand after its search (whose summary then says
+    # it is stale); short: 05-earth's four tracks; and a pass of frames.
+    long_id, _ = upload_and_search(api, fresh_copy("09-wide-30deg.json", "nextstill", tmp_path))
+    picked = [{"snapshot": 0, "x": 40.0 + 50 * k, "y": 60.0} for k in range(10)]
+    api(f"/api/sequences/{long_id}/pattern", "PUT", body={"manual_points": picked})
+    short_id, _ = upload_and_search(api, fresh_copy("05-earth.json", "nextstill", tmp_path))
+    frames_id = upload_pass(server, "frames-nextstill", 518)["id"]
+    api(f"/api/sequences/{frames_id}/search", "POST", body={})
+    rows = {seq_id: len(api(f"/api/sequences/{seq_id}")["extraction"]["pattern"]) for seq_id in (long_id, short_id)}
+    rows[long_id] += len(picked)
+    sequences = [(long_id, "09-wide-30deg-nextstill"), (short_id, "05-earth-nextstill"),
+                 (frames_id, "frames-nextstill"), (long_id, "09-wide-30deg-nextstill")]
+
+    for width, height in ((1280, 800), (1920, 1080)):
+        watched, _ = console(new_page, server, width=width, height=height)
+        page = watched.page
+        seen = {}
+        for seq_id, name in sequences:
+            open_sequence(page, seq_id, name)
+            if seq_id == frames_id:
+                wait_for_frame(page, int(page.locator("#frame-canvas").get_attribute("data-snapshot")))
+            else:
+                page.wait_for_function("(n) => document.querySelectorAll('#pattern-rows tr').length === n",
+                                       arg=rows[seq_id])
+            expect_text(page.locator("#search-summary"), "^Latest search: ")
+            page.evaluate("window.scrollTo(0, 0)")
+            page.wait_for_timeout(200)   # the pattern table's "scroll for more" follows the card's size
+            card = page.locator("#pattern-card").bounding_box()
+            content = page.evaluate("""() => [...document.querySelectorAll('#pattern-card > *')]
+                .filter((e) => e.offsetParent).map((e) => { const b = e.getBoundingClientRect();
+                  return { id: e.id || e.className, top: b.top, bottom: b.bottom }; })""")
+            # Nothing of the pattern card is cut or spills over: every part lies inside it.
+            assert all(card["y"] - 0.5 <= c["top"] and c["bottom"] <= card["y"] + card["height"] + 0.5
+                       for c in content), (width, name, card, content)
+            seen[(seq_id, name)] = {"next": page.locator("#cand-next").bounding_box(),
+                                    "summary": page.locator("#search-summary").inner_text(),
+                                    "rows": page.locator("#pattern-rows tr").count()}
+            shot(page, f"09-next-{width}-{name}")
+        long, short = seen[(long_id, "09-wide-30deg-nextstill")], seen[(short_id, "05-earth-nextstill")]
+        assert long["rows"] >= 30 and short["rows"] <= 5 and "STALE" in long["summary"]
+        assert len(long["summary"]) > len(short["summary"])
+        # The last rows of the long pattern are reachable: the table says that it scrolls.
+        expect_text(page.locator("#pattern-more"), rf"{long['rows']} rows: scroll the table for \d+ more")
+        nexts = {name: s["next"] for (_, name), s in seen.items()}
+        assert all(box == nexts["09-wide-30deg-nextstill"] for box in nexts.values()), (width, nexts)
+        # And it is on the first screen.
+        assert nexts["05-earth-nextstill"]["y"] + nexts["05-earth-nextstill"]["height"] <= height
+        assert watched.errors == []
