@@ -189,14 +189,20 @@ async function loadDetail(id, { fresh = false } = {}) {
   $("empty-hint").hidden = true;
   $("workspace").hidden = false;
   if (fresh) $("change-notice").hidden = true;
-  $("seq-title").textContent = detail.sequence_id || `sequence #${detail.id}`;
-  $("seq-meta").textContent = `#${detail.id} · ${detail.spacecraft || "unknown spacecraft"} · ${detail.camera.name || "camera"} · ` +
-    `${plural(detail.n_snapshots, "snapshot")} ${detail.telemetry.time_assumed ? `with no time (${ASSUMED_TIME})`
-      : `from ${fmtTime(detail.first_time)}`}${detail.filename ? ` · ${detail.filename}` : ""}`;
+  // One line each, cut with an ellipsis (the whole text in the tooltip): a long id or file name must not push
+  // the panels below, and the operator's Next with them, down a line.
+  for (const [id, text] of [
+    ["seq-title", detail.sequence_id || `sequence #${detail.id}`],
+    ["seq-meta", `#${detail.id} · ${detail.spacecraft || "unknown spacecraft"} · ${detail.camera.name || "camera"} · ` +
+      `${plural(detail.n_snapshots, "snapshot")} ${detail.telemetry.time_assumed ? `with no time (${ASSUMED_TIME})`
+        : `from ${fmtTime(detail.first_time)}`}${detail.filename ? ` · ${detail.filename}` : ""}`]]) {
+    $(id).textContent = text;
+    $(id).title = text;
+  }
   const badge = $("seq-status");
   badge.textContent = statusText(detail.status);
   badge.className = `badge ${detail.status}`;
-  $("seq-verdict").textContent = verdictSummary();
+  $("seq-verdict").textContent = $("seq-verdict").title = verdictSummary();
   markSelected(id);
   noteSearched([detail]);   // its upload line, if it still says a search is queued
   if (detail.spacecraft !== state.calibrationShown) {

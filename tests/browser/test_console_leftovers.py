@@ -266,12 +266,22 @@ def test_next_candidate_stays_in_its_place_from_sequence_to_sequence(server, api
     picked = [{"snapshot": 0, "x": 40.0 + 50 * k, "y": 60.0} for k in range(10)]
     api(f"/api/sequences/{long_id}/pattern", "PUT", body={"manual_points": picked})
     short_id, _ = upload_and_search(api, fresh_copy("05-earth.json", "nextstill", tmp_path))
+    # A sequence id, spacecraft and file name of the most characters the telemetry allows (128): the header
+    # must not grow a line.
+    long_name = fresh_copy("05-earth.json", "nextstill-long-name", tmp_path)
+    doc = json.loads(long_name.read_text())
+    doc["sequence_id"] = (doc["sequence_id"] + "-" + "long-name-" * 13)[:128]
+    doc["spacecraft"] = ("SPACECRAFT-WITH-A-VERY-LONG-NAME-" * 4)[:128]
+    long_name.write_text(json.dumps(doc))
+    long_name_id, _ = upload_and_search(api, long_name)
     frames_id = upload_pass(server, "frames-nextstill", 518)["id"]
     api(f"/api/sequences/{frames_id}/search", "POST", body={})
-    rows = {seq_id: len(api(f"/api/sequences/{seq_id}")["extraction"]["pattern"]) for seq_id in (long_id, short_id)}
+    rows = {seq_id: len(api(f"/api/sequences/{seq_id}")["extraction"]["pattern"])
+            for seq_id in (long_id, short_id, long_name_id)}
     rows[long_id] += len(picked)
     sequences = [(long_id, "09-wide-30deg-nextstill"), (short_id, "05-earth-nextstill"),
-                 (frames_id, "frames-nextstill"), (long_id, "09-wide-30deg-nextstill")]
+                 (frames_id, "frames-nextstill"), (long_name_id, doc["sequence_id"]),
+                 (long_id, "09-wide-30deg-nextstill")]
 
     for width, height in ((1280, 800), (1920, 1080)):
         watched, _ = console(new_page, server, width=width, height=height)
@@ -286,7 +296,9 @@ def test_next_candidate_stays_in_its_place_from_sequence_to_sequence(server, api
                                        arg=rows[seq_id])
             expect_text(page.locator("#search-summary"), "^Latest search: ")
             page.evaluate("window.scrollTo(0, 0)")
-            page.wait_for_timeout(200)   # the pattern table's "scroll for more" follows the card's size
+            # The pattern table's "scroll for more" is counted in the frame after its box changes size: two
+            # frames on, the layout measured is the one the operator sees.
+            page.evaluate("() => new Promise((done) => requestAnimationFrame(() => requestAnimationFrame(done)))")
             card = page.locator("#pattern-card").bounding_box()
             content = page.evaluate("""() => [...document.querySelectorAll('#pattern-card > *')]
                 .filter((e) => e.offsetParent).map((e) => { const b = e.getBoundingClientRect();
@@ -295,9 +307,14 @@ def test_next_candidate_stays_in_its_place_from_sequence_to_sequence(server, api
             assert all(card["y"] - 0.5 <= c["top"] and c["bottom"] <= card["y"] + card["height"] + 0.5
                        for c in content), (width, name, card, content)
             seen[(seq_id, name)] = {"next": page.locator("#cand-next").bounding_box(),
+                                    "header": page.locator(".seq-header").bounding_box()["height"],
                                     "summary": page.locator("#search-summary").inner_text(),
                                     "rows": page.locator("#pattern-rows tr").count()}
-            shot(page, f"09-next-{width}-{name}")
+            if seq_id == long_name_id:  # the spacecraft's name is cut on its line, the whole text in the tooltip
+                assert page.evaluate("() => { const e = document.querySelector('#seq-meta'); "
+                                     "return e.scrollWidth > e.clientWidth && e.title === e.textContent; }")
+                assert page.locator("#seq-title").get_attribute("title") == doc["sequence_id"]
+            shot(page, f"09-next-{width}-{name[:40]}")
         long, short = seen[(long_id, "09-wide-30deg-nextstill")], seen[(short_id, "05-earth-nextstill")]
         assert long["rows"] >= 30 and short["rows"] <= 5 and "STALE" in long["summary"]
         assert len(long["summary"]) > len(short["summary"])
@@ -305,6 +322,16 @@ def test_next_candidate_stays_in_its_place_from_sequence_to_sequence(server, api
         expect_text(page.locator("#pattern-more"), rf"{long['rows']} rows: scroll the table for \d+ more")
         nexts = {name: s["next"] for (_, name), s in seen.items()}
         assert all(box == nexts["09-wide-30deg-nextstill"] for box in nexts.values()), (width, nexts)
+        assert len({s["header"] for s in seen.values()}) == 1, (width, seen)
+        # The sidebar keeps its width with that spacecraft in its AEM export's menu: its button takes its click.
+        page.locator("#bulk-export summary").click()
+        page.wait_for_function("(name) => [...document.querySelectorAll('#bulk-spacecraft option')]"
+                               ".some((o) => o.value === name)", arg=doc["spacecraft"])
+        page.select_option("#bulk-spacecraft", doc["spacecraft"])
+        page.locator("#bulk-go").scroll_into_view_if_needed()
+        go = page.locator("#bulk-go").bounding_box()
+        assert page.evaluate("([x, y]) => document.elementFromPoint(x, y)?.id",
+                             [go["x"] + go["width"] / 2, go["y"] + go["height"] / 2]) == "bulk-go"
         # And it is on the first screen.
         assert nexts["05-earth-nextstill"]["y"] + nexts["05-earth-nextstill"]["height"] <= height
         assert watched.errors == []
