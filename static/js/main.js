@@ -392,6 +392,8 @@ function setupSearch() {
   showPrior();
   // In the next frame: the count shows or hides a line, which changes the box again.
   new ResizeObserver(() => requestAnimationFrame(notePatternMore)).observe($("pattern-wrap"));
+  // ... and as the table scrolls: the rows still below, none once its end is reached.
+  $("pattern-wrap").addEventListener("scroll", () => requestAnimationFrame(notePatternMore), { passive: true });
   for (const id of ["prior-ra", "prior-dec", "prior-roll", "prior-sigma"]) {
     $(id).addEventListener("input", () => { $("prior-given").checked = true; });
   }

@@ -320,6 +320,12 @@ def test_next_candidate_stays_in_its_place_from_sequence_to_sequence(server, api
         assert len(long["summary"]) > len(short["summary"])
         # The last rows of the long pattern are reachable: the table says that it scrolls.
         expect_text(page.locator("#pattern-more"), rf"{long['rows']} rows: scroll the table for \d+ more")
+        # The count follows the table's scrolling: none left at its end, the same again back at its top.
+        before = page.locator("#pattern-more").inner_text()
+        page.locator("#pattern-wrap").evaluate("(e) => { e.scrollTop = e.scrollHeight; }")
+        expect_visible(page.locator("#pattern-more"), False)
+        page.locator("#pattern-wrap").evaluate("(e) => { e.scrollTop = 0; }")
+        expect_text(page.locator("#pattern-more"), re.escape(before))
         nexts = {name: s["next"] for (_, name), s in seen.items()}
         assert all(box == nexts["09-wide-30deg-nextstill"] for box in nexts.values()), (width, nexts)
         assert len({s["header"] for s in seen.values()}) == 1, (width, seen)
