@@ -538,7 +538,7 @@ function announceChange(what) {
   notice.hidden = false;
   cancelSteps();
   $("comment").value = "";   // it was about what was shown before, as the closed step's reason was
-  // Into view just below the sticky top bar, whose height grows while an error shows there.
+  // Into view just below the sticky top bar (a long message in its status line opens over the page below it).
   const below = document.querySelector(".topbar").getBoundingClientRect().bottom + 8;
   const top = notice.getBoundingClientRect().top;
   if (top < below || top + notice.offsetHeight > window.innerHeight) window.scrollBy(0, top - below);
