@@ -530,18 +530,40 @@ function replacedBy(searchId) {
     (state.rank ? `back at rank ${state.rank}` : "it found no candidates");
 }
 
-// What another console changed, above the candidates; any step this console had open is closed (it was
-// about what was shown before). The notice is brought into view: the step was further down the page.
+// What another console changed, in the notice over the sequence's header card; any step this console had open
+// is closed (it was about what was shown before). The page is not scrolled to it, nor moved by it: it comes at
+// any moment, under an operator's pointer, and it is on screen wherever the page is (setupNotice).
 function announceChange(what) {
   const notice = $("change-notice");
-  notice.textContent = `Changed by another console: ${what}.`;
-  notice.hidden = false;
+  notice.hidden = false;   // shown first: a live region's new words are read only when it is shown
+  $("change-notice-text").textContent = `Changed by another console: ${what}.`;
   cancelSteps();
   $("comment").value = "";   // it was about what was shown before, as the closed step's reason was
-  // Into view just below the sticky top bar (a long message in its status line opens over the page below it).
-  const below = document.querySelector(".topbar").getBoundingClientRect().bottom + 8;
-  const top = notice.getBoundingClientRect().top;
-  if (top < below || top + notice.offsetHeight > window.innerHeight) window.scrollBy(0, top - below);
+}
+
+// The change notice takes no place in the page (static/console.css .notice-anchor): it lies over the sequence's
+// header card, beside its status and verdict, and stays just under the top bar when the page is scrolled, then
+// only as tall and wide as its words ("stuck"). Its place follows the sizes of the top bar, of the header card
+// and of the verdict. It goes with this console's verdict, with another sequence opened, or with its button.
+function setupNotice() {
+  const root = document.documentElement.style;
+  const anchor = document.querySelector(".notice-anchor"), topbar = document.querySelector(".topbar");
+  const header = document.querySelector(".seq-header"), verdict = document.querySelector(".seq-verdict");
+  // Held under the top bar: the header card, just under the anchor in the page, has gone up past it.
+  const stuck = () => anchor.classList.toggle("stuck",
+    header.getBoundingClientRect().top < anchor.getBoundingClientRect().top - 0.5);
+  const place = () => {
+    const h = header.getBoundingClientRect(), v = verdict.getBoundingClientRect();
+    root.setProperty("--topbar-height", `${Math.ceil(topbar.getBoundingClientRect().height)}px`);
+    if (!h.width) return;   // no sequence open yet
+    root.setProperty("--seq-header-height", `${h.height}px`);
+    root.setProperty("--notice-right", `${Math.max(0, h.right - v.left + 12)}px`);
+    stuck();
+  };
+  const observer = new ResizeObserver(place);
+  for (const box of [topbar, header, verdict]) observer.observe(box);
+  window.addEventListener("scroll", stuck, { passive: true });
+  $("change-notice-close").addEventListener("click", () => { $("change-notice").hidden = true; });
 }
 
 // After this console's confirmation or rejection (or its refusal): the verdict, the lists and the 3D
@@ -819,6 +841,7 @@ async function start() {
   setupCandidate();
   setupKeys();
   setup3D();
+  setupNotice();
   $("reset-pattern").addEventListener("click", resetPattern);
   $("pick-mode").addEventListener("change", (e) => player.setPicking(e.target.checked));
   $("calibrate-button").addEventListener("click", () => action("Calibrating the camera", async () => {

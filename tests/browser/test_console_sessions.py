@@ -386,7 +386,8 @@ def test_a_confirmation_refused_for_a_replaced_search_shows_the_new_search_whole
     n_new = len(second["candidates"])
     expect_text(page.locator("#cand-rank"), f"rank 1 of {n_new}")
     expect_text(page.locator("#change-notice"), f"a new search \\(#{second['search_id']}\\) replaced the candidates")
-    # The notice sits at the top of the workspace, the Confirm step further down: it is brought into view.
+    # The notice belongs at the top of the workspace, the Confirm step further down: it is held in view, under the
+    # top bar (the page is not scrolled up to it).
     expect_in_viewport(page.locator("#change-notice"))
     # ... and not under the sticky top bar.
     assert page.locator("#change-notice").bounding_box()["y"] >= sum(
@@ -432,6 +433,100 @@ def test_a_change_notice_goes_once_this_console_gives_its_verdict(server, api, n
     expect_text(page.locator("#confirmed"), r"Confirmed: attitude #\d+")
     expect_visible(page.locator("#change-notice"), False)
     assert api(f"/api/sequences/{seq_id}/review")["confirmation"]["search_id"] == second["search_id"]
+    assert unexpected_errors(watched) == []
+
+
+#: What an operator may be about to click when another console's change is announced: these must not move.
+CLICKED = {"next": "#cand-next", "player": "#player-canvas", "pattern": "#pattern-card"}
+#: ... and what the notice must not lie over while the page is at its top.
+NOT_COVERED = ["#player-canvas", "#play", "#snapshot-slider", "#search-method", "#search", "#reset-pattern",
+               "#cand-prev", "#cand-next", "#tab-work", "#tab-3d", "#operator", "#seq-status"]
+
+
+def boxes_of(page, selectors: dict) -> dict:
+    return {name: page.locator(sel).bounding_box() for name, sel in selectors.items()}
+
+
+def searched_elsewhere(page, api, seq_id: int, body: dict) -> dict:
+    """A search of ``seq_id`` by another console (through the API), returned once this console has shown it: its
+    rank 1 drawn again in the sky view, the last thing the console does on seeing a new search (after the notice)."""
+    page.evaluate("""() => { window.skyDrawn = 0;
+        new MutationObserver(() => { window.skyDrawn++; })
+          .observe(document.getElementById("sky-canvas"), { attributes: true, attributeFilter: ["data-view"] }); }""")
+    result = api(f"/api/sequences/{seq_id}/search", "POST", body=body)
+    page.wait_for_function("window.skyDrawn > 0", timeout=TIMEOUT_MS)
+    return result
+
+
+def assert_same_boxes(before: dict, after: dict) -> None:
+    for name, box in before.items():
+        moved = {k: after[name][k] - box[k] for k in box if abs(after[name][k] - box[k]) > 0.5}
+        assert not moved, f"{name} moved when the notice came: {moved} ({box} -> {after[name]})"
+
+
+@pytest.mark.parametrize("width,height", [(1280, 800), (1920, 1080)])
+def test_a_change_notice_moves_nothing_the_operator_clicks(server, api, new_page, tmp_path, width, height):
+    """Another console's new search is announced at a moment this operator did not choose, maybe with the pointer
+    on a point of the snapshots or on Next.  The notice was put in the page's flow above the panels (and scrolled
+    into view): everything under it jumped down by its height and a click meant for one thing landed on another.
+    It now comes over the sequence's header card, and under the top bar when the page is scrolled: the player, the
+    pattern card and Next stay where they were, the page is not scrolled, and the notice covers none of them."""
+    tag = f"still-{width}"
+    seq_id, first = upload_and_search(api, fresh_copy("01-clean.json", tag, tmp_path))
+    n = len(first["candidates"])
+    watched = new_page(width, height)
+    page = watched.page
+    page.goto(server + "/")
+    page.wait_for_selector("body[data-ready='1']")
+    page.fill("#operator", "Still Hands")
+    open_sequence(page, seq_id, f"01-clean-{tag}")
+    expect_text(page.locator("#cand-rank"), f"rank 1 of {n}")
+    page.locator("#player-canvas").hover()   # the pointer on the snapshots, as an operator's about to pick a point
+    before, scroll_before = boxes_of(page, CLICKED), page.evaluate("window.scrollY")
+
+    second = searched_elsewhere(page, api, seq_id, {"method": "bright_pair", "max_candidates": n})
+    assert second["search_id"] != first["search_id"] and len(second["candidates"]) == n   # "rank 1 of n" again
+    notice = page.locator("#change-notice")
+    expect_text(notice, f"a new search \\(#{second['search_id']}\\) replaced the candidates shown; back at rank 1")
+    assert_same_boxes(before, boxes_of(page, CLICKED))
+    assert page.evaluate("window.scrollY") == scroll_before
+    # Seen where it is, read whole, read out by a screen reader, and lying over nothing clicked.
+    expect_in_viewport(notice)
+    topbar = page.locator(".topbar").bounding_box()
+    box = notice.bounding_box()
+    assert box["y"] >= topbar["y"] + topbar["height"]
+    assert notice.get_attribute("role") == "status"
+    assert notice.evaluate("e => e.scrollHeight <= e.clientHeight && e.scrollWidth <= e.clientWidth")
+    covered = [sel for sel in NOT_COVERED if boxes_overlap(box, page.locator(sel).bounding_box())]
+    assert covered == [], f"the notice lies over {covered}"
+    watched.screenshot(f"18-change-notice-{width}")
+
+    # Scrolled down to the verdict, the operator is told again, there, and the page is not scrolled back up to it.
+    page.locator("#confirm").scroll_into_view_if_needed()
+    expect_in_viewport(page.locator("#confirm"))
+    before, scroll_before = boxes_of(page, {**CLICKED, "confirm": "#confirm"}), page.evaluate("window.scrollY")
+    assert scroll_before > 0
+    third = searched_elsewhere(page, api, seq_id, {"method": "bright_pair", "max_candidates": n + 1})
+    assert third["search_id"] != second["search_id"] and len(third["candidates"]) == n
+    expect_text(notice, f"a new search \\(#{third['search_id']}\\) replaced the candidates shown")
+    assert_same_boxes(before, boxes_of(page, {**CLICKED, "confirm": "#confirm"}))
+    assert page.evaluate("window.scrollY") == scroll_before
+    expect_in_viewport(notice)
+    box = notice.bounding_box()
+    assert box["y"] >= topbar["y"] + topbar["height"]   # held just under the top bar, not under it
+    # ... and as tall as its words (one line here), not the header card's height, over whatever is there.
+    lines = notice.evaluate("e => { const s = getComputedStyle(e); return (e.clientHeight - parseFloat(s.paddingTop)"
+                            " - parseFloat(s.paddingBottom)) / parseFloat(s.lineHeight); }")
+    assert lines < 1.5, f"held over the page, the notice is {lines:.1f} lines high"
+    for sel in ("#cand-prev", "#cand-next", "#confirm", "#reject-open"):
+        assert not boxes_overlap(box, page.locator(sel).bounding_box()), f"the notice lies over {sel}"
+    watched.screenshot(f"19-change-notice-scrolled-{width}")
+
+    # Read, it can be put away from the keyboard (it also goes with this console's verdict, as before).
+    page.locator("#change-notice-close").focus()
+    page.keyboard.press("Enter")
+    expect_visible(notice, False)
+    assert_same_boxes(before, boxes_of(page, {**CLICKED, "confirm": "#confirm"}))
     assert unexpected_errors(watched) == []
 
 
