@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from app.frames import detect
+from app.frames import DetectionOptions, detect
 from app.simulate import add_point_sources, add_trail
 
 HEIGHT, WIDTH = 600, 800
@@ -173,6 +173,49 @@ def test_a_bloomed_star_is_one_star_and_the_moon_none():
     assert any("extended" in found.flags[k] for k in np.flatnonzero(np.hypot(*(found.xy - moon).T) < 60))
     n_found, false = _score(found, np.vstack([xy[clear], bright]))
     assert n_found == int(clear.sum()) + 1 and len(false) == 0, false
+
+
+def _blurred_field(seed: int):
+    """A frame through blurred optics (PSF sigma 7 px: a defocused lens, or a fine sensor behind a coarse
+    one), 16 stars on a grid 150 px apart, peaks 100 to 64,000 on noise 5, none saturated."""
+    rng = np.random.default_rng(seed)
+    grid = np.array([[x, y] for x in (100.0, 250.0, 400.0, 550.0) for y in (100.0, 250.0, 400.0, 520.0)])
+    xy = grid + rng.uniform(-0.5, 0.5, grid.shape)
+    flux = 10 ** np.linspace(4.5, 7.3, len(xy))
+    sky = (100.0 + rng.normal(0.0, 5.0, (HEIGHT, WIDTH))).astype(np.float32)
+    return sky, xy, flux
+
+
+def test_a_blurred_frames_brightest_stars_are_stars():
+    """The brightest stars of a blurred frame cover more than ``max_area_px`` (2,000 px) and are still
+    stars, at their places, and the PSF is measured on them: the size a star's image may have follows the
+    frame's PSF and the star's peak (a real 27 deg frame upscaled 2x lost its two brightest stars and then
+    its PSF, which left every other limit at its fixed value)."""
+    sky, xy, flux = _blurred_field(21)
+    found = detect(_with_stars(sky, xy, flux, 7.0), saturation=65535.0)
+    assert found.psf is not None
+    assert found.psf.area_px == pytest.approx(2 * np.pi * (7.0 ** 2 + 1 / 12), rel=0.15)
+    largest = np.flatnonzero(found.npix > DetectionOptions().max_area_px)
+    assert len(largest) >= 2 and all(found.is_star[k] for k in largest), [found.flags[k] for k in largest]
+    n_found, false = _score(found, xy)
+    assert n_found == len(xy) and len(false) == 0, false
+    assert np.all(_nearest(found.xy[found.is_star], xy[-4:]) < 0.3)
+
+
+def test_a_star_in_a_faint_glow_is_no_star_on_a_blurred_frame_either():
+    """A moderately bright star inside a glow just above the threshold (a lit cloud, a nebula; 50 px in
+    radius): the blob covers far more pixels than a star of its peak can, though its effective area stays
+    within the PSF's 3 times, so it is extended - whatever the frame's PSF (a blurred frame's large PSF
+    allows large stars, not large blobs of faint light)."""
+    sky, xy, flux = _blurred_field(22)
+    centre = np.array([700.0, 300.0])
+    glow = 40.0 * (np.hypot(COLS - centre[0], ROWS - centre[1]) < 50.0)
+    frame = _with_stars(sky + glow.astype(np.float32), np.vstack([xy, centre]), np.append(flux, 3e5), 7.0)
+    found = detect(frame, saturation=65535.0)
+    at = np.flatnonzero(np.hypot(*(found.xy - centre).T) < 20)
+    assert len(at) == 1 and "extended" in found.flags[at[0]] and found.npix[at[0]] > 5000
+    n_found, _ = _score(found, xy)
+    assert n_found == len(xy)
 
 
 def test_a_defocused_ring_is_one_star_with_one_centroid():

@@ -34,7 +34,8 @@ Steps, per frame:
    below ``max(2.5 sigma, 15 %)`` of its peak, which no PSF of sigma >= 0.6 px does),
    ``elongated`` (a / b above ``max_elongation`` and twice the PSF's: trails of
    satellites, aircraft, meteors), ``extended`` (an effective area more than 3 times the
-   PSF's, more pixels than ``max_area_px``, or lying on something extended,
+   PSF's, more pixels than a star of its peak covers (:func:`_star_area_limit`, at least
+   ``max_area_px``), or lying on something extended,
    :func:`_on_structure`: the Moon, a comet's head and tail, clouds, glare, lit trees,
    bloomed city lights, a glowing corner), ``border`` (cut by the frame's edge with its
    peak within the PSF's radius of it, or cut and not point-like: vignetting and read-out
@@ -42,7 +43,7 @@ Steps, per frame:
    ``saturated`` (its peak at the saturation level), ``edge`` (cut by the frame's border);
    hot pixels, elongated, extended and border blobs are not stars; saturated round blobs
    are bright stars and stay, flagged (their flat top makes the effective area
-   meaningless, so only ``max_area_px``, the elongation and the ring judge them);
+   meaningless, so only their pixel count, the elongation and the ring judge them);
 7. positions: windowed centroids (``sep.winpos``, SExtractor's XWIN/YWIN, a Gaussian
    window of the PSF's sigma), which at SNR 50 land within a few hundredths of a pixel;
    brightness = flux in a circular aperture of 3 window sigmas, background subtracted
@@ -90,6 +91,18 @@ PSF_MAX_STARS = 50
 #: A blob is extended when its effective area exceeds the PSF's this many times (a Gaussian 1.7 times
 #: wider; noise moves a 15-sigma star's area by ~10 %, a 5-sigma one's by ~40 %).
 EXTENDED_AREA_RATIO = 3.0
+#: How many pixels a star's image covers above sep's threshold t, in units of the PSF's effective area:
+#: for a Moffat profile of index beta, (beta - 1) ((P / t)^(1 / beta) - 1) at peak P (Moffat 1969; the
+#: wings of real optics are broader than a Gaussian's, whose ln(P / t) is less).  beta = 2.5 is the broad
+#: end of what seeing and lenses give (2.5-4.8), so the count is the most a star of that peak can cover.
+MOFFAT_BETA = 2.5
+#: ... at most twice that for a star of known peak (the profile's shape, a neighbour's wing) ...
+STAR_AREA_MARGIN = 2.0
+#: ... and for a saturated one, whose true peak is unknown, that of a peak this many times the threshold
+#: (far beyond a 16-bit sensor's full scale over its noise): 40 effective areas (the real frames'
+#: saturated stars reach 32).  ``max_area_px`` stays a floor: on a sharp frame a saturated star's
+#: bloom and halo cover more than the profile says.
+SATURATED_PEAK_RATIO = 4000.0
 #: A blob near another is a piece of the same star when its effective area is below this part of the PSF's.
 PIECE_AREA_RATIO = 0.5
 #: A blob is elongated when its a / b exceeds the PSF's this many times (and ``max_elongation``): the
@@ -122,6 +135,8 @@ class DetectionOptions:
     max_elongation: float = 2.0
     #: Elongation is judged only on blobs with at least this many pixels (shape noise of tiny blobs).
     min_area_for_shape_px: int = 10
+    #: Most pixels a star's blob covers, or what a star of its peak covers at the frame's PSF where that is
+    #: more (:func:`_star_area_limit`): larger blobs are extended (the Moon, clouds, glare).
     max_area_px: int = 2000
     #: A blob is one hot pixel when its four neighbours stay below this fraction of its peak
     #: (and below 2.5 sigma of the noise when that is higher).
@@ -276,7 +291,8 @@ def _classify(sep, objects, sub: np.ndarray, raw: np.ndarray, sky: _Sky, psf: Po
         else np.zeros(len(objects), dtype=bool)
     elongated = _is_elongated(objects, options, psf)
     not_point = _too_large(objects, peak, noise, psf) | _on_structure(objects, sub, peak, noise, psf)
-    extended = (objects["npix"] > options.max_area_px) | (~saturated & ~hot & not_point)
+    too_many = objects["npix"] > _star_area_limit(options, psf, peak / np.maximum(objects["thresh"], 1e-12), saturated)
+    extended = too_many | (~saturated & ~hot & not_point)
     cut = _touches_border(objects, shape)
     border = cut & (_peak_near_border(xpeak, ypeak, shape, psf) | elongated | extended)
     trunc = (objects["flag"] & sep.OBJ_TRUNC) != 0
@@ -580,7 +596,7 @@ def _measure_psf(objects, sub: np.ndarray, sky: _Sky, saturation: float | None, 
     """The frame's PSF from its best star-like blobs, None when fewer than :data:`PSF_MIN_STARS`.
 
     Candidates: peak at least :data:`PSF_PEAK_SIGMA` sigma, at least ``min_area_for_shape_px``
-    pixels, unsaturated, not cut by the border, no other blob within four times its size, a / b
+    pixels and no more than a star's image covers at their own median effective area, unsaturated, not cut by the border, no other blob within four times its size, a / b
     below twice ``max_elongation`` (not a trail), and not one or two hot pixels: the second
     brightest of the peak's four neighbours above the hot-pixel limit (a star of sigma 0.5 px or
     more lights both neighbours on at least one axis; a pair of hot pixels, as bright as stars in
@@ -598,8 +614,7 @@ def _measure_psf(objects, sub: np.ndarray, sky: _Sky, saturation: float | None, 
     a, b = objects["a"].astype(float), objects["b"].astype(float)
     elongation = a / np.maximum(b, 1e-9)
     ok = ((peak >= PSF_PEAK_SIGMA * noise) & (objects["npix"] >= options.min_area_for_shape_px)
-          & (objects["npix"] <= options.max_area_px) & (elongation < 2.0 * options.max_elongation)
-          & ~_touches_border(objects, sub.shape)
+          & (elongation < 2.0 * options.max_elongation) & ~_touches_border(objects, sub.shape)
           & (_neighbours(sub, xpeak, ypeak)[:, 1] >= np.maximum(2.5 * noise, options.hot_neighbour_fraction * peak)))
     if saturation is not None:
         ok &= _max_around(raw, xpeak, ypeak) < 0.995 * saturation
@@ -608,6 +623,15 @@ def _measure_psf(objects, sub: np.ndarray, sky: _Sky, saturation: float | None, 
     xy = np.column_stack([objects["x"], objects["y"]])
     gap, _ = cKDTree(xy).query(xy[ok], k=2)
     candidates = np.flatnonzero(ok)[gap[:, 1] > 4.0 * np.maximum(a[ok], 1.0)]
+    if len(candidates) < PSF_MIN_STARS:
+        return None
+    # No larger than a star's image can be (:func:`_star_area_limit`), judged by the candidates' own PSF:
+    # a fixed count of pixels would leave a blurred frame's bright stars out, and the frame without a PSF.
+    first_look = PointSpread(area_px=float(np.median(_effective_area(objects[candidates], peak[candidates],
+                                                                     noise[candidates]))), elongation=1.0, stars=0)
+    limit = _star_area_limit(options, first_look, peak[candidates] / np.maximum(objects["thresh"][candidates], 1e-12),
+                             np.zeros(len(candidates), dtype=bool))
+    candidates = candidates[objects["npix"][candidates] <= limit]
     if len(candidates) < PSF_MIN_STARS:
         return None
     best = candidates[np.argsort(-objects["flux"][candidates], kind="stable")[:PSF_MAX_STARS]]
@@ -680,7 +704,29 @@ def _peak_near_border(x: np.ndarray, y: np.ndarray, shape: tuple[int, int], psf:
 
 def _is_trail(objects, options: DetectionOptions, psf: PointSpread | None) -> np.ndarray:
     """Blobs that are no stars by shape: elongated (trails) or larger than any star image."""
-    return _is_elongated(objects, options, psf) | (objects["npix"] > options.max_area_px)
+    return _is_elongated(objects, options, psf) | (objects["npix"] > _star_area_limit(options, psf))
+
+
+def _star_area_limit(options: DetectionOptions, psf: PointSpread | None, peak_over_threshold=None,
+                     saturated=None) -> np.ndarray | float:
+    """The most pixels a star's blob covers: what a Moffat star (:data:`MOFFAT_BETA`) of its peak covers at
+    the frame's PSF, :data:`STAR_AREA_MARGIN` times (a saturated one, or one of unknown peak: a peak of
+    :data:`SATURATED_PEAK_RATIO` thresholds, once), and never less than ``max_area_px`` (alone without a PSF).
+
+    A pixel count alone is no scale: a defocused lens imaged finely (a PSF of 400 px^2) puts its brightest
+    stars over 2,000 px, while a glare that swallowed a star on a sharp frame covers more than the star's
+    peak can light.
+    """
+    if psf is None:
+        return float(options.max_area_px)
+    if peak_over_threshold is None:
+        ratio, margin = SATURATED_PEAK_RATIO, 1.0
+    else:
+        known = ~np.asarray(saturated, dtype=bool)
+        ratio = np.where(known, np.maximum(peak_over_threshold, 1.0), SATURATED_PEAK_RATIO)
+        margin = np.where(known, STAR_AREA_MARGIN, 1.0)
+    covered = (MOFFAT_BETA - 1.0) * (ratio ** (1.0 / MOFFAT_BETA) - 1.0) * psf.area_px
+    return np.maximum(float(options.max_area_px), margin * covered)
 
 
 @dataclass(frozen=True)
@@ -814,7 +860,7 @@ def _stars_on_trails(sep, sub: np.ndarray, noise: float, objects, options: Detec
         px = np.clip(np.round(parts["x"]).astype(int), 0, residual.shape[1] - 1)
         py = np.clip(np.round(parts["y"]).astype(int), 0, residual.shape[0] - 1)
         parts = parts[(parts["a"] <= _elongation_limit(options, psf) * np.maximum(parts["b"], 1e-9))
-                      & (parts["npix"] <= options.max_area_px)
+                      & (parts["npix"] <= _star_area_limit(options, psf))
                       & (np.abs(along[py, px]) <= trail.half_length - 4.0)]
         for name in ("x", "xmin", "xmax", "xpeak", "xcpeak"):
             parts[name] += trail.cols.start
