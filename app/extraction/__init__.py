@@ -14,10 +14,10 @@ tracks, see its docstring), ``pattern`` (patterns from tracks).
 
 from app.extraction.linking import extract
 from app.extraction.model import (DEFAULT_SIGHTING_SIGMA_PX, EXTRACTION_VERSION, GHOST, HOT_PIXEL, OUTLIER, REASONS, Extraction,
-                                  ExtractionParameters, Pattern, Track)
+                                  ExtractionParameters, Pattern, Track, assumed_sighting_noise_px)
 from app.extraction.pattern import (PatternError, build_pattern, carried_tracks, describe_track_ids, seed_pattern,
                                     tracks_pattern, unknown_tracks)
 
 __all__ = ["DEFAULT_SIGHTING_SIGMA_PX", "EXTRACTION_VERSION", "GHOST", "HOT_PIXEL", "OUTLIER", "REASONS", "Extraction", "ExtractionParameters",
-           "Pattern", "PatternError", "Track", "build_pattern", "carried_tracks", "describe_track_ids", "extract",
+           "Pattern", "PatternError", "Track", "assumed_sighting_noise_px", "build_pattern", "carried_tracks", "describe_track_ids", "extract",
            "seed_pattern", "tracks_pattern", "unknown_tracks"]

@@ -74,7 +74,8 @@ import math
 import numpy as np
 
 from app.compiled import njit, warm_up_with
-from app.extraction.model import GHOST, HOT_PIXEL, OUTLIER, Extraction, ExtractionParameters, Track
+from app.extraction.model import (GHOST, HOT_PIXEL, OUTLIER, Extraction, ExtractionParameters, Track,
+                                  assumed_sighting_noise_px)
 from app.extraction.motion import estimate_pair_rotations, expand_ranges, wahba_rotations
 from app.extraction.pattern import carried_tracks, seed_pattern, tracks_pattern
 from app.telemetry.model import Sequence
@@ -632,11 +633,11 @@ def _single_snapshot(sequence: Sequence, p: ExtractionParameters, hot: np.ndarra
                          xy=np.asarray(snapshot.xy[k:k + 1], dtype=float),
                          mean_brightness=float(snapshot.brightness[k])) for t, k in enumerate(kept))
     motion = np.eye(3)[None]
+    noise = assumed_sighting_noise_px(sequence.camera, p.sigma_default_px)  # nothing to measure it against
     return Extraction(reference=0, track_of_source=(track_of_source,), rejection=(rejection,),
                       tracks=tracks, motion=motion,
-                      pattern=tracks_pattern(sequence.camera, motion, tracks, p.sigma_default_px),
-                      seed_pattern=seed_pattern(sequence.camera, 0, tracks, p.sigma_default_px),
-                      noise_px=p.sigma_default_px, notes=notes)
+                      pattern=tracks_pattern(sequence.camera, motion, tracks, noise),
+                      seed_pattern=seed_pattern(sequence.camera, 0, tracks, noise), noise_px=noise, notes=notes)
 
 
 def _no_sources(sequence: Sequence, p: ExtractionParameters) -> Extraction:

@@ -19,6 +19,19 @@ EXTRACTION_VERSION = 3
 #: 1-sigma position noise of one sighting, pixels per axis, wherever it could not be measured
 #: (a single snapshot, too few tracks); the estimate's bounds are in ExtractionParameters.
 DEFAULT_SIGHTING_SIGMA_PX = 0.7
+#: ... and, where only assumed (a single snapshot), at least this fraction of the sensor's larger side:
+#: a pinhole with one radial term leaves part of a lens's distortion, a part of the field whatever its
+#: sampling (the real 27 deg frames: 1.3-3 px rms of 1,392 px with k1 and the principal point fitted).
+#: Chosen so that the default holds to 1,400 px across, the finest sampling it was checked on with real
+#: lenses; beyond, it grows with the sampling (1.4 px at 2,800 px, a photograph binned to the detection
+#: budget), and every tolerance in pixels with it.
+MODEL_ERROR_FRACTION = 5e-4
+
+
+def assumed_sighting_noise_px(camera, default_px: float = DEFAULT_SIGHTING_SIGMA_PX) -> float:
+    """The 1-sigma position error assumed for a sighting that nothing measures: ``default_px``, or
+    :data:`MODEL_ERROR_FRACTION` of ``camera``'s larger side where that is more."""
+    return max(float(default_px), MODEL_ERROR_FRACTION * max(camera.width, camera.height))
 
 #: Rejection reasons of a source.
 GHOST = "ghost"  # no consistent partner in any other snapshot

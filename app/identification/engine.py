@@ -21,7 +21,7 @@ from app.attitude import rotation_angles_between
 from app.camera import Camera
 from app.compiled import warm_up
 from app.identification.candidates import PreparedPattern, build_candidate, prepare_pattern, with_optics_uncertainty
-from app.identification.focal_estimate import CHECK_RADIUS_PX, FocalEstimate, focal_estimate
+from app.identification.focal_estimate import FocalEstimate, check_radius_px, focal_estimate
 from app.identification.focal_scan import FocalScan, ScanBatch, ScanGroup
 from app.identification.hypotheses import PairHypotheses, check_pair_hypotheses, ordered_pattern_edges
 from app.identification.methods import METHODS
@@ -146,7 +146,7 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
                 # (the shape matches checked count among the hypotheses tried).
                 search.n_tried += estimate.n_tried
                 search.consider(declared, estimate.rotation, np.array(estimate.pattern_edge),
-                                np.array(estimate.catalogue_pair), CHECK_RADIUS_PX * declared.scale)
+                                np.array(estimate.catalogue_pair), check_radius_px(declared) * declared.scale)
                 if search.settled(declared, used=1):
                     settled_at = declared
                     return
@@ -164,7 +164,7 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
             estimated = at(estimate.focal_length_px)
             if METHODS[method].bright_triangles:
                 search.consider(estimated, estimate.rotation, np.array(estimate.pattern_edge),
-                                np.array(estimate.catalogue_pair), CHECK_RADIUS_PX * estimated.scale)
+                                np.array(estimate.catalogue_pair), check_radius_px(estimated) * estimated.scale)
                 if search.settled(estimated, used=1):
                     settled_at = estimated
                     return

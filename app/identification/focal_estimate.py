@@ -63,6 +63,15 @@ MAX_TRIED = 1500
 #: rotation and focal length err by its sides' errors (a few pixels across the pattern), far less than the
 #: distance between stars (~100 px for the 20 deg camera).
 CHECK_RADIUS_PX = 5.0
+#: ... or this many of its points' sighting sigmas, where that is more (a finely sampled frame, whose
+#: sighting noise is assumed larger: :func:`app.extraction.assumed_sighting_noise_px`).
+CHECK_RADIUS_SIGMAS = 7.0
+
+
+def check_radius_px(p) -> float:
+    """The radius (pixels) within which a star catches a point of prepared pattern ``p``: :data:`CHECK_RADIUS_PX`,
+    or :data:`CHECK_RADIUS_SIGMAS` times its points' median sighting sigma where that is more."""
+    return max(CHECK_RADIUS_PX, CHECK_RADIUS_SIGMAS * float(np.median(p.sigma_px))) if p.m else CHECK_RADIUS_PX
 #: Fixed part of the shape tolerance (ratio units): the gnomonic projection changes a triangle's ratios
 #: with the focal length by up to ~3 % of the focal error over a 20 deg field (0.15 % at 5 %).
 SHAPE_MARGIN = 0.002
@@ -332,7 +341,7 @@ def focal_estimate(p: PreparedPattern, triangles: BrightTriangles, options: Sear
     side_sigma = np.hypot(sigma, np.roll(sigma, 1, axis=1)).max(axis=1)
     side_error = (options.edge_tolerance_px + 4 * side_sigma) * p.scale
     plane = p.vectors[:, :2] / p.vectors[:, 2:]
-    radius = CHECK_RADIUS_PX * p.scale
+    radius = check_radius_px(p) * p.scale
     catch = 1.0 - np.exp(-p.field.density_per_sr * np.pi * radius * radius)
     tolerance = p.camera.focal_tolerance if tolerance is None else tolerance
     return estimate_focal_length(tri, plane, p.camera.focal_length_px, tolerance, side_error, triangles,

@@ -1,0 +1,70 @@
+"""Real frames sampled twice as finely (a finer sensor behind the same lens, or a photograph binned to
+the detection budget) are identified as the frames themselves are.
+
+The reference is astrometry.net's image centre of the development set (``../shared/real-frames``, its
+README); the centre pixel of a frame resampled 2x with PIL (pixel areas scaled about the image's corner)
+sees the same sky.  The frames are ones that solve at their own sampling and that, at twice it, lost
+their brightest stars to a fixed limit of 2,000 px on a star's blob, and then were judged with the
+tolerances of a 0.7 px sighting noise where their lens's own distortion spans twice as many pixels
+(the shapes of their bright triangles checked within 5 px).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from app.bench.real import default_frames_dir
+from app.camera import Camera
+from app.extraction import DEFAULT_SIGHTING_SIGMA_PX, assumed_sighting_noise_px
+from app.frames import frames_to_sequence
+from app.identification import IDENTIFIED, Sky, solve_sequence
+
+#: Right: the image centre within 0.1 deg of the reference (as ``bench --suite real`` counts).
+RIGHT_DEG = 0.1
+
+
+def _upscaled_png(path, factor: int) -> bytes:
+    image = Image.open(path).convert("L")
+    stream = io.BytesIO()
+    image.resize((image.width * factor, image.height * factor), Image.BICUBIC).save(stream, format="PNG")
+    return stream.getvalue()
+
+
+def _separation_deg(a, b) -> float:
+    (ra1, de1), (ra2, de2) = np.radians(a), np.radians(b)
+    cosine = math.sin(de1) * math.sin(de2) + math.cos(de1) * math.cos(de2) * math.cos(ra1 - ra2)
+    return math.degrees(math.acos(min(1.0, cosine)))
+
+
+def test_the_assumed_sighting_noise_grows_with_the_sampling_beyond_1400_px():
+    """0.7 px to 1,400 px across (the sensors it was checked on keep it); 0.05 % of the larger side beyond."""
+    def camera(width, height):
+        return Camera(width=width, height=height, focal_length_px=1000.0, cx=(width - 1) / 2, cy=(height - 1) / 2)
+
+    assert assumed_sighting_noise_px(camera(752, 582)) == DEFAULT_SIGHTING_SIGMA_PX
+    assert assumed_sighting_noise_px(camera(1392, 1040)) == DEFAULT_SIGHTING_SIGMA_PX
+    assert assumed_sighting_noise_px(camera(2784, 2080)) == pytest.approx(1.392)
+    assert assumed_sighting_noise_px(camera(1000, 4000)) == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("name, field_of_view_given", [("xmas-image5", True), ("feb16-6", True), ("feb16-6", False)])
+def test_a_real_frame_sampled_twice_as_finely_is_identified(name, field_of_view_given):
+    """With its field of view, and without (the scale found from the shapes of its bright triangles, whose
+    check radius follows the sighting noise)."""
+    folder = default_frames_dir()
+    if not (folder / "README.md").is_file():
+        pytest.fail(f"the real frames are missing: expected them in {folder} (../shared/real-frames beside the "
+                    "repository, or $STARID_REAL_FRAMES)")
+    reference = json.loads((folder / f"{name}.json").read_text())
+    frame_pass = frames_to_sequence([(f"{name}-2x.png", _upscaled_png(folder / f"{name}.png", 2))],
+                                    fov_deg=reference["fov_deg_horizontal"] if field_of_view_given else None)
+    solved = solve_sequence(frame_pass.sequence, Sky())
+    assert solved.solution.status == IDENTIFIED, solved.solution.notes
+    centre = solved.solution.candidates[0].centre_radec_deg
+    assert _separation_deg(centre, (reference["ra_deg"], reference["dec_deg"])) < RIGHT_DEG
