@@ -22,7 +22,9 @@ honest and the fit centred? ``--n`` trials of 20 sequences, default 60; see
 ``real`` (real star-camera frames against astrometry.net's WCS, side by side with
 cedar-solve; ``--frames DIR``, default ``$STARID_REAL_FRAMES`` or ``../shared/real-frames``;
 ``--time-from-reference`` gives each frame its reference's time in a sidecar; ``--n`` the first N
-frames; see :mod:`app.bench.real`).
+frames; see :mod:`app.bench.real`).  ``variants`` (each real frame copied five ways that keep its
+sky: twice and half the sampling, turned, cropped off-centre, a dark foreground; see
+:mod:`app.bench.variants`).
 Every figure is measured now, on this machine, in one process (the load
 suite adds the server's), from simulated sequences drawn with ``--seed``.
 """
@@ -38,7 +40,7 @@ import sys
 import time
 
 SUITES = ("extraction", "identification", "sequence", "load", "seeds", "camera", "peer", "frames", "batch",
-          "calibration", "real")
+          "calibration", "real", "variants")
 #: The lost-in-space methods the identification suite can measure (app.identification.methods.METHODS).
 IDENTIFICATION_METHODS = ("bright_pair", "tf")
 
@@ -61,7 +63,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--think", type=float, default=None, metavar="SECONDS",
                    help="load suite: each client's pause between its loops (default 1; 0 = saturation)")
     p.add_argument("--frames", default=None, metavar="DIR",
-                   help="real suite: the folder of NAME.png + NAME.json frames (default $STARID_REAL_FRAMES, "
+                   help="real and variants suites: the folder of NAME.png + NAME.json frames (default $STARID_REAL_FRAMES, "
                         "else ../shared/real-frames beside the repository)")
     p.add_argument("--time-from-reference", action="store_true",
                    help="real suite: a sidecar gives each frame its reference's time_approximate (default: no time)")
@@ -110,6 +112,8 @@ def run(args: argparse.Namespace) -> int:
             kwargs["method"] = args.method
         if name == "real":
             kwargs.update(frames_dir=args.frames, time_from_reference=args.time_from_reference)
+        if name == "variants":
+            kwargs["frames_dir"] = args.frames
         results[name] = module.run(**kwargs)
         results[name]["wall_s"] = round(time.perf_counter() - t0, 1)
         if not args.json:
