@@ -230,6 +230,9 @@ def test_a_non_credible_candidate_is_confirmed_only_after_a_second_step_with_a_r
     # After confirming, the button says so; confirming again stores nothing new.
     expect_text(page.locator("#confirm"), rf"Confirmed ✓ \(attitude #{c['id']}\)")
     assert page.locator("#confirm").is_disabled()
+    # The confirmation says it is done (in the status line and its log) once the lists are read again: a "c" pressed
+    # before then had its "confirmed already" replaced by that message when the lists came slowly.
+    expect_text(page.locator("#message-log"), rf"Attitude #{c['id']} confirmed by Guard Tester")
     press(page, "c")
     expect_text(page.locator("#toast"), "confirmed already")
     watched.screenshot("11-guard-confirmed")
