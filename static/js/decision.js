@@ -214,8 +214,8 @@ function operatorName() {
 }
 
 // A verdict refused (409) because another console gave one first, said in this console's words (the server's
-// name the API's supersede field), before the reload, which brings a change notice into view below the status
-// line as it then is. Other refusals (a search replaced: `searchId` no longer the latest) keep the server's.
+// name the API's supersede field), before the reload, which may announce the change in the notice over the page
+// (its state as it then is). Other refusals (a search replaced: `searchId` no longer the latest) keep the server's.
 async function sayRefused(err, d, done, again, failed, searchId = null) {
   const key = (v) => v && JSON.stringify(verdictRef(v));
   const seen = currentVerdict();
