@@ -220,6 +220,18 @@ def load_frames(folder: Path) -> list[RealFrame]:
     return frames
 
 
+def suite_frames(suite: str, frames_dir: str | Path | None, n: int | None) -> tuple[Path, list[RealFrame]]:
+    """The frames folder (``frames_dir``, else :func:`default_frames_dir`) and its first ``n`` frames (all when
+    None); FramesUnavailable, said on stderr as the ``suite`` skipped, when there are none."""
+    folder = Path(frames_dir) if frames_dir is not None else default_frames_dir()
+    try:
+        frames = load_frames(folder)
+    except FramesUnavailable as exc:
+        print(f"{suite}: skipped: {exc}", file=sys.stderr)
+        raise
+    return folder, frames[:n] if n else frames
+
+
 def stage(frame: RealFrame, folder: Path, *, time_from_reference: bool) -> Path:
     """The frame's image linked into ``folder`` (so no sidecar of the frames folder is read), with a
     sidecar giving ``time_approximate`` when asked; the path to solve."""
@@ -344,13 +356,10 @@ def run(n_sequences: int | None = None, seed: int = 1, frames_dir: str | Path | 
     """The suite (``seed`` unused: nothing here is drawn); ``{"skipped": REASON}`` without frames."""
     from app.identification import Sky
 
-    folder = Path(frames_dir) if frames_dir is not None else default_frames_dir()
     try:
-        frames = load_frames(folder)
+        folder, frames = suite_frames("real", frames_dir, n_sequences)
     except FramesUnavailable as exc:
-        print(f"real: skipped: {exc}", file=sys.stderr)
         return {"skipped": str(exc)}
-    frames = frames[:n_sequences] if n_sequences else frames
     peer, facts, peer_note = start_peer()
     if peer is None:
         print(f"real: the peer is not measured: {peer_note}", file=sys.stderr)

@@ -33,8 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.bench.real import (RIGHT_DEG, WRONG_DEG, FramesUnavailable, RealFrame, default_frames_dir, load_frames,
-                            solve_ours, summarise)
+from app.bench.real import RIGHT_DEG, WRONG_DEG, FramesUnavailable, RealFrame, solve_ours, suite_frames, summarise
 
 #: The copies, in the order of the table.
 VARIANTS = ("2x", "half", "turned", "cropped", "foreground")
@@ -120,13 +119,10 @@ def run(n_sequences: int | None = None, seed: int = 1, frames_dir: str | Path | 
 
     from app.identification import Sky
 
-    folder = Path(frames_dir) if frames_dir is not None else default_frames_dir()
     try:
-        frames = load_frames(folder)
+        folder, frames = suite_frames("variants", frames_dir, n_sequences)
     except FramesUnavailable as exc:
-        print(f"variants: skipped: {exc}", file=sys.stderr)
         return {"skipped": str(exc)}
-    frames = frames[:n_sequences] if n_sequences else frames
     sky = Sky()
     rows = []
     load_before = round(os.getloadavg()[0], 2)
