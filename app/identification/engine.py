@@ -200,7 +200,8 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     no_feature = METHODS[method].no_feature if search.used == 0 else ""
     if not search.parts:
         return Solution(status=NO_MATCH, candidates=(), elapsed_s=_time.perf_counter() - started,
-                        notes=(f"no {method} hypothesis: {no_feature or 'no catalogue feature fits the pattern'}",))
+                        notes=(f"no {method} hypothesis: {no_feature or 'no catalogue feature fits the pattern'}",),
+                        n_hypotheses=search.n_tried)
     search.alternatives(settled_at or declared)
 
     n_scales = search.n_scales
@@ -230,7 +231,7 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
                  + (f" at {n_scales} focal lengths within {camera.focal_tolerance:.1%} of the declared one"
                     if n_scales > 1 else ""))
     return Solution(status=status, candidates=tuple(candidates), elapsed_s=_time.perf_counter() - started,
-                    notes=tuple(notes), focal_length_contradiction=contradiction)
+                    notes=tuple(notes), focal_length_contradiction=contradiction, n_hypotheses=search.n_tried)
 
 
 class _Search:

@@ -118,6 +118,8 @@ class Solution:
     notes: tuple[str, ...] = field(default_factory=tuple)
     #: Set when the stars fit a focal length outside the declared tolerance (said here, not in ``notes``).
     focal_length_contradiction: FocalLengthContradiction | None = None
+    #: Hypotheses tried, those a caller tried before included (the false-match probability's count).
+    n_hypotheses: int = 0
 
     @property
     def best(self) -> Candidate | None:

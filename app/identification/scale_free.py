@@ -19,6 +19,13 @@ searched from the widest field down (the shallow catalogue and large
 triangles are the cheapest), each by :func:`focal_estimate`, whose chance
 test counts every shape match checked.
 
+Bright pairs when no shape fits.  When no band's triangles fit a focal length (a narrow field's few
+bright stars, whose shapes the deep catalogue matches by the thousand: its band stops at
+:data:`BAND_MAX_TRIED` shape matches first), each band is searched as a declared camera at its middle
+focal length known to its half-width, widest first, by the engine's own search over focal lengths
+(bright pairs, :mod:`.focal_scan`), until one is identified.  It costs a frame that matches nothing about
+a second (every band's pairs) where the shapes alone take a tenth; the time-out bounds it.
+
 Answer.  At the first band whose triangles fit a focal length beyond chance,
 the pattern is identified as if that focal length had been declared, known to
 :data:`FOUND_TOLERANCE` (:func:`app.identification.engine.identify`: bright
@@ -133,8 +140,7 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
         estimate = focal_estimate(prepared, band_sky.bright_triangles(), options, band.tolerance, checked,
                                   BAND_MAX_TRIED)
         tried += sum(checked)
-        fovs = (f"{fov_for_focal_length(camera.width, band.high_px):.1f}-"
-                f"{fov_for_focal_length(camera.width, band.low_px):.1f}")
+        fovs = _fovs(camera, band)
         if estimate is None:
             searched.append(f"{fovs} deg (stars to Hp {band_sky.depth_for(nominal, options.mag_margin):.1f}): "
                             f"no fit in {sum(checked)} triangles")
@@ -153,12 +159,33 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
             best = solution
         if solution.status == IDENTIFIED:
             break
+    if best is None:  # no shape fitted anywhere: each band's focal lengths searched by bright pairs
+        for band, nominal, band_sky in zip(searched_bands, nominals, band_skies):
+            if _time.perf_counter() - started > options.timeout_s:
+                searched.append("time-out")
+                break
+            solution = identify(replace(pattern, vectors=nominal.pixels_to_vectors(pattern.xy)), nominal, t,
+                                band_sky, velocity_km_s=velocity_km_s, options=options, planets=planets,
+                                method=method, hypotheses_before=tried)
+            tried = max(tried, solution.n_hypotheses)
+            solution = replace(solution, candidates=tuple(c if c.camera is not None else replace(c, camera=nominal)
+                                                          for c in solution.candidates))
+            searched.append(f"{_fovs(camera, band)} deg by bright pairs: {solution.status}")
+            if best is None or _better(solution, best):
+                best = solution
+            if solution.status == IDENTIFIED:
+                break
     elapsed = _time.perf_counter() - started
     note = ("the field of view was unknown: searched " + f"{FOV_RANGE_DEG[0]:g}-{FOV_RANGE_DEG[1]:g} deg by "
             "the shapes of the pattern's bright triangles, widest first (" + "; ".join(searched) + ")")
     if best is None:
-        return Solution(status=NO_MATCH, candidates=(), elapsed_s=elapsed, notes=(note,))
+        return Solution(status=NO_MATCH, candidates=(), elapsed_s=elapsed, notes=(note,), n_hypotheses=tried)
     return replace(best, elapsed_s=elapsed, notes=(note, *best.notes))
+
+
+def _fovs(camera: Camera, band: Band) -> str:
+    """The band's fields of view across ``camera``'s width, ``"13.9-20.4"`` (degrees)."""
+    return f"{fov_for_focal_length(camera.width, band.high_px):.1f}-{fov_for_focal_length(camera.width, band.low_px):.1f}"
 
 
 def _better(a: Solution, b: Solution) -> bool:
