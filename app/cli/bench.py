@@ -24,7 +24,8 @@ cedar-solve; ``--frames DIR``, default ``$STARID_REAL_FRAMES`` or ``../shared/re
 ``--time-from-reference`` gives each frame its reference's time in a sidecar; ``--n`` the first N
 frames; see :mod:`app.bench.real`).  ``variants`` (each real frame copied five ways that keep its
 sky: twice and half the sampling, turned, cropped off-centre, a dark foreground; see
-:mod:`app.bench.variants`).
+:mod:`app.bench.variants`).  ``floor`` (the search's own time: the default against searches without
+the operator's alternatives, the optics fit and the image centre; see :mod:`app.bench.floor`).
 Every figure is measured now, on this machine, in one process (the load
 suite adds the server's), from simulated sequences drawn with ``--seed``.
 """
@@ -40,7 +41,7 @@ import sys
 import time
 
 SUITES = ("extraction", "identification", "sequence", "load", "seeds", "camera", "peer", "frames", "batch",
-          "calibration", "real", "variants")
+          "calibration", "real", "variants", "floor")
 #: The lost-in-space methods the identification suite can measure (app.identification.methods.METHODS).
 IDENTIFICATION_METHODS = ("bright_pair", "tf")
 

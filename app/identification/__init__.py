@@ -166,7 +166,7 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
             c = replace(c, rotation_matrix=fit.rotation,
                         sigma_cross_boresight_arcsec=math.degrees(cross) * 3600,
                         sigma_roll_arcsec=math.degrees(roll) * 3600)
-        if credible:  # the image centre of an answer an operator weighs up (a chance fit's would be noise)
+        if credible and options.image_centre:  # of an answer an operator weighs up (a chance fit's is noise)
             c = replace(c, centre_radec_deg=image_centre_radec(c, pattern, sequence.camera, t, sky,
                                                                velocity_km_s=sequence.observer))
         candidates.append(c)

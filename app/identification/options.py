@@ -98,3 +98,7 @@ class SearchOptions:
     #: Fit the optics (focal length, k1 from 6 stars) with the attitude of every credible candidate;
     #: the fitted camera replaces the declared one only where the data ask for it.
     fit_optics: bool = True
+    #: The sky position of the image's centre pixel for every credible candidate (a frame's reference
+    #: point, astrometry.net's: an optics fit on every source, ~0.7 ms a single snapshot); a caller that
+    #: needs only the attitude (the boresight) may leave it out.
+    image_centre: bool = True
