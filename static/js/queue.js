@@ -14,6 +14,9 @@ export const statusText = (s) => STATUS_TEXT[s] || s;
 
 let onSelect = () => {};
 let lastQueueKey = "";
+// Each listing asked for takes a number; an answer is shown only while its number is the latest, so a slow
+// answer to an earlier filter, order or page never replaces the answer to the one now in the controls.
+const asked = { sequences: 0, attitudes: 0 };
 
 export function setupQueue({ select }) {
   onSelect = select;
@@ -173,13 +176,15 @@ export async function loadSequences({ periodic = false } = {}) {
   if (status) query.set("status", status);
   if (spacecraft) query.set("spacecraft", spacecraft);
   if (search) query.set("search", search);
+  const ticket = ++asked.sequences;
   let page;
   try {
     page = await api.get(`/api/sequences?${query}`);
   } catch (err) {
-    toast(`Could not list the sequences: ${errorText(err)}`, "error");
+    if (ticket === asked.sequences) toast(`Could not list the sequences: ${errorText(err)}`, "error");
     return;
   }
+  if (ticket !== asked.sequences) return;
   state.queueIds = page.items.map((s) => s.id);
   noteSearched(page.items);   // before the unchanged-page return: a line may have been added since
   // Redrawn only when something changed, so a periodic refresh never moves a row under the pointer.
@@ -227,8 +232,10 @@ export async function loadSpacecraft() {
 // ---------------------------------------------------------------- attitudes
 
 export async function loadAttitudes() {
+  const ticket = ++asked.attitudes;
   try {
     const page = await api.get(`/api/attitudes?offset=${state.attOffset}&limit=${ATTITUDE_PAGE}`);
+    if (ticket !== asked.attitudes) return;
     // Two lines per attitude: the numbers get a column of their own and are never cut.
     $("attitude-list").replaceChildren(...page.items.map((a) => el("tr", {
       class: a.current ? "" : "superseded", dataset: { id: a.id },
@@ -248,7 +255,7 @@ export async function loadAttitudes() {
     $("att-prev-page").disabled = state.attOffset === 0;
     $("att-next-page").disabled = last >= page.total;
   } catch (err) {
-    toast(`Could not list the confirmed attitudes: ${errorText(err)}`, "error");
+    if (ticket === asked.attitudes) toast(`Could not list the confirmed attitudes: ${errorText(err)}`, "error");
   }
 }
 
