@@ -77,3 +77,32 @@ def test_random_points_of_unknown_optics_are_not_identified_and_the_search_is_bo
     assert solution.status != IDENTIFIED
     assert solution.elapsed_s < 2 * 5.0  # the search's time-out (SearchOptions.timeout_s) and one band's worth
     assert "field of view was unknown" in solution.notes[0]
+
+
+def test_each_search_after_the_shapes_counts_every_hypothesis_tried_before_it(sky):
+    """Random points fit no shape: every band is then searched by bright pairs, and each search is told the
+    hypotheses of all before it (the shapes checked, then each earlier band's), so that its false-match
+    probability pays for the whole search over scales. A stand-in engine records what it is told."""
+    from app.identification.result import NO_MATCH, Solution
+    from app.identification.scale_free import bands, identify_unknown_scale
+
+    camera = _unknown(CAMERAS["tubsat-752x582-20deg"])
+    rng = np.random.default_rng(2727)
+    xy = np.column_stack([rng.uniform(20, camera.width - 20, 10), rng.uniform(20, camera.height - 20, 10)])
+    sequence, _ = simulate_sequence(np.random.default_rng([1, 2727]), CAMERAS["tubsat-752x582-20deg"], "single")
+    pattern = dataclasses.replace(extract(sequence).pattern, xy=xy, vectors=camera.pixels_to_vectors(xy),
+                                  track_ids=np.arange(10), brightness=rng.uniform(100, 1000, 10),
+                                  sightings=np.ones(10, int), sigma_px=np.full(10, 0.3))
+    told = []
+
+    def engine(pattern, known, t, sky, *, hypotheses_before, **_):
+        told.append(hypotheses_before)
+        return Solution(status=NO_MATCH, candidates=(), n_hypotheses=hypotheses_before + 1000)
+
+    solution = identify_unknown_scale(pattern, camera, sequence.snapshots[0].time, sky, identify=engine)
+    assert solution.status == NO_MATCH
+    assert len(told) == len(bands(camera.width))
+    assert told[0] > 0  # the shape matches checked in every band
+    assert told == [told[0] + 1000 * k for k in range(len(told))]
+    assert solution.n_hypotheses == told[-1] + 1000
+    assert "by bright pairs: no_match" in solution.notes[0]

@@ -130,6 +130,19 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
     tried = 0
     searched: list[str] = []
     best: Solution | None = None
+
+    def solve_at(known: Camera, band_sky: Sky) -> Solution:
+        """The pattern identified as ``known`` sees it (a focal length known to a tolerance), every hypothesis
+        tried so far counted (and the count carried on); each candidate keeps the camera it was found with
+        (the declared one had no focal length)."""
+        nonlocal tried
+        solution = identify(replace(pattern, vectors=known.pixels_to_vectors(pattern.xy)), known, t, band_sky,
+                            velocity_km_s=velocity_km_s, options=options, planets=planets, method=method,
+                            hypotheses_before=tried)
+        tried = max(tried, solution.n_hypotheses)
+        return replace(solution, candidates=tuple(c if c.camera is not None else replace(c, camera=known)
+                                                  for c in solution.candidates))
+
     for band, nominal, band_sky in zip(searched_bands, nominals, band_skies):
         if _time.perf_counter() - started > options.timeout_s:
             searched.append("time-out")
@@ -145,16 +158,18 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
             searched.append(f"{fovs} deg (stars to Hp {band_sky.depth_for(nominal, options.mag_margin):.1f}): "
                             f"no fit in {sum(checked)} triangles")
             continue
-        found = camera.known_at(estimate.focal_length_px, FOUND_TOLERANCE)
-        solution = identify(replace(pattern, vectors=found.pixels_to_vectors(pattern.xy)), found, t, band_sky,
-                            velocity_km_s=velocity_km_s, options=options, planets=planets, method=method,
-                            hypotheses_before=tried)
-        # Each candidate's camera is the one it was found with (the declared one had no focal length).
-        solution = replace(solution, candidates=tuple(c if c.camera is not None else replace(c, camera=found)
-                                                      for c in solution.candidates))
+        solution = solve_at(camera.known_at(estimate.focal_length_px, FOUND_TOLERANCE), band_sky)
         fov = fov_for_focal_length(camera.width, estimate.focal_length_px)
         searched.append(f"{fovs} deg: the triangles fit {fov:.2f} deg ({estimate.focal_length_px:.1f} px, "
                         f"{estimate.n_matched} of {estimate.n_points} points), {solution.status}")
+        refit = solution.focal_length_contradiction
+        if solution.status != IDENTIFIED and refit is not None:
+            # Nothing was declared: the "contradiction" is the stars' own better fit (more triangles, every
+            # point they caught; on a lens whose distortion moves the best pinhole focal length by a few per
+            # cent, the first shape's estimate can be 2-3 % off). Searched there once.
+            solution = solve_at(camera.known_at(refit.focal_length_px, FOUND_TOLERANCE), band_sky)
+            searched.append(f"the stars then fit {fov_for_focal_length(camera.width, refit.focal_length_px):.2f} deg "
+                            f"({refit.focal_length_px:.1f} px), {solution.status}")
         if best is None or _better(solution, best):
             best = solution
         if solution.status == IDENTIFIED:
@@ -164,12 +179,7 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
             if _time.perf_counter() - started > options.timeout_s:
                 searched.append("time-out")
                 break
-            solution = identify(replace(pattern, vectors=nominal.pixels_to_vectors(pattern.xy)), nominal, t,
-                                band_sky, velocity_km_s=velocity_km_s, options=options, planets=planets,
-                                method=method, hypotheses_before=tried)
-            tried = max(tried, solution.n_hypotheses)
-            solution = replace(solution, candidates=tuple(c if c.camera is not None else replace(c, camera=nominal)
-                                                          for c in solution.candidates))
+            solution = solve_at(nominal, band_sky)
             searched.append(f"{_fovs(camera, band)} deg by bright pairs: {solution.status}")
             if best is None or _better(solution, best):
                 best = solution
@@ -180,7 +190,9 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
             "the shapes of the pattern's bright triangles, widest first (" + "; ".join(searched) + ")")
     if best is None:
         return Solution(status=NO_MATCH, candidates=(), elapsed_s=elapsed, notes=(note,), n_hypotheses=tried)
-    return replace(best, elapsed_s=elapsed, notes=(note, *best.notes))
+    # No focal length was declared, so none is contradicted: what the stars fitted is in the note above.
+    return replace(best, elapsed_s=elapsed, notes=(note, *best.notes), n_hypotheses=tried,
+                   focal_length_contradiction=None)
 
 
 def _fovs(camera: Camera, band: Band) -> str:
