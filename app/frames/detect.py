@@ -291,7 +291,8 @@ def _classify(sep, objects, sub: np.ndarray, raw: np.ndarray, sky: _Sky, psf: Po
         else np.zeros(len(objects), dtype=bool)
     elongated = _is_elongated(objects, options, psf)
     not_point = _too_large(objects, peak, noise, psf) | _on_structure(objects, sub, peak, noise, psf)
-    too_many = objects["npix"] > _star_area_limit(options, psf, peak / np.maximum(objects["thresh"], 1e-12), saturated)
+    too_many = objects["npix"] > _star_area_limit(options, psf and psf.area_px,
+                                                  peak / np.maximum(objects["thresh"], 1e-12), saturated)
     extended = too_many | (~saturated & ~hot & not_point)
     cut = _touches_border(objects, shape)
     border = cut & (_peak_near_border(xpeak, ypeak, shape, psf) | elongated | extended)
@@ -596,7 +597,8 @@ def _measure_psf(objects, sub: np.ndarray, sky: _Sky, saturation: float | None, 
     """The frame's PSF from its best star-like blobs, None when fewer than :data:`PSF_MIN_STARS`.
 
     Candidates: peak at least :data:`PSF_PEAK_SIGMA` sigma, at least ``min_area_for_shape_px``
-    pixels and no more than a star's image covers at their own median effective area, unsaturated, not cut by the border, no other blob within four times its size, a / b
+    pixels and no more than a star's image covers at their own median effective area, unsaturated, not
+    cut by the border, no other blob within four times its size, a / b
     below twice ``max_elongation`` (not a trail), and not one or two hot pixels: the second
     brightest of the peak's four neighbours above the hot-pixel limit (a star of sigma 0.5 px or
     more lights both neighbours on at least one axis; a pair of hot pixels, as bright as stars in
@@ -627,9 +629,8 @@ def _measure_psf(objects, sub: np.ndarray, sky: _Sky, saturation: float | None, 
         return None
     # No larger than a star's image can be (:func:`_star_area_limit`), judged by the candidates' own PSF:
     # a fixed count of pixels would leave a blurred frame's bright stars out, and the frame without a PSF.
-    first_look = PointSpread(area_px=float(np.median(_effective_area(objects[candidates], peak[candidates],
-                                                                     noise[candidates]))), elongation=1.0, stars=0)
-    limit = _star_area_limit(options, first_look, peak[candidates] / np.maximum(objects["thresh"][candidates], 1e-12),
+    first_look_px = float(np.median(_effective_area(objects[candidates], peak[candidates], noise[candidates])))
+    limit = _star_area_limit(options, first_look_px, peak[candidates] / np.maximum(objects["thresh"][candidates], 1e-12),
                              np.zeros(len(candidates), dtype=bool))
     candidates = candidates[objects["npix"][candidates] <= limit]
     if len(candidates) < PSF_MIN_STARS:
@@ -704,20 +705,20 @@ def _peak_near_border(x: np.ndarray, y: np.ndarray, shape: tuple[int, int], psf:
 
 def _is_trail(objects, options: DetectionOptions, psf: PointSpread | None) -> np.ndarray:
     """Blobs that are no stars by shape: elongated (trails) or larger than any star image."""
-    return _is_elongated(objects, options, psf) | (objects["npix"] > _star_area_limit(options, psf))
+    return _is_elongated(objects, options, psf) | (objects["npix"] > _star_area_limit(options, psf and psf.area_px))
 
 
-def _star_area_limit(options: DetectionOptions, psf: PointSpread | None, peak_over_threshold=None,
+def _star_area_limit(options: DetectionOptions, psf_area_px: float | None, peak_over_threshold=None,
                      saturated=None) -> np.ndarray | float:
     """The most pixels a star's blob covers: what a Moffat star (:data:`MOFFAT_BETA`) of its peak covers at
-    the frame's PSF, :data:`STAR_AREA_MARGIN` times (a saturated one, or one of unknown peak: a peak of
+    the frame's PSF (effective area ``psf_area_px``), :data:`STAR_AREA_MARGIN` times (a saturated one, or one of unknown peak: a peak of
     :data:`SATURATED_PEAK_RATIO` thresholds, once), and never less than ``max_area_px`` (alone without a PSF).
 
     A pixel count alone is no scale: a defocused lens imaged finely (a PSF of 400 px^2) puts its brightest
     stars over 2,000 px, while a glare that swallowed a star on a sharp frame covers more than the star's
     peak can light.
     """
-    if psf is None:
+    if psf_area_px is None:
         return float(options.max_area_px)
     if peak_over_threshold is None:
         ratio, margin = SATURATED_PEAK_RATIO, 1.0
@@ -725,7 +726,7 @@ def _star_area_limit(options: DetectionOptions, psf: PointSpread | None, peak_ov
         known = ~np.asarray(saturated, dtype=bool)
         ratio = np.where(known, np.maximum(peak_over_threshold, 1.0), SATURATED_PEAK_RATIO)
         margin = np.where(known, STAR_AREA_MARGIN, 1.0)
-    covered = (MOFFAT_BETA - 1.0) * (ratio ** (1.0 / MOFFAT_BETA) - 1.0) * psf.area_px
+    covered = (MOFFAT_BETA - 1.0) * (ratio ** (1.0 / MOFFAT_BETA) - 1.0) * psf_area_px
     return np.maximum(float(options.max_area_px), margin * covered)
 
 
@@ -860,7 +861,7 @@ def _stars_on_trails(sep, sub: np.ndarray, noise: float, objects, options: Detec
         px = np.clip(np.round(parts["x"]).astype(int), 0, residual.shape[1] - 1)
         py = np.clip(np.round(parts["y"]).astype(int), 0, residual.shape[0] - 1)
         parts = parts[(parts["a"] <= _elongation_limit(options, psf) * np.maximum(parts["b"], 1e-9))
-                      & (parts["npix"] <= _star_area_limit(options, psf))
+                      & (parts["npix"] <= _star_area_limit(options, psf and psf.area_px))
                       & (np.abs(along[py, px]) <= trail.half_length - 4.0)]
         for name in ("x", "xmin", "xmax", "xpeak", "xcpeak"):
             parts[name] += trail.cols.start
