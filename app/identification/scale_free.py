@@ -57,9 +57,10 @@ from app.identification.result import AMBIGUOUS, IDENTIFIED, NO_MATCH, Solution
 from app.identification.sky import Sky
 
 #: Horizontal fields of view searched when the optics are unknown, degrees: from a long lens on a star
-#: tracker's test bench to a wide photographic lens (astrometry.net's default scale range is wider still, but
-#: past 60 deg a pinhole with one radial term no longer describes the lenses).
-FOV_RANGE_DEG = (2.0, 60.0)
+#: tracker's test bench to a rectilinear wide-angle photographic lens (a 24 mm lens on a full-frame camera spans
+#: 74 deg, a 14 mm one 104 deg; a rectilinear lens is a pinhole with a barrel distortion that the optics fit's
+#: k1 takes up). A fisheye is no pinhole at all. Narrower than 2 deg, Hipparcos holds too few stars.
+FOV_RANGE_DEG = (2.0, 110.0)
 #: Largest ratio of focal lengths within one band: the check radius (5 px at the band's middle) stays within
 #: 4-6 px of the truth, and the shape lookup's size range is a declared camera's at +-20 %.
 BAND_RATIO = 1.5
@@ -162,14 +163,14 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
         fov = fov_for_focal_length(camera.width, estimate.focal_length_px)
         searched.append(f"{fovs} deg: the triangles fit {fov:.2f} deg ({estimate.focal_length_px:.1f} px, "
                         f"{estimate.n_matched} of {estimate.n_points} points), {solution.status}")
-        refit = solution.focal_length_contradiction
+        refit = _stars_fit_beyond(solution, estimate.focal_length_px)
         if solution.status != IDENTIFIED and refit is not None:
-            # Nothing was declared: the "contradiction" is the stars' own better fit (more triangles, every
-            # point they caught; on a lens whose distortion moves the best pinhole focal length by a few per
-            # cent, the first shape's estimate can be 2-3 % off). Searched there once.
-            solution = solve_at(camera.known_at(refit.focal_length_px, FOUND_TOLERANCE), band_sky)
-            searched.append(f"the stars then fit {fov_for_focal_length(camera.width, refit.focal_length_px):.2f} deg "
-                            f"({refit.focal_length_px:.1f} px), {solution.status}")
+            # Nothing was declared: what lies beyond the search is the stars' own better fit. On a lens whose
+            # distortion moves the best pinhole focal length by a few per cent (a wide field's barrel), the first
+            # shape's estimate can be 2-4 % off. Searched there once.
+            solution = solve_at(camera.known_at(refit, FOUND_TOLERANCE), band_sky)
+            searched.append(f"the stars then fit {fov_for_focal_length(camera.width, refit):.2f} deg "
+                            f"({refit:.1f} px), {solution.status}")
         if best is None or _better(solution, best):
             best = solution
         if solution.status == IDENTIFIED:
@@ -193,6 +194,18 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
     # No focal length was declared, so none is contradicted: what the stars fitted is in the note above.
     return replace(best, elapsed_s=elapsed, notes=(note, *best.notes), n_hypotheses=tried,
                    focal_length_contradiction=None)
+
+
+def _stars_fit_beyond(solution: Solution, searched_px: float) -> float | None:
+    """The focal length the stars fit outside the search at ``searched_px`` (within :data:`FOUND_TOLERANCE`),
+    or None: the triangles' refit on every point they caught (``focal_length_contradiction``), else the optics
+    fitted with a candidate that was credible before its fit (the engine fits no other), the most stars first.
+    """
+    if solution.focal_length_contradiction is not None:
+        return solution.focal_length_contradiction.focal_length_px
+    fitted = [c for c in solution.candidates if c.camera_fit is not None and c.camera is not None
+              and abs(c.camera.focal_length_px / searched_px - 1.0) > FOUND_TOLERANCE]
+    return max(fitted, key=lambda c: c.n_matched).camera.focal_length_px if fitted else None
 
 
 def _fovs(camera: Camera, band: Band) -> str:
