@@ -52,6 +52,9 @@ SIDECAR_FORMAT = "tubsat-frames/1"
 #: which a real lens's distortion moves the pinhole focal length that fits its stars best (seen on real frames:
 #: a field of view 5 % long gave a focal length fitted 5.9 % from the declared one).
 FOV_FOCAL_TOLERANCE = 0.10
+#: How well a field of view given by hand is known, a fraction of the angle (a lens's nominal focal length, a
+#: guess from a photograph); the distortion's share of :data:`FOV_FOCAL_TOLERANCE` is the rest.
+FOV_TOLERANCE = 0.05
 #: The nominal field of view of frames whose optics are unknown (display only: identification searches the
 #: field of view, :mod:`app.identification.scale_free`).
 UNKNOWN_OPTICS_NOMINAL_FOV_DEG = 20.0
@@ -395,10 +398,21 @@ def _sequence_id(text: str) -> str:
 
 
 def camera_for_fov(width: int, height: int, fov_deg: float) -> dict:
-    """A camera block for a horizontal field of view across ``width`` (centred principal point, +-5 %)."""
+    """A camera block for a horizontal field of view across ``width`` (centred principal point), its focal
+    length known to :func:`fov_focal_tolerance`."""
     focal = (width / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
     return {"width": width, "height": height, "focal_length_px": round(focal, 3), "cx": (width - 1) / 2.0,
-            "cy": (height - 1) / 2.0, "focal_length_tolerance": FOV_FOCAL_TOLERANCE}
+            "cy": (height - 1) / 2.0, "focal_length_tolerance": round(fov_focal_tolerance(fov_deg), 4)}
+
+
+def fov_focal_tolerance(fov_deg: float) -> float:
+    """The focal length's tolerance for a field of view known to :data:`FOV_TOLERANCE`: the focal lengths of
+    the field +-5 % (f = w / 2 / tan(fov / 2), so a fraction of the angle is about ``fov / sin(fov)`` times
+    that fraction of the focal length: 1.0x at 10 deg, 1.9x at 105 deg), plus the distortion's share of
+    :data:`FOV_FOCAL_TOLERANCE`; never less than that, at most 0.2 (a camera model's bound)."""
+    half = math.radians(fov_deg) / 2.0
+    spans = [abs(math.tan(half) / math.tan(half * (1.0 + s)) - 1.0) for s in (-FOV_TOLERANCE, FOV_TOLERANCE)]
+    return min(0.2, max(FOV_FOCAL_TOLERANCE, max(spans) + FOV_FOCAL_TOLERANCE - FOV_TOLERANCE))
 
 
 def _camera_block(sidecar: Sidecar, fov_deg: float | None, meta: dict, width: int, height: int):

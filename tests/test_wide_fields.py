@@ -1,0 +1,89 @@
+"""Wide fields of view (a photograph through a 14-24 mm lens spans 74-104 deg): rectilinear lenses with a barrel
+distortion, rendered by the simulator, solved with their field of view given roughly and with none, against the
+simulator's truth."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from app.attitude import angle_between
+from app.identification import IDENTIFIED
+from app.identification.scale_free import focal_length_for_fov
+
+
+def _wide_photograph(fov_deg: float, corner_distortion: float, seed: int):
+    """A 3000 x 2000 photograph through a rectilinear wide-angle lens with barrel distortion moving the sensor
+    corner by ``corner_distortion`` of its radius (k1 < 0), stars to Hp 6 (a city-edge sky), as a PNG, with
+    the simulator's truth and the true camera."""
+    from app import simulate
+    from app.camera import Camera
+
+    width, height = 3000, 2000
+    camera = Camera(width, height, focal_length_for_fov(width, fov_deg), (width - 1) / 2, (height - 1) / 2)
+    true = simulate.true_optics(camera, k1=simulate.k1_for_corner_distortion(camera, corner_distortion))
+    model = simulate.FrameModel(psf_sigma_px=1.5, detection_limit_mag=6.0, n_hot_pixels=0)
+    frames, _, truth = simulate.simulate_frames(np.random.default_rng(seed), camera, n_frames=1, true_camera=true,
+                                                model=model, hot_pixels=False)
+    return simulate.frame_png_bytes(frames[0]), truth, true
+
+
+@pytest.mark.parametrize("fov_deg", [75.0, 100.0])
+def test_a_wide_angle_photograph_of_unknown_optics_is_identified_with_its_lens(sky, fov_deg):
+    """Fields wider than 60 deg: a 24 mm lens on a full-frame camera spans 74 deg, a 15 mm one 100 deg. A
+    rectilinear lens is a pinhole with a barrel distortion, which the optics fit (focal length and k1)
+    recovers."""
+    from app.frames import frames_to_sequence
+    from app.identification import solve_sequence
+
+    png, truth, true = _wide_photograph(fov_deg, -0.04, 1)
+    solution = solve_sequence(frames_to_sequence([("wide.png", png)]).sequence, sky).solution
+    assert solution.status == IDENTIFIED, solution.notes
+    best = solution.candidates[0]
+    R = np.asarray(truth["rotation_matrices"][0])
+    assert math.degrees(angle_between(best.rotation_matrix[2], R[2])) < 0.02
+    assert best.camera.focal_length_px == pytest.approx(true.focal_length_px, rel=0.005)
+    assert best.camera.k1 == pytest.approx(true.k1, rel=0.1)
+
+
+def test_a_focal_length_the_optics_fit_beyond_the_shapes_estimate_is_searched_there(sky):
+    """At 70 deg with 5 % barrel distortion the bright triangles put the focal length 3.4 % short, beyond the
+    2 % a found focal length is searched within. The right stars are caught there, and the optics fitted
+    with them (the true focal length and k1) are then excluded by that 2 %: they are searched once more."""
+    from app.frames import frames_to_sequence
+    from app.identification import solve_sequence
+
+    png, truth, true = _wide_photograph(70.0, -0.05, 3)
+    solution = solve_sequence(frames_to_sequence([("wide.png", png)]).sequence, sky).solution
+    assert solution.status == IDENTIFIED, solution.notes
+    assert "no_match; the stars then fit 70.0" in solution.notes[0]  # the shapes' 71.85 deg, then the fit's
+    R = np.asarray(truth["rotation_matrices"][0])
+    assert math.degrees(angle_between(solution.candidates[0].rotation_matrix[2], R[2])) < 0.02
+    assert solution.candidates[0].camera.focal_length_px == pytest.approx(true.focal_length_px, rel=0.005)
+
+
+def test_a_field_of_views_focal_tolerance_is_its_five_per_cent_in_focal_length_plus_the_distortions_share():
+    from app.frames.assemble import fov_focal_tolerance
+
+    # By hand: f = w / 2 / tan(fov / 2). At 105 deg, 99.75 deg gives tan 49.875 = 1.18649 against tan 52.5 =
+    # 1.30323 (f 9.84 % longer) and 110.25 deg tan 55.125 = 1.43480 (9.17 % shorter): 9.84 % + 5 %.
+    assert fov_focal_tolerance(105.0) == pytest.approx(1.30323 / 1.18649 - 1 + 0.05, abs=2e-5)
+    # A narrow field: 5 % of the angle is 5 % of the focal length (1 / 0.95 on the short side), plus 5 %.
+    assert fov_focal_tolerance(2.0) == pytest.approx(1 / 0.95 - 1 + 0.05, abs=1e-4)
+    assert fov_focal_tolerance(119.0) <= 0.2  # a camera model's bound
+
+
+
+def test_a_wide_photographs_field_of_view_given_five_per_cent_short_is_searched_far_enough(sky):
+    """105 deg given as 99.75 deg through a lens with a 6 % barrel at the corner: the focal length given is 9.8 %
+    longer than the true one, and the pinhole that fits the stars best is shorter still, beyond a flat 10 %."""
+    from app.frames import frames_to_sequence
+    from app.identification import solve_sequence
+
+    png, truth, true = _wide_photograph(105.0, -0.06, 1)
+    solution = solve_sequence(frames_to_sequence([("wide.png", png)], fov_deg=105.0 * 0.95).sequence, sky).solution
+    assert solution.status == IDENTIFIED, solution.notes
+    R = np.asarray(truth["rotation_matrices"][0])
+    assert math.degrees(angle_between(solution.candidates[0].rotation_matrix[2], R[2])) < 0.02
