@@ -26,6 +26,8 @@ frames; see :mod:`app.bench.real`).  ``variants`` (each real frame copied five w
 sky: twice and half the sampling, turned, cropped off-centre, a dark foreground; see
 :mod:`app.bench.variants`).  ``floor`` (the search's own time: the default against searches without
 the operator's alternatives, the optics fit and the image centre; see :mod:`app.bench.floor`).
+``wide`` (simulated photographs through wide-angle lenses, 40-105 deg, with their field of view, one 5 %
+off and none; ``--n`` photographs a field, default 8; see :mod:`app.bench.wide`).
 Every figure is measured now, on this machine, in one process (the load
 suite adds the server's), from simulated sequences drawn with ``--seed``.
 """
@@ -41,7 +43,7 @@ import sys
 import time
 
 SUITES = ("extraction", "identification", "sequence", "load", "seeds", "camera", "peer", "frames", "batch",
-          "calibration", "real", "variants", "floor")
+          "calibration", "real", "variants", "floor", "wide")
 #: The lost-in-space methods the identification suite can measure (app.identification.methods.METHODS).
 IDENTIFICATION_METHODS = ("bright_pair", "tf")
 

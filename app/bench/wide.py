@@ -1,0 +1,154 @@
+"""Wide-angle photographs: ``python -m app bench --suite wide [--n N] [--seed S] [--json]``.
+
+The real frames (:mod:`app.bench.real`) span 6-27 deg; a photograph of the night sky is often taken with a
+wide lens (a 24 mm lens on a full-frame camera spans 74 deg, a 14 mm one 104 deg). ``N`` photographs
+(default 8) at each of :data:`FIELDS_DEG` are rendered by the simulator (:func:`app.simulate.simulate_frames`):
+
+* 3000 x 2000 px, 8 bit, saved as JPEG (quality 92), as a camera or a phone gives them;
+* a rectilinear lens: a pinhole with a radial distortion (k1) moving the sensor corner by up to 6 % of its
+  radius inwards (barrel) at 105 deg, in proportion to the field (2.3 % at 40 deg), or a fifth of that outwards
+  (pincushion; drawn uniformly): photographic lenses measured before software correction, a 14 mm lens
+  -1.5 to -5 %, a 24 mm one -2 to -3 %, a 50 mm one -1 to +0.5 %; the principal point centred;
+* a sky whose stars are detected to Hp 4.5-6.5 (a town's sky to a dark one; drawn), a point-spread of
+  1.0-2.0 px (drawn), bright stars saturated;
+* a landscape under a ragged horizon over the bottom 0-30 % (drawn), with a town's glow above it fading
+  over a quarter of the height (0-40 DN; drawn): trees, hills, a roof;
+* a random pointing, no time (solved at J2000.0, as a photograph with no EXIF time is).
+
+Each is solved through the ``solve`` workflow (:func:`app.bench.real.solve_ours`) with its exact field of
+view (the pinhole's, at the true focal length), with one 5 % off (long and short in turn), and with none.
+Right: identified within :data:`app.bench.real.RIGHT_DEG` of the true direction of the image's centre
+pixel; wrong: identified and over :data:`app.bench.real.WRONG_DEG` off.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from app.bench.real import RIGHT_DEG, WRONG_DEG, RealFrame, solve_ours, summarise
+
+#: Horizontal fields of view of the rows, degrees.
+FIELDS_DEG = (40.0, 60.0, 75.0, 90.0, 105.0)
+#: The optics each photograph is solved under: the exact field of view, one 5 % off, none.
+OPTICS = ("exact", "5 % off", "none")
+SIZE_PX = (3000, 2000)
+#: Radial distortion at the sensor corner of a 105 deg lens, a fraction of its radius (drawn uniformly; a
+#: narrower lens's in proportion to its field).
+CORNER_DISTORTION_AT_105_DEG = (-0.06, 0.012)
+#: Faintest star detected, Hp (drawn uniformly): a town's sky to a dark one.
+SKY_LIMIT_HP = (4.5, 6.5)
+PSF_SIGMA_PX = (1.0, 2.0)
+JPEG_QUALITY = 92
+#: Part of the height under the horizon, and the town's glow above it in DN (each drawn uniformly).
+LANDSCAPE_FRACTION = (0.0, 0.3)
+GLOW_DN = (0.0, 40.0)
+DEFAULT_N = 8
+
+
+def photograph(fov_deg: float, rng: np.random.Generator):
+    """(JPEG bytes, the true camera, the truth's ICRS -> camera rotation, a description) of one photograph."""
+    import io
+
+    from PIL import Image
+
+    from app import simulate
+    from app.camera import Camera
+    from app.identification.scale_free import focal_length_for_fov
+
+    width, height = SIZE_PX
+    camera = Camera(width, height, focal_length_for_fov(width, fov_deg), (width - 1) / 2, (height - 1) / 2)
+    corner = float(rng.uniform(*CORNER_DISTORTION_AT_105_DEG)) * fov_deg / 105.0
+    true = simulate.true_optics(camera, k1=simulate.k1_for_corner_distortion(camera, corner))
+    limit = float(rng.uniform(*SKY_LIMIT_HP))
+    # 8 bit: a dark sky of ~25 DN over a bias of 10, its noise ~2 DN; the brightest stars saturate at 255.
+    model = simulate.FrameModel(psf_sigma_px=float(rng.uniform(*PSF_SIGMA_PX)), detection_limit_mag=limit, bits=8,
+                                bias_adu=10.0, gain_e_per_adu=8.0, n_hot_pixels=0)
+    frames, _, truth = simulate.simulate_frames(rng, camera, n_frames=1, true_camera=true, model=model,
+                                                hot_pixels=False)
+    landscape = float(rng.uniform(*LANDSCAPE_FRACTION))
+    glow = float(rng.uniform(*GLOW_DN))
+    pixels = with_landscape(frames[0], landscape, glow, rng)
+    stream = io.BytesIO()
+    Image.fromarray(pixels).save(stream, format="JPEG", quality=JPEG_QUALITY)
+    described = (f"distortion {100 * corner:+.1f} % at the corner, stars to Hp {limit:.1f}, landscape "
+                 f"{100 * landscape:.0f} % under a glow of {glow:.0f} DN")
+    return stream.getvalue(), true, np.asarray(truth["rotation_matrices"][0]), described
+
+
+def with_landscape(pixels: np.ndarray, fraction: float, glow_dn: float, rng: np.random.Generator) -> np.ndarray:
+    """8-bit ``pixels`` with the bottom ``fraction`` of the height dark (a few DN of noise) under a ragged
+    horizon (two sine waves of random phase and a treeline's jitter), and a glow of ``glow_dn`` at the horizon
+    fading as exp(-height above it / a quarter of the frame's height)."""
+    height, width = pixels.shape
+    x = np.arange(width)
+    horizon = height * (1.0 - fraction) + height * (
+        0.03 * np.sin(x / 83.0 + rng.uniform(0, 2 * np.pi)) + 0.015 * np.sin(x / 19.0 + rng.uniform(0, 2 * np.pi))
+        + 0.004 * rng.standard_normal(width))
+    above = horizon[None, :] - np.arange(height)[:, None]
+    out = pixels.astype(float) + glow_dn * np.exp(-np.clip(above, 0, None) / (0.25 * height))
+    ground = above < 0
+    out[ground] = 4.0 + 1.5 * rng.standard_normal(int(ground.sum()))
+    return np.clip(np.round(out), 0, 255).astype(np.uint8)
+
+
+def centre_radec_deg(true_camera, rotation: np.ndarray) -> tuple[float, float]:
+    """The true sky direction (ICRS RA, Dec, degrees) of the image's centre pixel."""
+    centre = np.array([[(true_camera.width - 1) / 2, (true_camera.height - 1) / 2]])
+    v = true_camera.pixels_to_vectors(centre)[0] @ rotation
+    return math.degrees(math.atan2(v[1], v[0])) % 360.0, math.degrees(math.asin(max(-1.0, min(1.0, v[2]))))
+
+
+def run(n_sequences: int | None = None, seed: int = 1) -> dict:
+    from app.identification import Sky
+
+    n = DEFAULT_N if n_sequences is None else n_sequences
+    sky = Sky()
+    load_before = round(os.getloadavg()[0], 2)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="starid-wide-") as scratch:
+        for fov in FIELDS_DEG:
+            for i in range(n):
+                rng = np.random.default_rng([seed, 74, int(fov), i])
+                jpeg, true, rotation, described = photograph(fov, rng)
+                name = f"wide-{fov:g}deg-{i}"
+                path = Path(scratch, f"{name}.jpg")
+                path.write_bytes(jpeg)
+                ra, dec = centre_radec_deg(true, rotation)
+                exact = true.fov_deg[0]
+                frame = RealFrame(name=name, image=path, width=true.width, height=true.height, ra_deg=ra,
+                                  dec_deg=dec, fov_deg=exact, time=None)
+                off = exact * (1.05 if i % 2 == 0 else 0.95)
+                given = {"exact": exact, "5 % off": off, "none": None}
+                row = {"name": name, "fov_deg": fov, "photograph": described,
+                       "ours": {optics: solve_ours(frame, sky, given[optics], Path(scratch)) for optics in OPTICS}}
+                rows.append(row)
+                print(f"wide: {name} ({described}): "
+                      + ", ".join(f"{o} {row['ours'][o]['status']}" for o in OPTICS), file=sys.stderr)
+    summary = {f"{fov:g}": {optics: summarise([r["ours"][optics] for r in rows if r["fov_deg"] == fov])
+                            for optics in OPTICS} for fov in FIELDS_DEG}
+    summary["all"] = {optics: summarise([r["ours"][optics] for r in rows]) for optics in OPTICS}
+    return {"n_per_field": n, "seed": seed, "rows": rows, "summary": summary, "load_average_before": load_before,
+            "load_average_after": round(os.getloadavg()[0], 2)}
+
+
+def format_table(result: dict) -> str:
+    lines = [f"{result['n_per_field']} photographs a field of view, seed {result['seed']}; load average "
+             f"{result['load_average_before']} before, {result['load_average_after']} after",
+             "", f"{'field':<7} {'optics':<8} {'right':>7} {'wrong':>6} {'claimed':>8} {'median as':>10} "
+             f"{'slowest s':>10}"]
+    for field, by_optics in result["summary"].items():
+        for optics, s in by_optics.items():
+            median = "-" if s["median_error_arcsec"] is None else f"{s['median_error_arcsec']:.1f}"
+            slowest = "-" if s["slowest_s"] is None else f"{s['slowest_s']:.2f}"
+            label = field if field == "all" else f"{field} deg"
+            lines.append(f"{label:<7} {optics:<8} {s['right']:>3}/{s['frames']:<3} {s['wrong']:>6} "
+                         f"{s['claimed']:>8} {median:>10} {slowest:>10}")
+    lines.append(f"(right: identified within {RIGHT_DEG} deg of the image centre's true direction; wrong: identified "
+                 f"and over {WRONG_DEG} deg off)")
+    return "\n".join(lines)
