@@ -433,7 +433,15 @@ def _camera_block(sidecar: Sidecar, fov_deg: float | None, meta: dict, width: in
         focal = float(meta["focal_length_px"])
         return ({"width": width, "height": height, "focal_length_px": round(focal, 3), "cx": (width - 1) / 2.0,
                  "cy": (height - 1) / 2.0, "focal_length_tolerance": FOV_FOCAL_TOLERANCE}, meta["optics_from"])
-    # No optics anywhere: identification searches the field of view (app.identification.scale_free).
+    # No optics declared: identification searches the field of view (app.identification.scale_free), first
+    # within the tolerance of a field of view given for it at a hinted focal length (a photograph's EXIF lens).
+    hint = meta.get("focal_length_hint_px")
+    if hint:
+        fov = math.degrees(2.0 * math.atan(width / 2.0 / hint))
+        if 0.1 <= fov <= 120.0:
+            hinted = camera_for_fov(width, height, fov)
+            return ({**hinted, "focal_length_px": round(hint, 3), "focal_length_unknown": True},
+                    f"{meta['optics_from']}, a hint: {fov:.1f} deg searched first, then every field of view")
     nominal = camera_for_fov(width, height, UNKNOWN_OPTICS_NOMINAL_FOV_DEG)
     del nominal["focal_length_tolerance"]
     return {**nominal, "focal_length_unknown": True}, "unknown optics (field of view searched)"

@@ -58,6 +58,7 @@ import numpy as np
 from app.config import MAX_SNAPSHOTS
 from app.filenames import FITS_SUFFIXES, IMAGE_SUFFIXES
 from app.frames.binning import binning_factor, block_mean
+from app.frames.lens import exif_lens
 from app.frames.times import exif_time
 from app.telemetry.errors import TelemetryError
 
@@ -374,9 +375,9 @@ def _pillow_frames(raw: bytes, name: str, limits: FrameLimits) -> Iterator[Frame
                 image.draft("L", None)  # decode the stored luminance (Y) alone: see the module
             pixels, integer_values, bits, saturation = _pillow_pixels(image, binned, location)
             when, zone_note = exif_time(image, location)
+            meta = {**exif_lens(image, width, height, location), **({"time_note": zone_note} if zone_note else {})}
             yield Frame(pixels=pixels, location=location, file=name, part=page if pages > 1 else None,
-                        time=when, saturation=saturation, bits=bits,
-                        meta={"time_note": zone_note} if zone_note else {}, binned=binned,
+                        time=when, saturation=saturation, bits=bits, meta=meta, binned=binned,
                         stored_size=(width, height), integer_values=integer_values)
 
 

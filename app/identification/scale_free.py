@@ -124,6 +124,8 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
     """
     searched_bands = bands(camera.width)
     nominals = [replace(camera.known_at(band.middle_px, band.tolerance), mag_limit=None) for band in searched_bands]
+    hinted = _hinted(camera)
+    hint_sky = sky.for_camera(hinted) if hinted is not None else None
     # Each band's catalogue depth, loaded (or, the first time ever, built: the Hp 8 index takes 15-25 s)
     # before the clock starts: a first narrow field must not lose its search to the building.
     band_skies = [sky.for_camera(nominal) for nominal in nominals]
@@ -144,7 +146,17 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
         return replace(solution, candidates=tuple(c if c.camera is not None else replace(c, camera=known)
                                                   for c in solution.candidates))
 
+    hint_note = ""
+    if hinted is not None:
+        best = solve_at(hinted, hint_sky)
+        f, tolerance = hinted.focal_length_px, hinted.focal_tolerance
+        hint_note = (f"searched first around its hint, {fov_for_focal_length(camera.width, f):.1f} deg "
+                     f"({_fovs(camera, Band(f * (1 - tolerance), f * (1 + tolerance)))} deg), {best.status}"
+                     + ("; then " if best.status != IDENTIFIED else ""))
+    shapes_fitted = False
     for band, nominal, band_sky in zip(searched_bands, nominals, band_skies):
+        if best is not None and best.status == IDENTIFIED:
+            break
         if _time.perf_counter() - started > options.timeout_s:
             searched.append("time-out")
             break
@@ -159,6 +171,7 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
             searched.append(f"{fovs} deg (stars to Hp {band_sky.depth_for(nominal, options.mag_margin):.1f}): "
                             f"no fit in {sum(checked)} triangles")
             continue
+        shapes_fitted = True
         solution = solve_at(camera.known_at(estimate.focal_length_px, FOUND_TOLERANCE), band_sky)
         fov = fov_for_focal_length(camera.width, estimate.focal_length_px)
         searched.append(f"{fovs} deg: the triangles fit {fov:.2f} deg ({estimate.focal_length_px:.1f} px, "
@@ -175,7 +188,8 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
             best = solution
         if solution.status == IDENTIFIED:
             break
-    if best is None:  # no shape fitted anywhere: each band's focal lengths searched by bright pairs
+    if not shapes_fitted and (best is None or best.status != IDENTIFIED):
+        # No shape fitted anywhere: each band's focal lengths searched by bright pairs.
         for band, nominal, band_sky in zip(searched_bands, nominals, band_skies):
             if _time.perf_counter() - started > options.timeout_s:
                 searched.append("time-out")
@@ -187,13 +201,27 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
             if solution.status == IDENTIFIED:
                 break
     elapsed = _time.perf_counter() - started
-    note = ("the field of view was unknown: searched " + f"{FOV_RANGE_DEG[0]:g}-{FOV_RANGE_DEG[1]:g} deg by "
-            "the shapes of the pattern's bright triangles, widest first (" + "; ".join(searched) + ")")
+    note = "the field of view was unknown: " + hint_note
+    if searched:
+        note += (f"searched {FOV_RANGE_DEG[0]:g}-{FOV_RANGE_DEG[1]:g} deg by the shapes of the pattern's bright "
+                 "triangles, widest first (" + "; ".join(searched) + ")")
     if best is None:
         return Solution(status=NO_MATCH, candidates=(), elapsed_s=elapsed, notes=(note,), n_hypotheses=tried)
     # No focal length was declared, so none is contradicted: what the stars fitted is in the note above.
     return replace(best, elapsed_s=elapsed, notes=(note, *best.notes), n_hypotheses=tried,
                    focal_length_contradiction=None)
+
+
+def _hinted(camera: Camera) -> Camera | None:
+    """The camera at its hinted focal length (``focal_length_px`` within ``focal_length_tolerance``, given with
+    an unknown focal length: a photograph's EXIF lens, :mod:`app.frames.lens`), or None: no hint, or one whose
+    field of view lies outside :data:`FOV_RANGE_DEG`."""
+    if camera.focal_length_tolerance is None:
+        return None
+    fov = fov_for_focal_length(camera.width, camera.focal_length_px)
+    if not FOV_RANGE_DEG[0] <= fov <= FOV_RANGE_DEG[1]:
+        return None
+    return replace(camera.known_at(camera.focal_length_px, camera.focal_length_tolerance), mag_limit=None)
 
 
 def _stars_fit_beyond(solution: Solution, searched_px: float) -> float | None:
