@@ -29,8 +29,8 @@ def test_the_centre_pixels_direction_is_the_boresight_of_a_centred_lens_and_off_
 
 
 def test_a_photograph_is_an_8_bit_jpeg_of_its_field_through_a_distorting_lens():
-    jpeg, true, rotation, described = wide.photograph(90.0, np.random.default_rng(5))
-    image = Image.open(io.BytesIO(jpeg))
+    pixels, true, rotation, described = wide.photograph(90.0, np.random.default_rng(5))
+    image = Image.open(io.BytesIO(wide.jpeg(pixels)))
     assert image.format == "JPEG" and image.mode == "L" and image.size == wide.SIZE_PX
     assert fov_for_focal_length(true.width, true.focal_length_px) == pytest.approx(90.0, rel=1e-9)
     corner = true.k1 * true.corner_radius ** 2
@@ -52,3 +52,18 @@ def test_a_wide_photograph_is_solved_right_under_each_optics(monkeypatch):
     # The field of view a solve reports is the true lens's, within the distortion's pull on the pinhole.
     assert math.isclose(row["ours"]["none"]["fov_deg"], 90.0, rel_tol=0.02)
 
+
+
+def test_a_photographs_lens_exif_is_its_35mm_equivalent_and_changes_no_pixel():
+    from app.frames.lens import exif_lens
+
+    pixels, true, _, _ = wide.photograph(75.0, np.random.default_rng(6))
+    f35 = wide.focal_length_35mm(true)
+    # By hand: 75 deg across 3000 px is f = 1500 / tan 37.5 = 1954.8 px; the diagonal 3605.6 px is 43.27 mm.
+    assert f35 == round(1500 / math.tan(math.radians(37.5)) * math.hypot(36, 24) / math.hypot(3000, 2000)) == 23
+    with_lens, without = wide.jpeg(pixels, f35), wide.jpeg(pixels)
+    np.testing.assert_array_equal(np.asarray(Image.open(io.BytesIO(with_lens))),
+                                  np.asarray(Image.open(io.BytesIO(without))))
+    image = Image.open(io.BytesIO(with_lens))
+    assert exif_lens(image, 3000, 2000, "p.jpg")["focal_length_hint_px"] == pytest.approx(23 * 3605.55 / 43.2666, rel=1e-5)
+    assert exif_lens(Image.open(io.BytesIO(without)), 3000, 2000, "p.jpg") == {}

@@ -57,9 +57,9 @@ def photograph():
     """A 75 deg photograph (app.bench.wide), its true camera and rotation, and its lens's 35 mm equivalent."""
     from app.bench import wide
 
-    jpeg, true, rotation, _ = wide.photograph(75.0, np.random.default_rng([1, 74, 75, 0]))
+    pixels, true, rotation, _ = wide.photograph(75.0, np.random.default_rng([1, 74, 75, 0]))
     f35 = round(true.focal_length_px * math.hypot(36, 24) / math.hypot(true.width, true.height))
-    return Image.open(io.BytesIO(jpeg)), true, rotation, f35
+    return Image.fromarray(pixels), true, rotation, f35
 
 
 def _solved(data: bytes, sky):

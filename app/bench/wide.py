@@ -16,7 +16,8 @@ wide lens (a 24 mm lens on a full-frame camera spans 74 deg, a 14 mm one 104 deg
 * a random pointing, no time (solved at J2000.0, as a photograph with no EXIF time is).
 
 Each is solved through the ``solve`` workflow (:func:`app.bench.real.solve_ours`) with its exact field of
-view (the pinhole's, at the true focal length), with one 5 % off (long and short in turn), and with none.
+view (the pinhole's, at the true focal length), with one 5 % off (long and short in turn), with none but the
+lens's 35 mm equivalent in its EXIF (:mod:`app.frames.lens`), and with none.
 Right: identified within :data:`app.bench.real.RIGHT_DEG` of the true direction of the image's centre
 pixel; wrong: identified and over :data:`app.bench.real.WRONG_DEG` off.
 """
@@ -27,16 +28,20 @@ import math
 import os
 import sys
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from app.bench.real import RIGHT_DEG, WRONG_DEG, RealFrame, solve_ours, summarise
+from app.frames.lens import FOCAL_LENGTH_35MM, FULL_FRAME_DIAGONAL_MM
+from app.frames.times import EXIF_IFD
 
 #: Horizontal fields of view of the rows, degrees.
 FIELDS_DEG = (40.0, 60.0, 75.0, 90.0, 105.0)
-#: The optics each photograph is solved under: the exact field of view, one 5 % off, none.
-OPTICS = ("exact", "5 % off", "none")
+#: The optics each photograph is solved under: the exact field of view, one 5 % off, none but the lens in its
+#: EXIF, none.
+OPTICS = ("exact", "5 % off", "EXIF", "none")
 SIZE_PX = (3000, 2000)
 #: Radial distortion at the sensor corner of a 105 deg lens, a fraction of its radius (drawn uniformly; a
 #: narrower lens's in proportion to its field).
@@ -52,11 +57,7 @@ DEFAULT_N = 8
 
 
 def photograph(fov_deg: float, rng: np.random.Generator):
-    """(JPEG bytes, the true camera, the truth's ICRS -> camera rotation, a description) of one photograph."""
-    import io
-
-    from PIL import Image
-
+    """(8-bit pixels, the true camera, the truth's ICRS -> camera rotation, a description) of one photograph."""
     from app import simulate
     from app.camera import Camera
     from app.identification.scale_free import focal_length_for_fov
@@ -74,11 +75,24 @@ def photograph(fov_deg: float, rng: np.random.Generator):
     landscape = float(rng.uniform(*LANDSCAPE_FRACTION))
     glow = float(rng.uniform(*GLOW_DN))
     pixels = with_landscape(frames[0], landscape, glow, rng)
-    stream = io.BytesIO()
-    Image.fromarray(pixels).save(stream, format="JPEG", quality=JPEG_QUALITY)
     described = (f"distortion {100 * corner:+.1f} % at the corner, stars to Hp {limit:.1f}, landscape "
                  f"{100 * landscape:.0f} % under a glow of {glow:.0f} DN")
-    return stream.getvalue(), true, np.asarray(truth["rotation_matrices"][0]), described
+    return pixels, true, np.asarray(truth["rotation_matrices"][0]), described
+
+
+def jpeg(pixels: np.ndarray, focal_35mm: int | None = None) -> bytes:
+    """``pixels`` as a JPEG (quality :data:`JPEG_QUALITY`), its EXIF holding ``FocalLengthIn35mmFilm`` when given,
+    as a camera's does (the same pixels encode the same with and without it)."""
+    import io
+
+    from PIL import Image
+
+    exif = Image.Exif()
+    if focal_35mm is not None:
+        exif.get_ifd(EXIF_IFD)[FOCAL_LENGTH_35MM] = int(focal_35mm)
+    stream = io.BytesIO()
+    Image.fromarray(pixels).save(stream, format="JPEG", quality=JPEG_QUALITY, exif=exif)
+    return stream.getvalue()
 
 
 def with_landscape(pixels: np.ndarray, fraction: float, glow_dn: float, rng: np.random.Generator) -> np.ndarray:
@@ -95,6 +109,11 @@ def with_landscape(pixels: np.ndarray, fraction: float, glow_dn: float, rng: np.
     ground = above < 0
     out[ground] = 4.0 + 1.5 * rng.standard_normal(int(ground.sum()))
     return np.clip(np.round(out), 0, 255).astype(np.uint8)
+
+
+def focal_length_35mm(camera) -> int:
+    """The whole millimetres EXIF's ``FocalLengthIn35mmFilm`` gives for ``camera`` (through the diagonal)."""
+    return round(camera.focal_length_px * FULL_FRAME_DIAGONAL_MM / math.hypot(camera.width, camera.height))
 
 
 def centre_radec_deg(true_camera, rotation: np.ndarray) -> tuple[float, float]:
@@ -115,18 +134,20 @@ def run(n_sequences: int | None = None, seed: int = 1) -> dict:
         for fov in FIELDS_DEG:
             for i in range(n):
                 rng = np.random.default_rng([seed, 74, int(fov), i])
-                jpeg, true, rotation, described = photograph(fov, rng)
+                pixels, true, rotation, described = photograph(fov, rng)
                 name = f"wide-{fov:g}deg-{i}"
-                path = Path(scratch, f"{name}.jpg")
-                path.write_bytes(jpeg)
+                with_lens, without = Path(scratch, f"{name}-exif.jpg"), Path(scratch, f"{name}.jpg")
+                with_lens.write_bytes(jpeg(pixels, focal_length_35mm(true)))
+                without.write_bytes(jpeg(pixels))
                 ra, dec = centre_radec_deg(true, rotation)
                 exact = true.fov_deg[0]
-                frame = RealFrame(name=name, image=path, width=true.width, height=true.height, ra_deg=ra,
+                frame = RealFrame(name=name, image=without, width=true.width, height=true.height, ra_deg=ra,
                                   dec_deg=dec, fov_deg=exact, time=None)
                 off = exact * (1.05 if i % 2 == 0 else 0.95)
-                given = {"exact": exact, "5 % off": off, "none": None}
-                row = {"name": name, "fov_deg": fov, "photograph": described,
-                       "ours": {optics: solve_ours(frame, sky, given[optics], Path(scratch)) for optics in OPTICS}}
+                given = {"exact": exact, "5 % off": off, "EXIF": None, "none": None}
+                row = {"name": name, "fov_deg": fov, "photograph": described, "ours": {
+                    optics: solve_ours(replace(frame, image=with_lens) if optics == "EXIF" else frame, sky,
+                                       given[optics], Path(scratch)) for optics in OPTICS}}
                 rows.append(row)
                 print(f"wide: {name} ({described}): "
                       + ", ".join(f"{o} {row['ours'][o]['status']}" for o in OPTICS), file=sys.stderr)

@@ -27,7 +27,7 @@ sky: twice and half the sampling, turned, cropped off-centre, a dark foreground;
 :mod:`app.bench.variants`).  ``floor`` (the search's own time: the default against searches without
 the operator's alternatives, the optics fit and the image centre; see :mod:`app.bench.floor`).
 ``wide`` (simulated photographs through wide-angle lenses, 40-105 deg, with their field of view, one 5 %
-off and none; ``--n`` photographs a field, default 8; see :mod:`app.bench.wide`).
+off, only their lens in EXIF, and none; ``--n`` photographs a field, default 8; see :mod:`app.bench.wide`).
 Every figure is measured now, on this machine, in one process (the load
 suite adds the server's), from simulated sequences drawn with ``--seed``.
 """
