@@ -284,3 +284,25 @@ def test_a_frame_of_noise_or_of_one_huge_glow_has_no_stars():
     for frame in (noise, glow):
         found = detect(frame, saturation=65535.0)
         assert int(found.is_star.sum()) == 0 and found.psf is None
+
+
+@pytest.mark.parametrize("sigma", [1.3, 0.7])
+def test_hot_pixel_pairs_of_an_uncooled_sensor_are_no_stars_and_sharp_stars_stay(sigma):
+    """A long exposure without a dark frame, as an 8-bit JPEG: 300 hot pixels, a third of them lighting one
+    neighbour too (a pair, or a JPEG's or a demosaic's spread), as bright as the stars. One frame, no map:
+    only their sharpness tells them. The stars stay stars, sharp ones (sigma 0.7 px) too."""
+    rng = np.random.default_rng(12)
+    sky, xy, flux = _field(12)
+    pixels = (_with_stars(sky, xy, flux, sigma) - 60.0) / 20.0
+    hot = np.column_stack([rng.integers(5, WIDTH - 5, 300), rng.integers(5, HEIGHT - 5, 300)])
+    pixels[hot[:, 1], hot[:, 0]] += rng.uniform(40, 255, 300)
+    pixels[hot[:100, 1], hot[:100, 0] + 1] += rng.uniform(20, 150, 100)
+    stream = io.BytesIO()
+    Image.fromarray(np.clip(pixels, 0, 255).astype(np.uint8)).save(stream, format="JPEG", quality=92)
+    found = detect(np.asarray(Image.open(stream)).astype(np.float32), saturation=255)
+    reported = found.xy[found.kept(32)]
+    assert len(reported) == 32
+    on_hot = (_nearest(hot.astype(float), reported) < 1.5) & (_nearest(xy, reported) >= 1.5)
+    assert not np.any(on_hot), reported[on_hot]
+    n_found, _ = _score(found, xy[_nearest(hot, xy) > 3])
+    assert n_found >= 34  # of the 40 drawn, those no hot pixel lands on
