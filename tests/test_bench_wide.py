@@ -67,3 +67,12 @@ def test_a_photographs_lens_exif_is_its_35mm_equivalent_and_changes_no_pixel():
     image = Image.open(io.BytesIO(with_lens))
     assert exif_lens(image, 3000, 2000, "p.jpg")["focal_length_hint_px"] == pytest.approx(23 * 3605.55 / 43.2666, rel=1e-5)
     assert exif_lens(Image.open(io.BytesIO(without)), 3000, 2000, "p.jpg") == {}
+
+
+def test_a_milky_way_is_a_band_through_the_centre_as_bright_as_asked_and_none_when_zero():
+    dark = np.zeros((2000, 3000), dtype=np.uint8)
+    assert wide.with_milky_way(dark, 0.0, np.random.default_rng(1)) is dark
+    lit = wide.with_milky_way(dark, 40.0, np.random.default_rng(1)).astype(float)
+    assert 40.0 * 0.6 < lit[990:1010, 1490:1510].mean() < 40.0 * 1.4  # its middle, clouds of +-40 % over 25 px
+    # A Gaussian band of sigma 350 px: beyond 3 sigma (1,050 px) under 0.5 DN, rounded to 0 nearly everywhere.
+    assert np.mean(lit > 0) < 0.95 and lit.max() <= 255

@@ -13,6 +13,8 @@ wide lens (a 24 mm lens on a full-frame camera spans 74 deg, a 14 mm one 104 deg
   1.0-2.0 px (drawn), bright stars saturated;
 * a landscape under a ragged horizon over the bottom 0-30 % (drawn), with a town's glow above it fading
   over a quarter of the height (0-40 DN; drawn): trees, hills, a roof;
+* on half of them a Milky Way: a band 700 px wide (FWHM 820) at a random angle through the centre, 20-60 DN
+  (drawn) with star clouds of +-40 % over 25 px and a finer grain of +-15 % over 4 px;
 * a random pointing, no time (solved at J2000.0, as a photograph with no EXIF time is).
 
 Each is solved through the ``solve`` workflow (:func:`app.bench.real.solve_ours`) with its exact field of
@@ -53,6 +55,8 @@ JPEG_QUALITY = 92
 #: Part of the height under the horizon, and the town's glow above it in DN (each drawn uniformly).
 LANDSCAPE_FRACTION = (0.0, 0.3)
 GLOW_DN = (0.0, 40.0)
+#: The Milky Way's brightness at its middle, DN (drawn uniformly), on every other photograph.
+MILKY_WAY_DN = (20.0, 60.0)
 DEFAULT_N = 8
 
 
@@ -74,9 +78,11 @@ def photograph(fov_deg: float, rng: np.random.Generator):
                                                 hot_pixels=False)
     landscape = float(rng.uniform(*LANDSCAPE_FRACTION))
     glow = float(rng.uniform(*GLOW_DN))
-    pixels = with_landscape(frames[0], landscape, glow, rng)
+    milky_way = float(rng.uniform(*MILKY_WAY_DN)) if rng.uniform() < 0.5 else 0.0
+    pixels = with_landscape(with_milky_way(frames[0], milky_way, rng), landscape, glow, rng)
     described = (f"distortion {100 * corner:+.1f} % at the corner, stars to Hp {limit:.1f}, landscape "
-                 f"{100 * landscape:.0f} % under a glow of {glow:.0f} DN")
+                 f"{100 * landscape:.0f} % under a glow of {glow:.0f} DN"
+                 + (f", a Milky Way of {milky_way:.0f} DN" if milky_way else ""))
     return pixels, true, np.asarray(truth["rotation_matrices"][0]), described
 
 
@@ -93,6 +99,26 @@ def jpeg(pixels: np.ndarray, focal_35mm: int | None = None) -> bytes:
     stream = io.BytesIO()
     Image.fromarray(pixels).save(stream, format="JPEG", quality=JPEG_QUALITY, exif=exif)
     return stream.getvalue()
+
+
+def with_milky_way(pixels: np.ndarray, middle_dn: float, rng: np.random.Generator) -> np.ndarray:
+    """8-bit ``pixels`` under a band of glow through the centre at a random angle (Gaussian across, sigma
+    350 px, ``middle_dn`` at its middle) with star clouds and a grain (smoothed noise over 25 and 4 px, +-40 %
+    and +-15 %); unchanged when ``middle_dn`` is 0."""
+    if middle_dn <= 0:
+        return pixels
+    from scipy.ndimage import gaussian_filter
+
+    height, width = pixels.shape
+    rows, cols = np.mgrid[:height, :width]
+    angle = rng.uniform(0.0, np.pi)
+    across = (cols - width / 2) * np.sin(angle) - (rows - height / 2) * np.cos(angle)
+    texture = np.ones((height, width))
+    for scale, depth in ((25.0, 0.4), (4.0, 0.15)):
+        noise = gaussian_filter(rng.standard_normal((height, width)), scale)
+        texture += depth * noise / noise.std()
+    band = middle_dn * np.exp(-0.5 * (across / 350.0) ** 2) * np.clip(texture, 0.0, None)
+    return np.clip(np.round(pixels + band), 0, 255).astype(np.uint8)
 
 
 def with_landscape(pixels: np.ndarray, fraction: float, glow_dn: float, rng: np.random.Generator) -> np.ndarray:
