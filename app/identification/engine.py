@@ -48,7 +48,8 @@ SCAN = "scan"
 def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=None,
              options: SearchOptions = SearchOptions(),
              planets: Callable[[], dict[str, np.ndarray]] | None = None,
-             method: str = "bright_pair", hypotheses_before: int = 0) -> Solution:
+             method: str = "bright_pair", hypotheses_before: int = 0,
+             focal_length_from: str = "declared") -> Solution:
     """Identify a pattern seen by ``camera`` at UTC ``t``.
 
     ``pattern`` has ``vectors`` (m, 3) camera-frame unit vectors, ``xy``
@@ -64,7 +65,8 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
     (:mod:`app.identification.optics`), and every credible candidate has its
     optics fitted with its attitude.  A camera whose focal length is unknown has its scale searched first
     (:mod:`.scale_free`).  ``hypotheses_before`` counts hypotheses a caller tried already for this pattern
-    (a search over scales): they enter the false-match probability.
+    (a search over scales): they enter the false-match probability; ``focal_length_from`` is the word the
+    notes give the camera's focal length ("the declared one"; a search over scales says where it found it).
     """
     # The compiled kernels, once a process: compiling (a first run) never counts against the search's time;
     # with the cache complete, each loads at its first call (app.compiled.warm_up).
@@ -154,10 +156,11 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
             # The shape matches the estimate checked count among the hypotheses tried: they chose where to look.
             search.n_tried += estimate.n_tried
             search.fitted_focal_lengths.add(estimate.focal_length_px)
-            beyond = (f", within the declared {camera.focal_tolerance:.1%} and the estimate's own "
+            beyond = (f", within the {focal_length_from} {camera.focal_tolerance:.1%} and the estimate's own "
                       f"{ESTIMATE_MIN_OFFSET:.1%}" if abs(offset) > camera.focal_tolerance else "")
             notes.append(f"the pattern's bright triangles put the focal length at "
-                         f"{estimate.focal_length_px:.1f} px ({offset:+.1%} of the declared{beyond}), searched first")
+                         f"{estimate.focal_length_px:.1f} px ({offset:+.1%} of the {focal_length_from}{beyond}), "
+                         "searched first")
             # Their match is a hypothesis at that focal length, as at the declared one: on real frames the
             # first bright-pair edges often catch too few stars through a rotation made from two points
             # (short edges, distortion), where the triangle's fitted rotation catches them all.
@@ -226,9 +229,9 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
         notes.append(f"the search stopped at its bound of {options.max_hypotheses:,} hypotheses "
                      "(SearchOptions.max_hypotheses)")
     if status == NO_MATCH and settled_at is None and contradiction is None and METHODS[method].focal_scan:
-        notes.append(_searched(search, declared, camera, len(searched)))
+        notes.append(_searched(search, declared, camera, len(searched), focal_length_from))
     notes.insert(0, f"{search.n_tried} {method} hypotheses from {features}"
-                 + (f" at {n_scales} focal lengths within {camera.focal_tolerance:.1%} of the declared one"
+                 + (f" at {n_scales} focal lengths within {camera.focal_tolerance:.1%} of the {focal_length_from} one"
                     if n_scales > 1 else ""))
     return Solution(status=status, candidates=tuple(candidates), elapsed_s=_time.perf_counter() - started,
                     notes=tuple(notes), focal_length_contradiction=contradiction, n_hypotheses=search.n_tried)
@@ -553,14 +556,14 @@ class _Checked:
     caught: _Caught
 
 
-def _searched(search: _Search, declared, camera: Camera, n_other: int) -> str:
+def _searched(search: _Search, declared, camera: Camera, n_other: int, focal_length_from: str) -> str:
     """What a bright-pair search that found nothing searched, in a sentence."""
     separation = search.options.min_pair_separation_px
     edges = ordered_pattern_edges(declared.xy, camera, separation)
     i, j = np.triu_indices(declared.m, k=1)
     pairs = int(np.count_nonzero(np.hypot(*(declared.xy[i] - declared.xy[j]).T) >= separation))
     said = (f"nothing found: searched {search.used_at.get(id(declared), 0)} of the pattern's {len(edges)} "
-            f"Delaunay edges at the declared focal length"
+            f"Delaunay edges at the {focal_length_from} focal length"
             + (f" (not its other {pairs - len(edges)} point pair{'s' * (pairs - len(edges) != 1)}, each with a "
                "point between its two)" if pairs > len(edges) else ""))
     if search.scan is not None:

@@ -134,21 +134,21 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
     searched: list[str] = []
     best: Solution | None = None
 
-    def solve_at(known: Camera, band_sky: Sky) -> Solution:
-        """The pattern identified as ``known`` sees it (a focal length known to a tolerance), every hypothesis
-        tried so far counted (and the count carried on); each candidate keeps the camera it was found with
-        (the declared one had no focal length)."""
+    def solve_at(known: Camera, band_sky: Sky, focal_length_from: str) -> Solution:
+        """The pattern identified as ``known`` sees it (a focal length known to a tolerance, whose origin the
+        notes name), every hypothesis tried so far counted (and the count carried on); each candidate keeps the
+        camera it was found with (the declared one had no focal length)."""
         nonlocal tried
         solution = identify(replace(pattern, vectors=known.pixels_to_vectors(pattern.xy)), known, t, band_sky,
                             velocity_km_s=velocity_km_s, options=options, planets=planets, method=method,
-                            hypotheses_before=tried)
+                            hypotheses_before=tried, focal_length_from=focal_length_from)
         tried = max(tried, solution.n_hypotheses)
         return replace(solution, candidates=tuple(c if c.camera is not None else replace(c, camera=known)
                                                   for c in solution.candidates))
 
     hint_note = ""
     if hinted is not None:
-        best = solve_at(hinted, hint_sky)
+        best = solve_at(hinted, hint_sky, "hinted")
         f, tolerance = hinted.focal_length_px, hinted.focal_tolerance
         hint_note = (f"searched first around its hint, {fov_for_focal_length(camera.width, f):.1f} deg "
                      f"({_fovs(camera, Band(f * (1 - tolerance), f * (1 + tolerance)))} deg), {best.status}"
@@ -172,7 +172,7 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
                             f"no fit in {sum(checked)} triangles")
             continue
         shapes_fitted = True
-        solution = solve_at(camera.known_at(estimate.focal_length_px, FOUND_TOLERANCE), band_sky)
+        solution = solve_at(camera.known_at(estimate.focal_length_px, FOUND_TOLERANCE), band_sky, "triangles' fitted")
         fov = fov_for_focal_length(camera.width, estimate.focal_length_px)
         searched.append(f"{fovs} deg: the triangles fit {fov:.2f} deg ({estimate.focal_length_px:.1f} px, "
                         f"{estimate.n_matched} of {estimate.n_points} points), {solution.status}")
@@ -181,7 +181,7 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
             # Nothing was declared: what lies beyond the search is the stars' own better fit. On a lens whose
             # distortion moves the best pinhole focal length by a few per cent (a wide field's barrel), the first
             # shape's estimate can be 2-4 % off. Searched there once.
-            solution = solve_at(camera.known_at(refit, FOUND_TOLERANCE), band_sky)
+            solution = solve_at(camera.known_at(refit, FOUND_TOLERANCE), band_sky, "stars' fitted")
             searched.append(f"the stars then fit {fov_for_focal_length(camera.width, refit):.2f} deg "
                             f"({refit:.1f} px), {solution.status}")
         if best is None or _better(solution, best):
@@ -194,7 +194,7 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
             if _time.perf_counter() - started > options.timeout_s:
                 searched.append("time-out")
                 break
-            solution = solve_at(nominal, band_sky)
+            solution = solve_at(nominal, band_sky, "band's middle")
             searched.append(f"{_fovs(camera, band)} deg by bright pairs: {solution.status}")
             if best is None or _better(solution, best):
                 best = solution
