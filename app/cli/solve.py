@@ -93,6 +93,9 @@ def run(args: argparse.Namespace) -> int:
     from app.workflow.files import invalid_solve_document, solve_document
 
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
+    # Of the kernels, only a first run's compiling is news to a user (a warning); where they are, every time
+    # a solve starts, is not.
+    logging.getLogger("app.compiled").setLevel(logging.WARNING)
     annotate = Annotator(args.annotate, args.files)  # --annotate OUT.png: the solved frame drawn
     sky = Sky()
     # The kernels load (or, the first run after an install, compile) when the first valid file is solved
