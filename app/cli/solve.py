@@ -131,8 +131,9 @@ def print_summary(doc) -> None:
     if best is not None and best.fov_deg is not None:
         print(f"  field of view: {best.fov_deg:.3f} deg (focal length {best.focal_length_px:.1f} px), "
               "found from the stars")
-    if best is not None and best.centre_ra_deg is not None:
-        print(f"  image centre: RA {best.centre_ra_deg:.4f} deg, Dec {best.centre_dec_deg:+.4f} deg")
+    if best is not None and best.centre_ra_deg is not None:  # the table's RA, Dec: the optical axis
+        print(f"  image centre: RA {best.centre_ra_deg:.4f} deg, Dec {best.centre_dec_deg:+.4f} deg "
+              "(the table's RA, Dec are the boresight's, the optical axis)")
     for note in doc.notes:  # how the search went
         print(f"  note: {note}")
     if doc.focal_length_contradiction is not None:  # a focal length declared wrong beyond its tolerance
