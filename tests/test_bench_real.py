@@ -169,5 +169,5 @@ def test_a_plain_frame_of_each_group_solves_with_no_time_and_no_field_of_view(sk
     assert out["status"] == "identified", out["notes"]
     assert out["error_deg"] <= real.RIGHT_DEG
     assert out["fov_deg"] == pytest.approx(frame.fov_deg, rel=0.02)
-    assert any("field of view was unknown" in note for note in out["notes"])
+    assert any("field of view was not given" in note for note in out["notes"])
     assert any("no time" in note for note in out["notes"])

@@ -56,7 +56,7 @@ def test_a_pass_without_optics_solves_by_searching_the_field_of_view_and_with_fo
     assert abs(best["fov_deg"] / CAMERA.fov_deg[0] - 1) < 0.005, best["fov_deg"]
     R = np.asarray(truth["rotation_matrices"][doc["reference_snapshot"]])
     assert np.degrees(angle_between(np.asarray(best["rotation_matrix"])[2], R[2])) < 0.1
-    assert any("field of view was unknown" in note for note in doc["notes"])
+    assert any("field of view was not given" in note for note in doc["notes"])
 
     assert cli_main(["solve", "--json", "--fov-deg", f"{FOV:.4f}", str(path)]) == 0
     doc, = _lines(capsys.readouterr().out)

@@ -93,3 +93,12 @@ def test_a_cropped_photographs_exif_lens_is_wrong_and_the_field_of_view_is_searc
     assert "around its hint" in solution.notes[0] and "no_match; then searched 2-110 deg" in solution.notes[0]
     assert _boresight_error_deg(solution, rotation) < 0.02  # the crop's centre is the photograph's
     assert solution.candidates[0].camera.focal_length_px == pytest.approx(true.focal_length_px, rel=0.01)
+
+
+def test_a_hint_outside_the_fields_of_view_searched_is_set_aside_and_said_to_be(photograph, sky):
+    """FocalLengthIn35mmFilm 2000 mm: 1.0 deg across the photograph, narrower than the search's 2 deg."""
+    image, _, rotation, _ = photograph
+    _, solution = _solved(_jpeg(image, {0xA405: 2000}), sky)
+    assert solution.status == IDENTIFIED, solution.notes
+    assert "its hint (a photograph's lens), 1.0 deg, lies outside the fields of view searched" in solution.notes[0]
+    assert _boresight_error_deg(solution, rotation) < 0.02

@@ -60,7 +60,7 @@ def test_a_single_snapshot_of_unknown_optics_is_identified_with_its_focal_length
     assert abs(best.camera.focal_length_px / camera.focal_length_px - 1) < 0.005
     R = np.asarray(truth["rotation_matrices"][extraction.reference])
     assert math.degrees(angle_between(best.rotation_matrix[2], R[2])) < 0.1
-    assert "field of view was unknown" in solution.notes[0]
+    assert "field of view was not given" in solution.notes[0]
 
 
 def test_random_points_of_unknown_optics_are_not_identified_and_the_search_is_bounded(sky):
@@ -76,7 +76,7 @@ def test_random_points_of_unknown_optics_are_not_identified_and_the_search_is_bo
     solution = identify(pattern, camera, sequence.snapshots[0].time, sky)
     assert solution.status != IDENTIFIED
     assert solution.elapsed_s < 2 * 5.0  # the search's time-out (SearchOptions.timeout_s) and one band's worth
-    assert "field of view was unknown" in solution.notes[0]
+    assert "field of view was not given" in solution.notes[0]
 
 
 def test_each_search_after_the_shapes_counts_every_hypothesis_tried_before_it(sky):

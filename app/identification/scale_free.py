@@ -150,9 +150,13 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
     if hinted is not None:
         best = solve_at(hinted, hint_sky, "hinted")
         f, tolerance = hinted.focal_length_px, hinted.focal_tolerance
-        hint_note = (f"searched first around its hint, {fov_for_focal_length(camera.width, f):.1f} deg "
+        hint_note = (f"searched first around its hint (a photograph's lens), "
+                     f"{fov_for_focal_length(camera.width, f):.1f} deg "
                      f"({_fovs(camera, Band(f * (1 - tolerance), f * (1 + tolerance)))} deg), {best.status}"
                      + ("; then " if best.status != IDENTIFIED else ""))
+    elif camera.focal_length_tolerance is not None:  # a hint outside FOV_RANGE_DEG
+        hint_note = (f"its hint (a photograph's lens), {fov_for_focal_length(camera.width, camera.focal_length_px):.1f} "
+                     "deg, lies outside the fields of view searched and was set aside; ")
     shapes_fitted = False
     for band, nominal, band_sky in zip(searched_bands, nominals, band_skies):
         if best is not None and best.status == IDENTIFIED:
@@ -201,7 +205,7 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
             if solution.status == IDENTIFIED:
                 break
     elapsed = _time.perf_counter() - started
-    note = "the field of view was unknown: " + hint_note
+    note = "the field of view was not given: " + hint_note
     if searched:
         note += (f"searched {FOV_RANGE_DEG[0]:g}-{FOV_RANGE_DEG[1]:g} deg by the shapes of the pattern's bright "
                  "triangles, widest first (" + "; ".join(searched) + ")")
