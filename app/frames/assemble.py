@@ -441,7 +441,7 @@ def _camera_block(sidecar: Sidecar, fov_deg: float | None, meta: dict, width: in
         if 0.1 <= fov <= 120.0:
             hinted = camera_for_fov(width, height, fov)
             return ({**hinted, "focal_length_px": round(hint, 3), "focal_length_unknown": True},
-                    f"{meta['optics_from']}, a hint: {fov:.1f} deg searched first, then every field of view")
+                    f"{meta['optics_from']}: a hint of {fov:.1f} deg for the field-of-view search")
     nominal = camera_for_fov(width, height, UNKNOWN_OPTICS_NOMINAL_FOV_DEG)
     del nominal["focal_length_tolerance"]
     return {**nominal, "focal_length_unknown": True}, "unknown optics (field of view searched)"
