@@ -8,6 +8,11 @@ pattern triangle can be whatever the focal length, and each says which focal
 length it needs.  astrometry.net searches without a scale the same way (with
 four-star "quads"), as does tetra3 within its ``fov_max_error``.
 
+A hint first.  A camera that keeps ``focal_length_unknown`` but has a ``focal_length_tolerance`` carries a
+hint (a photograph's EXIF lens, :mod:`app.frames.lens`): its focal length is searched first, as if declared
+to that tolerance; where nothing is identified there (a cropped photograph keeps its lens's EXIF), the bands
+follow, the hint's hypotheses counted.
+
 Bands.  The fields of view from :data:`FOV_RANGE_DEG` are split into bands
 whose focal lengths differ by :data:`BAND_RATIO` at most; each band is a
 nominal camera at its middle focal length, known to the band's half-width.
@@ -30,7 +35,10 @@ Answer.  At the first band whose triangles fit a focal length beyond chance,
 the pattern is identified as if that focal length had been declared, known to
 :data:`FOUND_TOLERANCE` (:func:`app.identification.engine.identify`: bright
 pairs, the estimate's own match as a hypothesis, refinement, the optics fit,
-the false-match probability).  Every shape match checked in the bands before
+the false-match probability).  Where that finds nothing credible and the stars fit a focal length
+beyond :data:`FOUND_TOLERANCE` (the triangles' refit on every point they caught, or the optics fitted
+with a candidate: a wide lens's barrel moves the best pinhole by a few per cent), it is searched there
+once more.  Every shape match checked in the bands before
 counts among its hypotheses, so the false-match probability pays for the
 search over scales.  A band whose identification is not ``identified`` does
 not stop the search; the best answer found is returned, with notes saying
