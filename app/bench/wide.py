@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from app.bench.real import RIGHT_DEG, WRONG_DEG, RealFrame, solve_ours, summarise
+from app.catalogue import vectors_to_radec
 from app.frames.lens import FOCAL_LENGTH_35MM, FULL_FRAME_DIAGONAL_MM
 from app.frames.times import EXIF_IFD
 
@@ -145,8 +146,8 @@ def focal_length_35mm(camera) -> int:
 def centre_radec_deg(true_camera, rotation: np.ndarray) -> tuple[float, float]:
     """The true sky direction (ICRS RA, Dec, degrees) of the image's centre pixel."""
     centre = np.array([[(true_camera.width - 1) / 2, (true_camera.height - 1) / 2]])
-    v = true_camera.pixels_to_vectors(centre)[0] @ rotation
-    return math.degrees(math.atan2(v[1], v[0])) % 360.0, math.degrees(math.asin(max(-1.0, min(1.0, v[2]))))
+    ra, dec = vectors_to_radec(true_camera.pixels_to_vectors(centre) @ rotation)
+    return math.degrees(float(ra[0])), math.degrees(float(dec[0]))
 
 
 def run(n_sequences: int | None = None, seed: int = 1) -> dict:

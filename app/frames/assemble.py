@@ -55,6 +55,9 @@ FOV_FOCAL_TOLERANCE = 0.10
 #: How well a field of view given by hand is known, a fraction of the angle (a lens's nominal focal length, a
 #: guess from a photograph); the distortion's share of :data:`FOV_FOCAL_TOLERANCE` is the rest.
 FOV_TOLERANCE = 0.05
+#: Horizontal fields of view (deg) a frame's optics may be given as (``fov_deg``, a sidecar's, an EXIF hint):
+#: 0.1 is a telescope's guide camera; past 120 a pinhole is no lens.
+FOV_BOUNDS_DEG = (0.1, 120.0)
 #: The nominal field of view of frames whose optics are unknown (display only: identification searches the
 #: field of view, :mod:`app.identification.scale_free`).
 UNKNOWN_OPTICS_NOMINAL_FOV_DEG = 20.0
@@ -134,7 +137,7 @@ def parse_sidecar(data: bytes | str, name: str = "sidecar") -> Sidecar:
     camera = doc.get("camera")
     if camera is not None and not isinstance(camera, (dict, str)):
         problems.add(f"{name}.camera", "must be a camera object or a camera name")
-    fov = _bounded_number(doc, "fov_deg", name, problems, 0.1, 120.0)
+    fov = _bounded_number(doc, "fov_deg", name, problems, *FOV_BOUNDS_DEG)
     max_sources = doc.get("max_sources")
     if max_sources is not None and (isinstance(max_sources, bool) or not isinstance(max_sources, int)
                                     or not 3 <= max_sources <= 64):
@@ -400,9 +403,15 @@ def _sequence_id(text: str) -> str:
 def camera_for_fov(width: int, height: int, fov_deg: float) -> dict:
     """A camera block for a horizontal field of view across ``width`` (centred principal point), its focal
     length known to :func:`fov_focal_tolerance`."""
-    focal = (width / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
-    return {"width": width, "height": height, "focal_length_px": round(focal, 3), "cx": (width - 1) / 2.0,
-            "cy": (height - 1) / 2.0, "focal_length_tolerance": round(fov_focal_tolerance(fov_deg), 4)}
+    return _centred_camera(width, height, (width / 2.0) / math.tan(math.radians(fov_deg) / 2.0),
+                           round(fov_focal_tolerance(fov_deg), 4))
+
+
+def _centred_camera(width: int, height: int, focal_px: float, tolerance: float | None) -> dict:
+    """A camera block: a pinhole of ``focal_px`` centred on the frame, known to ``tolerance`` (None: left out)."""
+    block = {"width": width, "height": height, "focal_length_px": round(focal_px, 3), "cx": (width - 1) / 2.0,
+             "cy": (height - 1) / 2.0}
+    return block if tolerance is None else {**block, "focal_length_tolerance": tolerance}
 
 
 def fov_focal_tolerance(fov_deg: float) -> float:
@@ -418,8 +427,10 @@ def fov_focal_tolerance(fov_deg: float) -> float:
 def _camera_block(sidecar: Sidecar, fov_deg: float | None, meta: dict, width: int, height: int):
     """(camera block or name, where the optics came from)."""
     if fov_deg is not None:
-        if not (isinstance(fov_deg, (int, float)) and math.isfinite(fov_deg) and 0.1 <= fov_deg <= 120.0):
-            raise TelemetryError.at("fov_deg", f"must be a number from 0.1 to 120 degrees, got {fov_deg!r}")
+        if not (isinstance(fov_deg, (int, float)) and math.isfinite(fov_deg)
+                and FOV_BOUNDS_DEG[0] <= fov_deg <= FOV_BOUNDS_DEG[1]):
+            raise TelemetryError.at("fov_deg", f"must be a number from {FOV_BOUNDS_DEG[0]:g} to {FOV_BOUNDS_DEG[1]:g} "
+                                               f"degrees, got {fov_deg!r}")
         return camera_for_fov(width, height, float(fov_deg)), f"fov_deg {float(fov_deg):g}"
     if isinstance(sidecar.camera, dict):
         _check_camera_object(sidecar.camera, width, height)
@@ -430,17 +441,15 @@ def _camera_block(sidecar: Sidecar, fov_deg: float | None, meta: dict, width: in
     if sidecar.fov_deg is not None:
         return camera_for_fov(width, height, sidecar.fov_deg), f"sidecar fov_deg {sidecar.fov_deg:g}"
     if meta.get("focal_length_px"):
-        focal = float(meta["focal_length_px"])
-        return ({"width": width, "height": height, "focal_length_px": round(focal, 3), "cx": (width - 1) / 2.0,
-                 "cy": (height - 1) / 2.0, "focal_length_tolerance": FOV_FOCAL_TOLERANCE}, meta["optics_from"])
+        return _centred_camera(width, height, float(meta["focal_length_px"]), FOV_FOCAL_TOLERANCE), meta["optics_from"]
     # No optics declared: identification searches the field of view (app.identification.scale_free), first
     # within the tolerance of a field of view given for it at a hinted focal length (a photograph's EXIF lens).
     hint = meta.get("focal_length_hint_px")
     if hint:
         fov = math.degrees(2.0 * math.atan(width / 2.0 / hint))
-        if 0.1 <= fov <= 120.0:
-            hinted = camera_for_fov(width, height, fov)
-            return ({**hinted, "focal_length_px": round(hint, 3), "focal_length_unknown": True},
+        if FOV_BOUNDS_DEG[0] <= fov <= FOV_BOUNDS_DEG[1]:
+            hinted = _centred_camera(width, height, hint, round(fov_focal_tolerance(fov), 4))
+            return ({**hinted, "focal_length_unknown": True},
                     f"{meta['optics_from']}: a hint of {fov:.1f} deg for the field-of-view search")
     nominal = camera_for_fov(width, height, UNKNOWN_OPTICS_NOMINAL_FOV_DEG)
     del nominal["focal_length_tolerance"]
