@@ -109,24 +109,31 @@ def _cube() -> bytes:
     return stream.getvalue()
 
 
-@pytest.mark.parametrize("files, data, location", [
-    ([("files", ("x.png", b"no image here", "image/png"))], {"fov_deg": "20"}, "x.png"),
-    ([("files", ("cube.fits", _cube(), "application/fits"))], {"fov_deg": "20"}, "cube.fits[0]"),
+# An image that cannot be read is said to be one ("invalid image: ..."), not invalid telemetry: the user sent none.
+@pytest.mark.parametrize("files, data, location, said", [
+    ([("files", ("x.png", b"no image here", "image/png"))], {"fov_deg": "20"}, "x.png",
+     "invalid image: x.png: not a readable image"),
+    ([("files", ("cube.fits", _cube(), "application/fits"))], {"fov_deg": "20"}, "cube.fits[0]",
+     "invalid image: cube.fits[0]: 3-D image"),
     ([("files", ("t.png", frame_png_bytes(np.zeros((64, 64), np.uint16)), "image/png"))],
-     {"fov_deg": "20", "time": "yesterday"}, "body.time"),
+     {"fov_deg": "20", "time": "yesterday"}, "body.time",
+     "time: not an ISO 8601 time"),
     ([("files", ("t.png", frame_png_bytes(np.zeros((64, 64), np.uint16)), "image/png")),
-      ("sidecar", ("s.json", b"{not json", "application/json"))], {}, "sidecar"),
+      ("sidecar", ("s.json", b"{not json", "application/json"))], {}, "sidecar",
+     "invalid image: sidecar: not valid JSON"),
     ([("files", ("t.png", frame_png_bytes(np.zeros((64, 64), np.uint16)), "image/png"))], {"fov_deg": "abc"},
-     "body.fov_deg"),
-    ([("sidecar", ("s.json", b"{}", "application/json"))], {}, "body.files"),
+     "body.fov_deg", "fov_deg must be a number"),
+    ([("sidecar", ("s.json", b"{}", "application/json"))], {}, "body.files", "no frames"),
     ([("files", ("t.png", frame_png_bytes(np.zeros((64, 64), np.uint16)), "image/png"))],
-     {"fov_deg": "20", "spacecraft": "sat\x00one"}, "body.spacecraft"),
+     {"fov_deg": "20", "spacecraft": "sat\x00one"}, "body.spacecraft",
+     "spacecraft contains control characters"),
 ])
-def test_bad_uploads_give_located_422s(api, files, data, location):
+def test_bad_uploads_give_located_422s(api, files, data, location, said):
     r = api.post("/api/frames", files=files, data=data)
     assert r.status_code == 422, r.text
     body = r.json()
     assert body["detail"] and any(p["location"] == location for p in body["problems"]), body
+    assert body["detail"].startswith(said), body["detail"]
 
 
 def test_no_optics_is_stored_with_the_field_of_view_unknown_and_not_multipart_is_refused(api, rendered):

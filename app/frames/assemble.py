@@ -41,7 +41,7 @@ from app.frames.detect import REJECTING_FLAGS, DetectionError, DetectionOptions,
 from app.frames.hotpixels import HotPixelMap, near_hot_pixel, stationary_candidates
 from app.frames.images import Frame, FrameLimits, file_sha256, read_frames
 from app.frames.times import assumed_times, mixed_times_error
-from app.telemetry.errors import Problem, ProblemCollector, TelemetryError
+from app.telemetry.errors import ImageError, Problem, ProblemCollector, TelemetryError
 from app.telemetry.formats import dump_json, parse_telemetry
 from app.telemetry.model import FORMAT_NAME, Sequence
 from app.timefmt import parse_utc_time, utc_text
@@ -113,14 +113,14 @@ def _sidecar_time(value, loc: str, problems: ProblemCollector) -> datetime | Non
 
 
 def parse_sidecar(data: bytes | str, name: str = "sidecar") -> Sidecar:
-    """Validate a sidecar; TelemetryError with problems located as ``sidecar.frames[2].time``."""
+    """Validate a sidecar; ImageError with problems located as ``sidecar.frames[2].time``."""
     try:
         text = data.decode("utf-8") if isinstance(data, (bytes, bytearray)) else data
         doc = json.loads(text)
     except (UnicodeDecodeError, ValueError) as exc:
-        raise TelemetryError.at(name, f"not valid JSON ({str(exc)[:120]})") from None
+        raise ImageError.at(name, f"not valid JSON ({str(exc)[:120]})") from None
     if not isinstance(doc, dict):
-        raise TelemetryError.at(name, "must be a JSON object")
+        raise ImageError.at(name, "must be a JSON object")
     problems = ProblemCollector()
     for key in doc:
         if key not in _SIDECAR_KEYS:
@@ -171,7 +171,7 @@ def parse_sidecar(data: bytes | str, name: str = "sidecar") -> Sidecar:
             problems.add(f"{loc}.file", f"{file!r} is listed twice")
         elif t is not None:
             times[key] = t
-    problems.raise_if_any()
+    problems.raise_if_any(error=ImageError)
     return Sidecar(sequence_id=texts.get("sequence_id"), spacecraft=texts.get("spacecraft"), camera=camera,
                    fov_deg=fov, times=times, max_sources=max_sources, threshold_sigma=threshold,
                    velocity_km_s=doc.get("velocity_km_s"))
@@ -230,7 +230,7 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
     ``caller_time``: the time of a pass of one frame (``--time``, the API's ``time`` field), over the
     sidecar's and the file's; frames without any time are assumed 1 s apart in file-name order (HDUs and
     pages in theirs), whatever order ``files`` come in.
-    Raises TelemetryError (located) for anything invalid.
+    Raises ImageError (located) for anything invalid.
     """
     limits = limits or FrameLimits()
     sidecar = sidecar or Sidecar()
@@ -241,20 +241,20 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
     if decoded is not None:  # no file, no hash: the location stands for both
         files = [(frame.location, frame.location.encode()) for frame in decoded]
     if not files:
-        raise TelemetryError.at("files", "no image file given")
+        raise ImageError.at("files", "no image file given")
     if len(files) > limits.max_frames:
-        raise TelemetryError.at("files", f"{len(files)} files; at most {limits.max_frames} frames per pass")
+        raise ImageError.at("files", f"{len(files)} files; at most {limits.max_frames} frames per pass")
     total = sum(len(data) for _, data in files)
     if total > limits.max_bytes:
-        raise TelemetryError.at("files", f"{total} bytes; at most {limits.max_bytes} per pass (STARID_FRAMES_MAX_BYTES)")
+        raise ImageError.at("files", f"{total} bytes; at most {limits.max_bytes} per pass (STARID_FRAMES_MAX_BYTES)")
     names = [_base_name(name) for name, _ in files]
     if len(set(names)) != len(names):
-        raise TelemetryError.at("files", "two files have the same name: " +
-                                next(n for n in names if names.count(n) > 1))
+        raise ImageError.at("files", "two files have the same name: " +
+                            next(n for n in names if names.count(n) > 1))
     listed = {file for file, _ in sidecar.times}
     unknown = sorted(listed - set(names))
     if unknown:
-        raise TelemetryError.at("sidecar.frames", f"names file(s) not given: {', '.join(unknown[:5])}")
+        raise ImageError.at("sidecar.frames", f"names file(s) not given: {', '.join(unknown[:5])}")
     measured: list[_Measured] = []
     zone_notes: list[str] = []
     first_meta: dict = {}
@@ -275,16 +275,16 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
                 if hot_map is not None and (hot_map.width, hot_map.height) != size:
                     prior_hot = []
             elif (frame.width, frame.height) != size:
-                raise TelemetryError.at(frame.location, f"{frame.width} x {frame.height} pixels, but the first frame "
+                raise ImageError.at(frame.location, f"{frame.width} x {frame.height} pixels, but the first frame "
                                                         f"is {size[0]} x {size[1]}: one pass, one camera")
             if len(measured) >= limits.max_frames:
-                raise TelemetryError.at(frame.location, f"more than {limits.max_frames} frames in the pass")
+                raise ImageError.at(frame.location, f"more than {limits.max_frames} frames in the pass")
             pixels_total += frame.width * frame.height
             if pixels_total > limits.max_total_pixels:
-                raise TelemetryError.at(frame.location, f"the frames hold more than {limits.max_total_pixels} pixels "
+                raise ImageError.at(frame.location, f"the frames hold more than {limits.max_total_pixels} pixels "
                                                         "in all (STARID_FRAMES_MAX_TOTAL_PIXELS)")
             if caller_time is not None and measured:
-                raise TelemetryError.at("time", "one time (--time, the time field) was given for a pass of several "
+                raise ImageError.at("time", "one time (--time, the time field) was given for a pass of several "
                                                 "frames: list each frame's time in the sidecar instead")
             listed = sidecar.times.get((short, frame.part), sidecar.times.get((short, None)))
             found_times = [(caller_time, "caller"), (listed, "sidecar"), (frame.time, "file")]
@@ -294,7 +294,7 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
                                          integer_values=frame.integer_values, saturation=frame.saturation,
                                          hot_pixels=prior_hot)
             except DetectionError as exc:
-                raise TelemetryError.at(frame.location, str(exc)) from None
+                raise ImageError.at(frame.location, str(exc)) from None
             measured.append(_Measured(frame.location, short, frame.part, when, time_from, frame.width,
                                       frame.height, frame.bits, found, digest, binned=frame.binned))
             if frame.meta.get("time_note") and time_from == "file":
@@ -310,9 +310,9 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
     measured.sort(key=lambda m: m.time)
     for earlier, later in zip(measured, measured[1:]):
         if later.time == earlier.time:
-            raise TelemetryError.at(f"{later.frame_location}.time",
-                                    f"the same time as {earlier.frame_location} ({utc_text(later.time)}): "
-                                    "each frame needs its own time")
+            raise ImageError.at(f"{later.frame_location}.time",
+                                f"the same time as {earlier.frame_location} ({utc_text(later.time)}): "
+                                "each frame needs its own time")
     width, height = size
     start_map = hot_map if hot_map is not None and (hot_map.width, hot_map.height) == size \
         else HotPixelMap.empty(width, height)
@@ -429,7 +429,7 @@ def _camera_block(sidecar: Sidecar, fov_deg: float | None, meta: dict, width: in
     if fov_deg is not None:
         if not (isinstance(fov_deg, (int, float)) and math.isfinite(fov_deg)
                 and FOV_BOUNDS_DEG[0] <= fov_deg <= FOV_BOUNDS_DEG[1]):
-            raise TelemetryError.at("fov_deg", f"must be a number from {FOV_BOUNDS_DEG[0]:g} to {FOV_BOUNDS_DEG[1]:g} "
+            raise ImageError.at("fov_deg", f"must be a number from {FOV_BOUNDS_DEG[0]:g} to {FOV_BOUNDS_DEG[1]:g} "
                                                f"degrees, got {fov_deg!r}")
         return camera_for_fov(width, height, float(fov_deg)), f"fov_deg {float(fov_deg):g}"
     if isinstance(sidecar.camera, dict):
@@ -463,7 +463,7 @@ def _check_camera_object(camera: dict, width: int, height: int) -> None:
     for key, size in (("width", width), ("height", height)):
         if key in camera and camera[key] != size:
             problems.add(f"sidecar.camera.{key}", f"{camera[key]!r}, but the frames are {width} x {height}")
-    problems.raise_if_any()
+    problems.raise_if_any(error=ImageError)
 
 
 def _check_named_camera(name: str, width: int, height: int) -> None:
@@ -473,11 +473,11 @@ def _check_named_camera(name: str, width: int, height: int) -> None:
     document's validation, which lists the known cameras (located at ``sidecar.camera`` too)."""
     camera = CAMERAS.get(name)
     if camera is not None and (camera.width, camera.height) != (width, height):
-        raise TelemetryError.at("sidecar.camera", f"{name} is {camera.width} x {camera.height}, "
+        raise ImageError.at("sidecar.camera", f"{name} is {camera.width} x {camera.height}, "
                                                   f"but the frames are {width} x {height}")
 
 
-def _relocated(exc: TelemetryError, camera_from_sidecar: bool) -> TelemetryError:
+def _relocated(exc: TelemetryError, camera_from_sidecar: bool) -> ImageError:
     """Problems of the generated document located where the user can fix them (the sidecar's camera)."""
     problems = []
     for p in exc.problems:
@@ -485,4 +485,4 @@ def _relocated(exc: TelemetryError, camera_from_sidecar: bool) -> TelemetryError
         if camera_from_sidecar and location.startswith("camera"):
             location = "sidecar." + location
         problems.append(Problem(location, p.message))
-    return TelemetryError(problems, truncated=exc.truncated)
+    return ImageError(problems, truncated=exc.truncated)

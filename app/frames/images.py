@@ -7,7 +7,7 @@ produced lazily, one at a time, so a pass of many large frames never sits in
 memory decoded all at once.
 
 Bad input never escapes as a library exception: every problem becomes a
-:class:`~app.telemetry.errors.TelemetryError` located at the file (and HDU
+:class:`~app.telemetry.errors.ImageError` located at the file (and HDU
 or page), e.g. ``frames/b.png: not a readable image (cannot identify image
 file)`` or ``pass.fits[3]: 3-D image (NAXIS = 3); a frame is 2-D``.
 
@@ -60,7 +60,7 @@ from app.filenames import FITS_SUFFIXES, IMAGE_SUFFIXES
 from app.frames.binning import binning_factor, block_mean
 from app.frames.lens import exif_lens
 from app.frames.times import exif_time
-from app.telemetry.errors import TelemetryError
+from app.telemetry.errors import ImageError
 
 _FITS_MAGIC = b"SIMPLE  ="
 #: Pixels of a PNG, JPEG or TIFF turned into greyscale values at a time (:func:`_by_strips`).
@@ -172,16 +172,16 @@ def file_sha256(data: bytes) -> str:
 
 
 def read_frames(data: bytes, name: str, limits: FrameLimits | None = None) -> Iterator[Frame]:
-    """The frames of one file, lazily.  Raises TelemetryError (located at ``name``) for anything unreadable."""
+    """The frames of one file, lazily.  Raises ImageError (located at ``name``) for anything unreadable."""
     limits = limits or FrameLimits()
     raw = bytes(data)
     if not raw:
-        raise TelemetryError.at(name, "the file is empty")
+        raise ImageError.at(name, "the file is empty")
     lower = name.lower()
     if raw.startswith(_FITS_MAGIC) or (lower.endswith(FITS_SUFFIXES) and not raw.startswith(_GZIP_MAGIC)):
         yield from _fits_frames(raw, name, limits)
     elif raw.startswith(_GZIP_MAGIC) and lower.endswith(FITS_SUFFIXES):
-        raise TelemetryError.at(name, "compressed (.gz) FITS files are not accepted: send the .fits itself")
+        raise ImageError.at(name, "compressed (.gz) FITS files are not accepted: send the .fits itself")
     else:
         yield from _pillow_frames(raw, name, limits)
 
@@ -198,7 +198,7 @@ def _fits_frames(raw: bytes, name: str, limits: FrameLimits) -> Iterator[Frame]:
             warnings.simplefilter("ignore")
             hdul = fits.open(io.BytesIO(raw), memmap=False, lazy_load_hdus=True)
     except Exception as exc:  # noqa: BLE001 - astropy raises OSError, ValueError, TypeError... for bad files
-        raise TelemetryError.at(name, f"not a readable FITS file ({_reason(exc)})") from None
+        raise ImageError.at(name, f"not a readable FITS file ({_reason(exc)})") from None
     found = 0
     try:
         primary: dict = {}
@@ -211,7 +211,7 @@ def _fits_frames(raw: bytes, name: str, limits: FrameLimits) -> Iterator[Frame]:
             except IndexError:
                 break
             except Exception as exc:  # noqa: BLE001 - a truncated or corrupt HDU
-                raise TelemetryError.at(f"{name}[{index}]", f"unreadable HDU ({_reason(exc)})") from None
+                raise ImageError.at(f"{name}[{index}]", f"unreadable HDU ({_reason(exc)})") from None
             header = hdu.header
             if index == 0:
                 primary = {key: header[key] for key in header if key}
@@ -222,25 +222,25 @@ def _fits_frames(raw: bytes, name: str, limits: FrameLimits) -> Iterator[Frame]:
                 shape = [int(header.get(f"NAXIS{k}", 0) or 0) for k in range(1, naxis + 1)]
                 extra_axes = [n for n in shape[2:] if n != 1]
                 if naxis < 2 or extra_axes:
-                    raise TelemetryError.at(location, f"{naxis}-D image (NAXIS = {naxis}, sizes {shape}); "
+                    raise ImageError.at(location, f"{naxis}-D image (NAXIS = {naxis}, sizes {shape}); "
                                                       "a frame is 2-D")
                 width, height = shape[0], shape[1]
                 binned = _binning(width, height, location, limits)
                 found += 1
                 if found > limits.max_frames:
-                    raise TelemetryError.at(name, f"more than {limits.max_frames} frames in one file")
+                    raise ImageError.at(name, f"more than {limits.max_frames} frames in one file")
                 try:
                     with warnings.catch_warnings():
                         warnings.simplefilter("ignore")
                         values = np.asarray(hdu.data).reshape(height, width)
                 except Exception as exc:  # noqa: BLE001 - truncated data, bad BSCALE...
-                    raise TelemetryError.at(location, f"the image data cannot be read ({_reason(exc)})") from None
+                    raise ImageError.at(location, f"the image data cannot be read ({_reason(exc)})") from None
                 merged = {**primary, **{key: header[key] for key in header if key}}
                 order = str(merged.get("ROWORDER", "TOP-DOWN")).strip().upper()
                 if order == "BOTTOM-UP":
                     values = values[::-1]
                 elif order != "TOP-DOWN":
-                    raise TelemetryError.at(location, f"ROWORDER = {order!r}; expected 'TOP-DOWN' or 'BOTTOM-UP'")
+                    raise ImageError.at(location, f"ROWORDER = {order!r}; expected 'TOP-DOWN' or 'BOTTOM-UP'")
                 pixels, integer_values = _frame_pixels(values, binned, location), values.dtype.kind in "iub"
                 del values
                 bits = int(header.get("BITPIX", -32))
@@ -253,7 +253,7 @@ def _fits_frames(raw: bytes, name: str, limits: FrameLimits) -> Iterator[Frame]:
     finally:
         hdul.close()
     if not found:
-        raise TelemetryError.at(name, "the FITS file holds no 2-D image")
+        raise ImageError.at(name, "the FITS file holds no 2-D image")
 
 
 def _fits_time(header: dict, location: str) -> datetime | None:
@@ -262,7 +262,7 @@ def _fits_time(header: dict, location: str) -> datetime | None:
     half = 0.0
     if isinstance(exptime, (int, float)) and not isinstance(exptime, bool) and math.isfinite(exptime):
         if not 0 <= exptime <= 86400:
-            raise TelemetryError.at(f"{location}.EXPTIME", f"must be 0 to 86400 s, got {exptime:g}")
+            raise ImageError.at(f"{location}.EXPTIME", f"must be 0 to 86400 s, got {exptime:g}")
         half = exptime / 2.0
     if "DATE-AVG" in header:
         return _header_time(header["DATE-AVG"], f"{location}.DATE-AVG")
@@ -275,7 +275,7 @@ def _fits_time(header: dict, location: str) -> datetime | None:
         value = header.get(key)
         if value is not None:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 15020 <= value < 88069:
-                raise TelemetryError.at(f"{location}.{key}", f"must be a modified Julian date in 1900-2099, got {value!r}")
+                raise ImageError.at(f"{location}.{key}", f"must be a modified Julian date in 1900-2099, got {value!r}")
             return datetime(1858, 11, 17, tzinfo=timezone.utc) + timedelta(days=float(value), seconds=offset)
     return None
 
@@ -285,10 +285,10 @@ def _header_time(value, location: str) -> datetime:
     try:
         t = datetime.fromisoformat(text)
     except ValueError:
-        raise TelemetryError.at(location, f"not an ISO 8601 time: {text[:40]!r}") from None
+        raise ImageError.at(location, f"not an ISO 8601 time: {text[:40]!r}") from None
     t = t.replace(tzinfo=timezone.utc) if t.tzinfo is None else t.astimezone(timezone.utc)
     if not 1900 <= t.year <= 2099:
-        raise TelemetryError.at(location, f"time {text} is outside the supported years 1900 to 2099")
+        raise ImageError.at(location, f"time {text} is outside the supported years 1900 to 2099")
     return t
 
 
@@ -349,26 +349,26 @@ def _pillow_frames(raw: bytes, name: str, limits: FrameLimits) -> Iterator[Frame
             warnings.simplefilter("ignore")  # DecompressionBombWarning: our own size check follows
             image = Image.open(io.BytesIO(raw))
     except Image.DecompressionBombError as exc:  # over twice Pillow's MAX_IMAGE_PIXELS: said as a size
-        raise TelemetryError.at(name, f"the image is too large to decode: at most "
+        raise ImageError.at(name, f"the image is too large to decode: at most "
                                       f"{limits.max_decoded_pixels_per_frame} pixels per frame "
                                       f"(STARID_FRAMES_MAX_DECODED_PIXELS; {_reason(exc)})") from None
     except Exception as exc:  # noqa: BLE001 - UnidentifiedImageError, OSError...
-        raise TelemetryError.at(name, f"not a readable image: FITS, PNG, JPEG or TIFF expected "
+        raise ImageError.at(name, f"not a readable image: FITS, PNG, JPEG or TIFF expected "
                                       f"({_reason(exc)})") from None
     with image:
         if image.format not in ("PNG", "JPEG", "TIFF", "MPO"):
-            raise TelemetryError.at(name, f"{image.format} images are not accepted: FITS, PNG, JPEG or TIFF")
+            raise ImageError.at(name, f"{image.format} images are not accepted: FITS, PNG, JPEG or TIFF")
         pages = int(getattr(image, "n_frames", 1) or 1)
         if image.format != "TIFF":
             pages = 1  # animated PNGs and MPO pairs: the first image only
         if pages > limits.max_frames:
-            raise TelemetryError.at(name, f"{pages} pages; at most {limits.max_frames} frames per file")
+            raise ImageError.at(name, f"{pages} pages; at most {limits.max_frames} frames per file")
         for page in range(pages):
             location = name if pages == 1 else f"{name}[page {page}]"
             try:
                 image.seek(page)
             except Exception as exc:  # noqa: BLE001
-                raise TelemetryError.at(location, f"cannot read this page ({_reason(exc)})") from None
+                raise ImageError.at(location, f"cannot read this page ({_reason(exc)})") from None
             width, height = image.size
             binned = _binning(width, height, location, limits)
             if image.format in ("JPEG", "MPO") and image.mode == "RGB":
@@ -403,9 +403,9 @@ def _pillow_pixels(image, binned: int, location: str) -> tuple[np.ndarray, bool,
             if mode in ("I", "F"):  # 32-bit integer, 32-bit float (TIFF SampleFormat 3)
                 values = np.asarray(image)
     except Exception as exc:  # noqa: BLE001 - truncated files, broken compression
-        raise TelemetryError.at(location, f"the image data cannot be decoded ({_reason(exc)})") from None
+        raise ImageError.at(location, f"the image data cannot be decoded ({_reason(exc)})") from None
     if values is None:
-        raise TelemetryError.at(location, f"pixel mode {mode!r} is not supported: greyscale or RGB, 8 or 16 bit, "
+        raise ImageError.at(location, f"pixel mode {mode!r} is not supported: greyscale or RGB, 8 or 16 bit, "
                                           "or greyscale 32-bit integer or float")
     if mode == "F":
         return _frame_pixels(values, binned, location), False, -32, None
@@ -448,18 +448,18 @@ def _frame_pixels(values: np.ndarray, binned: int, location: str) -> np.ndarray:
 
 def _binning(width: int, height: int, location: str, limits: FrameLimits) -> int:
     """The side of the blocks a frame of this size is read as (1: its own pixels; see the module), from its
-    header's size; TelemetryError for a frame too small, or too large to decode."""
+    header's size; ImageError for a frame too small, or too large to decode."""
     if width < 16 or height < 16:
-        raise TelemetryError.at(location, f"{width} x {height} pixels is too small for a star camera frame "
+        raise ImageError.at(location, f"{width} x {height} pixels is too small for a star camera frame "
                                           "(at least 16 x 16)")
     if width * height > limits.max_decoded_pixels_per_frame:
-        raise TelemetryError.at(location, f"{width} x {height} = {width * height} pixels; at most "
+        raise ImageError.at(location, f"{width} x {height} = {width * height} pixels; at most "
                                           f"{limits.max_decoded_pixels_per_frame} per frame "
                                           "(STARID_FRAMES_MAX_DECODED_PIXELS)")
     budget = max(1, limits.max_pixels_per_frame)
     binned = binning_factor(width, height, budget)
     if width // binned < 16 or height // binned < 16:
-        raise TelemetryError.at(location, f"{width} x {height} pixels binned {binned} x {binned} to fit {budget} "
+        raise ImageError.at(location, f"{width} x {height} pixels binned {binned} x {binned} to fit {budget} "
                                           f"pixels (STARID_FRAMES_MAX_PIXELS) leaves {width // binned} x "
                                           f"{height // binned}, too small to search (at least 16 x 16)")
     return binned
@@ -472,7 +472,7 @@ def _finite(pixels: np.ndarray, location: str) -> np.ndarray:
     if not n_bad:
         return pixels
     if n_bad > pixels.size // 2:
-        raise TelemetryError.at(location, f"{n_bad} of {pixels.size} pixels are NaN or infinite")
+        raise ImageError.at(location, f"{n_bad} of {pixels.size} pixels are NaN or infinite")
     pixels = pixels.copy()
     pixels[bad] = np.median(pixels[~bad])
     return pixels

@@ -32,7 +32,7 @@ import re
 from datetime import datetime, timedelta, timezone
 
 from app.catalogue import julian_year
-from app.telemetry.errors import TelemetryError
+from app.telemetry.errors import ImageError
 from app.timefmt import parse_utc_time, utc_text
 
 #: The time given to frames that carry none: J2000.0 (12:00 UTC: 64 s from 12:00 TT, which moves no star
@@ -58,7 +58,7 @@ def exif_time(image, location: str) -> tuple[datetime | None, str | None]:
     block Pillow cannot parse (a maker's odd block is no reason to refuse a frame that needs no time);
     the note says when the time had no zone and was taken as UTC.
 
-    Raises TelemetryError located as ``a.jpg.exif.DateTimeOriginal`` for a value that is no time.
+    Raises ImageError located as ``a.jpg.exif.DateTimeOriginal`` for a value that is no time.
     """
     try:
         tags = image.getexif().get_ifd(EXIF_IFD)
@@ -70,20 +70,20 @@ def exif_time(image, location: str) -> tuple[datetime | None, str | None]:
     where = f"{location}.exif.DateTimeOriginal"
     fields = _EXIF_DATE.fullmatch(text)
     if fields is None:
-        raise TelemetryError.at(where, f"not an EXIF time 'YYYY:MM:DD HH:MM:SS': {text[:40]!r}")
+        raise ImageError.at(where, f"not an EXIF time 'YYYY:MM:DD HH:MM:SS': {text[:40]!r}")
     iso = "{}-{}-{}T{}:{}:{}".format(*fields.groups())
     subsec = _exif_text(tags.get(SUBSEC_TIME_ORIGINAL))
     if subsec is not None:
         if not subsec.isascii() or not subsec.isdigit():
-            raise TelemetryError.at(f"{location}.exif.SubSecTimeOriginal", f"must be digits, got {subsec[:40]!r}")
+            raise ImageError.at(f"{location}.exif.SubSecTimeOriginal", f"must be digits, got {subsec[:40]!r}")
         iso += "." + subsec[:6]
     offset = _exif_text(tags.get(OFFSET_TIME_ORIGINAL))
     if offset is not None and not _EXIF_OFFSET.fullmatch(offset):
-        raise TelemetryError.at(f"{location}.exif.OffsetTimeOriginal", f"not a zone '+HH:MM': {offset[:40]!r}")
+        raise ImageError.at(f"{location}.exif.OffsetTimeOriginal", f"not a zone '+HH:MM': {offset[:40]!r}")
     try:
         t = parse_utc_time(iso + (offset or ""))
     except ValueError as exc:
-        raise TelemetryError.at(where, str(exc)) from None
+        raise ImageError.at(where, str(exc)) from None
     t += timedelta(seconds=_half_exposure(tags.get(EXPOSURE_TIME), location))
     return t, None if offset is not None else zone_note(location, text)
 
@@ -107,7 +107,7 @@ def _half_exposure(value, location: str) -> float:
     if math.isnan(seconds):
         return 0.0
     if not 0 <= seconds <= 86400:
-        raise TelemetryError.at(f"{location}.exif.ExposureTime", f"must be 0 to 86400 s, got {seconds:g}")
+        raise ImageError.at(f"{location}.exif.ExposureTime", f"must be 0 to 86400 s, got {seconds:g}")
     return seconds / 2.0
 
 
@@ -123,12 +123,12 @@ def assumed_times(count: int) -> list[datetime]:
     return [ASSUMED_EPOCH + k * ASSUMED_STEP for k in range(count)]
 
 
-def mixed_times_error(untimed_location: str, timed_location: str) -> TelemetryError:
+def mixed_times_error(untimed_location: str, timed_location: str) -> ImageError:
     """A pass where some frames have a time and others none."""
-    return TelemetryError.at(f"{untimed_location}.time",
-                             f"no time, but {timed_location} has one: give every frame of a pass its time "
-                             "(in the sidecar, or DATE-OBS, or EXIF DateTimeOriginal) or none (then all are "
-                             "solved at an assumed time, J2000.0 and 1 s apart)")
+    return ImageError.at(f"{untimed_location}.time",
+                         f"no time, but {timed_location} has one: give every frame of a pass its time "
+                         "(in the sidecar, or DATE-OBS, or EXIF DateTimeOriginal) or none (then all are "
+                         "solved at an assumed time, J2000.0 and 1 s apart)")
 
 
 def time_notes(sequence) -> list[str]:

@@ -37,8 +37,11 @@ class TelemetryError(ValueError):
     """Invalid telemetry: one or more :class:`Problem` s.
 
     ``truncated`` is True when more than :data:`MAX_PROBLEMS` problems were
-    found and the rest were dropped.
+    found and the rest were dropped.  :attr:`noun` names what was invalid in
+    the message ("invalid telemetry: ...").
     """
+
+    noun = "telemetry"
 
     def __init__(self, problems: list[Problem] | Problem, *, filename: str | None = None,
                  truncated: bool = False):
@@ -66,9 +69,9 @@ class TelemetryError(ValueError):
         """One line: which file and how many problems (the first, if only one)."""
         where = f"{self.filename}: " if self.filename else ""
         if len(self.problems) == 1 and not self.truncated:
-            return f"{where}invalid telemetry: {self.problems[0]}"
+            return f"{where}invalid {self.noun}: {self.problems[0]}"
         more = "+" if self.truncated else ""
-        return f"{where}invalid telemetry: {len(self.problems)}{more} problems"
+        return f"{where}invalid {self.noun}: {len(self.problems)}{more} problems"
 
     def __str__(self) -> str:
         if len(self.problems) == 1 and not self.truncated:
@@ -81,6 +84,13 @@ class TelemetryError(ValueError):
     def to_dict(self) -> dict:
         """JSON-ready form: ``{"message": str, "problems": [{"location", "message"}, ...]}``."""
         return {"message": self.summary, "problems": [p.to_dict() for p in self.problems]}
+
+
+class ImageError(TelemetryError):
+    """An image, or a pass of images, that cannot be read or assembled into a sequence
+    (:mod:`app.frames`): "invalid image: ..." where the user sent no telemetry."""
+
+    noun = "image"
 
 
 @dataclass
@@ -110,6 +120,6 @@ class ProblemCollector:
     def __bool__(self) -> bool:
         return bool(self.problems)
 
-    def raise_if_any(self, filename: str | None = None) -> None:
+    def raise_if_any(self, filename: str | None = None, error: type[TelemetryError] = TelemetryError) -> None:
         if self.problems:
-            raise TelemetryError(self.problems, filename=filename, truncated=self.truncated)
+            raise error(self.problems, filename=filename, truncated=self.truncated)

@@ -113,7 +113,7 @@ def _load(path: str, fov_deg: float | None, time: datetime | None = None) -> Seq
     except TelemetryError as exc:
         if exc.filename is not None:
             raise
-        raise TelemetryError(exc.problems, filename=path, truncated=exc.truncated) from None
+        raise type(exc)(exc.problems, filename=path, truncated=exc.truncated) from None
 
 
 def input_sha256(path: str) -> str | None:

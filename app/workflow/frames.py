@@ -44,7 +44,7 @@ from app.frames.binning import block_mean  # the frame averaged over blocks: wha
 from app.frames.images import file_sha256
 from app.storage import MAX_PREVIEW_PNG_BYTES, StaleHotPixelMap
 from app.telemetry import Sequence
-from app.telemetry.errors import Problem, TelemetryError
+from app.telemetry.errors import ImageError, Problem, TelemetryError
 from app.timefmt import utc_text
 from app.workflow import archive
 from app.workflow.context import AppContext
@@ -53,7 +53,6 @@ from app.workflow.errors import Busy, NotFound
 
 log = logging.getLogger(__name__)
 
-SIDECAR_SUFFIX = ".frames.json"
 #: Tries at storing a hot-pixel map when other uploads of the same camera store theirs at once.
 MAP_STORE_TRIES = 5
 #: Widest preview image, pixels: a wider frame is averaged over scale x scale blocks, the smallest
@@ -150,14 +149,14 @@ def prepare_frames(ctx: AppContext, files: list[tuple[str, bytes]], sidecar: byt
                    fov_deg: float | None, caller_time: datetime | None = None) -> FramesRequest | UploadDocument:
     """Check an upload of frames; the stored sequence's document when the same upload was stored before.
 
-    Raises TelemetryError (located problems) for a bad sidecar or too many files or bytes.
+    Raises ImageError (located problems) for a bad sidecar or too many files or bytes.
     """
     limits = FrameLimits()
     files = [(archive.clean_filename(name) or f"frame-{i}", bytes(data)) for i, (name, data) in enumerate(files)]
     if not files:
-        raise TelemetryError.at("body.files", "no image: send the frames as 'files' fields")
+        raise ImageError.at("body.files", "no image: send the frames as 'files' fields")
     if len(files) > limits.max_frames:
-        raise TelemetryError.at("body.files", f"{len(files)} files; at most {limits.max_frames} frames per pass")
+        raise ImageError.at("body.files", f"{len(files)} files; at most {limits.max_frames} frames per pass")
     parsed_sidecar = parse_sidecar(sidecar) if sidecar is not None else None
     key = upload_sha256(files, sidecar, sequence_id, spacecraft, fov_deg, caller_time)
     seq_id = ctx.storage.find_frame_upload(key)
@@ -205,7 +204,7 @@ def store_frames(ctx: AppContext, request: FramesRequest, result: FramesResult) 
     if result.timeout is not None:
         raise Busy(result.timeout)
     if result.problems is not None:
-        raise TelemetryError([Problem(p["location"], p["message"]) for p in result.problems])
+        raise ImageError([Problem(p["location"], p["message"]) for p in result.problems])
     frame_pass = result.frame_pass
     names = [name for name, _ in request.files]
     label = names[0] if len(names) == 1 else f"{names[0]} (+{len(names) - 1} frames)"
@@ -493,7 +492,7 @@ def frames_sequence_from_path(path: str, *, fov_deg: float | None = None,
     (every image in it, in name order, with its ``frames.json``, if any; the folder's name is the default
     id).  ``caller_time``: the caller's time of a pass of one frame (over the sidecar's and the file's own).
 
-    No archive here: the hot-pixel map is the pass's own.  Raises TelemetryError (located) for
+    No archive here: the hot-pixel map is the pass's own.  Raises ImageError (located) for
     anything invalid, at ``file`` for files that cannot be read.
     """
     limits = FrameLimits()
@@ -502,7 +501,7 @@ def frames_sequence_from_path(path: str, *, fov_deg: float | None = None,
         if folder.is_dir():
             images = sorted(p for p in folder.iterdir() if p.is_file() and p.name.lower().endswith(IMAGE_SUFFIXES))
             if not images:
-                raise TelemetryError.at("file", "the folder holds no FITS, PNG, JPEG or TIFF file")
+                raise ImageError.at("file", "the folder holds no FITS, PNG, JPEG or TIFF file")
             sidecar_path = folder / FOLDER_SIDECAR
             default_id = folder.resolve().name
         else:
@@ -510,14 +509,14 @@ def frames_sequence_from_path(path: str, *, fov_deg: float | None = None,
             sidecar_path = image_sidecar(folder)
             default_id = sidecar_path.name[: -len(SIDECAR_SUFFIX)]
         if len(images) > limits.max_frames:
-            raise TelemetryError.at("file", f"{len(images)} images; at most {limits.max_frames} frames per pass")
+            raise ImageError.at("file", f"{len(images)} images; at most {limits.max_frames} frames per pass")
         total = 0
         files = []
         for image in images:
             size = image.stat().st_size
             total += size
             if total > limits.max_bytes:
-                raise TelemetryError.at(image.name, f"the frames exceed {limits.max_bytes} bytes in all "
+                raise ImageError.at(image.name, f"the frames exceed {limits.max_bytes} bytes in all "
                                                     "(STARID_FRAMES_MAX_BYTES)")
             files.append((image.name, image.read_bytes()))
         sidecar = None
@@ -527,15 +526,15 @@ def frames_sequence_from_path(path: str, *, fov_deg: float | None = None,
             sidecar_path, only = folder.with_name(FOLDER_SIDECAR), folder.name
         if sidecar_path.is_file():
             if sidecar_path.stat().st_size > 1024 * 1024:
-                raise TelemetryError.at("sidecar", "the sidecar is larger than 1 MiB")
+                raise ImageError.at("sidecar", "the sidecar is larger than 1 MiB")
             sidecar = parse_sidecar(sidecar_path.read_bytes())
             if only is not None:
                 sidecar = dataclasses.replace(sidecar, sequence_id=None,
                                               times={k: t for k, t in sidecar.times.items() if k[0] == only})
     except OSError as exc:
-        raise TelemetryError.at("file", f"cannot read the file: {exc.strerror or type(exc).__name__}") from None
+        raise ImageError.at("file", f"cannot read the file: {exc.strerror or type(exc).__name__}") from None
     try:
         return frames_to_sequence(files, sidecar=sidecar, fov_deg=fov_deg, default_id=default_id, limits=limits,
                                   deadline=time.monotonic() + limits.timeout_s, caller_time=caller_time).sequence
     except FramesTimeout as exc:
-        raise TelemetryError.at("file", str(exc)) from None
+        raise ImageError.at("file", str(exc)) from None
