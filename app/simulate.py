@@ -747,6 +747,11 @@ class FrameModel:
     hot_pixel_seed: int = 15
     #: Exposure time written to FITS headers (seconds); the times given are mid-exposure.
     exposure_s: float = 0.2
+    #: How far every star's image moves during the exposure (px), and which way (degrees from +x towards
+    #: +y): a fixed tripod under the turning sky, a spacecraft turning.  Each star is then a trail of that
+    #: length centred on its mid-exposure place; 0: points.
+    smear_px: float = 0.0
+    smear_angle_deg: float = 0.0
 
     def noise_area_px(self) -> float:
         return 4.0 * math.pi * self.psf_sigma_px ** 2
@@ -812,7 +817,8 @@ def add_point_sources(image: np.ndarray, xy: np.ndarray, flux: np.ndarray, sigma
 
 
 def add_trail(image: np.ndarray, start: np.ndarray, end: np.ndarray, flux: float, sigma: float) -> None:
-    """A satellite trail: ``flux`` electrons spread evenly along the segment start-end, blurred by the PSF."""
+    """A trail (a satellite's, a smeared star's): ``flux`` electrons spread evenly along the segment
+    start-end, blurred by the PSF."""
     length = float(np.linalg.norm(np.asarray(end, float) - np.asarray(start, float)))
     n = max(2, int(length * 4))
     t = np.linspace(0.0, 1.0, n)[:, None]
@@ -837,7 +843,13 @@ def render_frame(rng: np.random.Generator, camera: Camera, xy: np.ndarray, flux_
     electrons, sky, shot and read noise, bias, hot pixels (x, y, ADU), an optional trail
     (start, end, electrons), clipped at the saturation level."""
     electrons = np.full((camera.height, camera.width), model.sky_e, dtype=float)
-    add_point_sources(electrons, xy, flux_e, model.psf_sigma_px)
+    if model.smear_px > 0:
+        half = 0.5 * model.smear_px * np.array([math.cos(math.radians(model.smear_angle_deg)),
+                                                 math.sin(math.radians(model.smear_angle_deg))])
+        for centre, f in zip(np.asarray(xy, dtype=float).reshape(-1, 2), np.asarray(flux_e, dtype=float)):
+            add_trail(electrons, centre - half, centre + half, f, model.psf_sigma_px)
+    else:
+        add_point_sources(electrons, xy, flux_e, model.psf_sigma_px)
     if trail is not None:
         add_trail(electrons, trail[0], trail[1], trail[2], model.psf_sigma_px)
     counts = rng.poisson(electrons).astype(float) + rng.normal(0.0, model.read_noise_e, electrons.shape)

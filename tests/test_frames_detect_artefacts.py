@@ -306,3 +306,57 @@ def test_hot_pixel_pairs_of_an_uncooled_sensor_are_no_stars_and_sharp_stars_stay
     assert not np.any(on_hot), reported[on_hot]
     n_found, _ = _score(found, xy[_nearest(hot, xy) > 3])
     assert n_found >= 34  # of the 40 drawn, those no hot pixel lands on
+
+
+def _trailed(image: np.ndarray, xy: np.ndarray, flux: np.ndarray, length: float, angle: float) -> np.ndarray:
+    """``image`` with each star a trail of ``length`` px at ``angle`` (radians) centred on its place."""
+    out = image.copy()
+    half = 0.5 * length * np.array([np.cos(angle), np.sin(angle)])
+    for centre, f in zip(xy, flux):
+        add_trail(out, centre - half, centre + half, f, PSF_SIGMA)
+    return out
+
+
+@pytest.mark.parametrize("length", [10.0, 20.0])
+def test_stars_trailed_alike_are_stars_at_their_middles_and_a_satellite_is_not(length):
+    """A fixed tripod under the turning sky (or a turning spacecraft) draws every star as the same short trail:
+    a / b = sqrt(sigma^2 + L^2 / 12) / sigma, 2.5 and 4.6 here.  They are stars, each one (not the pieces
+    deblending cuts a noisy ridge into), centred on its mid-exposure place, and a satellite's trail across
+    the field, 50 times longer, is still none.  Before, every trailed star was called elongated."""
+    sky, xy, flux = _field(12)
+    frame = _trailed(sky, xy, flux, length, 0.6)
+    start, end = np.array([30.0, 560.0]), np.array([770.0, 40.0])
+    add_trail(frame, start, end, 300_000.0, PSF_SIGMA)
+    found = detect(frame)
+    expected = np.sqrt(PSF_SIGMA ** 2 + 1 / 12 + length ** 2 / 12) / np.sqrt(PSF_SIGMA ** 2 + 1 / 12)
+    assert found.smear == pytest.approx(expected, rel=0.25)
+    assert any("elongated" in flags for flags in found.flags)  # the satellite
+    stars = found.xy[found.is_star]
+    direction = (end - start) / np.linalg.norm(end - start)
+    off_satellite = np.abs((xy - start) @ np.array([-direction[1], direction[0]])) > length / 2 + 10
+    apart = np.array([np.sort(np.hypot(*(xy - p).T))[1] for p in xy]) > length + 10  # trails that do not touch
+    bright = off_satellite & apart & (flux > 10 ** 3.8)
+    # Along a trail a round window's centroid is noisier: 1 px at 10 px, 1.5 at 20.
+    assert np.all(_nearest(stars, xy[bright]) < max(1.0, length / 13))
+    # No piece of a trail or of the satellite (a piece lies L / 3 or more off): every star reported is a star's
+    # middle, but where two trails touch.
+    nearest = np.argmin(np.hypot(*(stars[:, None, :] - xy[None, :, :]).transpose(2, 0, 1)), axis=1)
+    alone = apart[nearest] & off_satellite[nearest]
+    assert np.all(_nearest(xy, stars[alone]) < length / 4)
+    assert np.all(_nearest(xy, stars) < length)
+    pieces = [np.count_nonzero(np.hypot(*(stars - p).T) < length / 2) for p in xy[bright]]
+    assert pieces == [1] * len(pieces)
+
+
+def test_round_stars_are_not_called_trailed_under_a_treeline_or_beside_a_satellite():
+    """A frame's stars are trailed only when its compact blobs are mostly elongated and spread over the sky:
+    a treeline's gaps under a town's glow (elongated alike, along the horizon) and one satellite do not make
+    round stars trailed."""
+    from app.bench.wide import photograph
+
+    pixels, *_ = photograph(40.0, np.random.default_rng([1, 75, 40, 0]), milky_way=False)
+    assert detect(pixels.astype(np.float32), saturation=255.0).smear is None
+    sky, xy, flux = _field(12)
+    frame = _with_stars(sky, xy, flux)
+    add_trail(frame, np.array([30.0, 560.0]), np.array([770.0, 40.0]), 300_000.0, PSF_SIGMA)
+    assert detect(frame).smear is None

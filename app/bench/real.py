@@ -167,6 +167,17 @@ def summarise(runs: list[dict]) -> dict:
             "slowest_s": round(max(seconds), 3) if seconds else None}
 
 
+#: The header of :func:`summary_columns`.
+SUMMARY_HEADER = f"{'right':>7} {'wrong':>6} {'claimed':>8} {'median as':>10} {'slowest s':>10}"
+
+
+def summary_columns(s: dict) -> str:
+    """A :func:`summarise` summary as a table's columns under :data:`SUMMARY_HEADER`."""
+    median = "-" if s["median_error_arcsec"] is None else f"{s['median_error_arcsec']:.1f}"
+    slowest = "-" if s["slowest_s"] is None else f"{s['slowest_s']:.2f}"
+    return f"{s['right']:>3}/{s['frames']:<3} {s['wrong']:>6} {s['claimed']:>8} {median:>10} {slowest:>10}"
+
+
 def summarise_by_group(frames: list[dict], tool: str, optics: str) -> dict:
     """``{group: summary, ..., "all": summary}`` of ``frames[i][tool][optics]`` (groups in name order)."""
     groups = sorted({f["group"] for f in frames})

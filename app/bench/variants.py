@@ -33,7 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from app.bench.real import RIGHT_DEG, WRONG_DEG, FramesUnavailable, RealFrame, solve_ours, suite_frames, summarise
+from app.bench.real import (RIGHT_DEG, SUMMARY_HEADER, WRONG_DEG, FramesUnavailable, RealFrame, solve_ours, suite_frames,
+                            summarise, summary_columns)
 
 #: The copies, in the order of the table.
 VARIANTS = ("2x", "half", "turned", "cropped", "foreground")
@@ -157,13 +158,10 @@ def format_table(result: dict) -> str:
         return f"skipped: {result['skipped']}"
     lines = [f"{result['n_frames']} real frames in {result['frames_dir']}, each copied {len(VARIANTS)} ways; "
              f"load average {result['load_average_before']} before, {result['load_average_after']} after",
-             "", f"{'copy':<11} {'optics':<7} {'right':>7} {'wrong':>6} {'claimed':>8} {'median as':>10} {'slowest s':>10}"]
+             "", f"{'copy':<11} {'optics':<7} {SUMMARY_HEADER}"]
     for variant, by_optics in result["summary"].items():
         for optics, s in by_optics.items():
-            median = "-" if s["median_error_arcsec"] is None else f"{s['median_error_arcsec']:.1f}"
-            slowest = "-" if s["slowest_s"] is None else f"{s['slowest_s']:.2f}"
-            lines.append(f"{variant:<11} {optics:<7} {s['right']:>3}/{s['frames']:<3} {s['wrong']:>6} "
-                         f"{s['claimed']:>8} {median:>10} {slowest:>10}")
+            lines.append(f"{variant:<11} {optics:<7} {summary_columns(s)}")
     lines.append(f"(right: identified within {RIGHT_DEG} deg of the reference centre; wrong: identified and over "
                  f"{WRONG_DEG} deg off; optics: the copy's exact field of view given, or none)")
     return "\n".join(lines)

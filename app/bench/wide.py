@@ -35,7 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from app.bench.real import RIGHT_DEG, WRONG_DEG, RealFrame, solve_ours, summarise
+from app.bench.real import (RIGHT_DEG, SUMMARY_HEADER, WRONG_DEG, RealFrame, solve_ours, summarise,
+                            summary_columns)
 from app.catalogue import vectors_to_radec
 from app.frames.lens import FOCAL_LENGTH_35MM, FULL_FRAME_DIAGONAL_MM
 from app.frames.times import EXIF_IFD
@@ -61,8 +62,11 @@ MILKY_WAY_DN = (20.0, 60.0)
 DEFAULT_N = 8
 
 
-def photograph(fov_deg: float, rng: np.random.Generator):
-    """(8-bit pixels, the true camera, the truth's ICRS -> camera rotation, a description) of one photograph."""
+def photograph(fov_deg: float, rng: np.random.Generator, *, smear_px: float = 0.0, milky_way: bool = True):
+    """(8-bit pixels, the true camera, the truth's ICRS -> camera rotation, a description) of one photograph.
+
+    ``smear_px``: every star trailed over that many pixels in one direction (drawn), as from a fixed tripod
+    (:mod:`app.bench.trails`); ``milky_way`` False: none on any."""
     from app import simulate
     from app.camera import Camera
     from app.identification.scale_free import focal_length_for_fov
@@ -73,17 +77,19 @@ def photograph(fov_deg: float, rng: np.random.Generator):
     true = simulate.true_optics(camera, k1=simulate.k1_for_corner_distortion(camera, corner))
     limit = float(rng.uniform(*SKY_LIMIT_HP))
     # 8 bit: a dark sky of ~25 DN over a bias of 10, its noise ~2 DN; the brightest stars saturate at 255.
+    smear = {"smear_px": smear_px, "smear_angle_deg": float(rng.uniform(0.0, 180.0))} if smear_px > 0 else {}
     model = simulate.FrameModel(psf_sigma_px=float(rng.uniform(*PSF_SIGMA_PX)), detection_limit_mag=limit, bits=8,
-                                bias_adu=10.0, gain_e_per_adu=8.0, n_hot_pixels=0)
+                                bias_adu=10.0, gain_e_per_adu=8.0, n_hot_pixels=0, **smear)
     frames, _, truth = simulate.simulate_frames(rng, camera, n_frames=1, true_camera=true, model=model,
                                                 hot_pixels=False)
     landscape = float(rng.uniform(*LANDSCAPE_FRACTION))
     glow = float(rng.uniform(*GLOW_DN))
-    milky_way = float(rng.uniform(*MILKY_WAY_DN)) if rng.uniform() < 0.5 else 0.0
-    pixels = with_landscape(with_milky_way(frames[0], milky_way, rng), landscape, glow, rng)
-    described = (f"distortion {100 * corner:+.1f} % at the corner, stars to Hp {limit:.1f}, landscape "
-                 f"{100 * landscape:.0f} % under a glow of {glow:.0f} DN"
-                 + (f", a Milky Way of {milky_way:.0f} DN" if milky_way else ""))
+    band = float(rng.uniform(*MILKY_WAY_DN)) if rng.uniform() < 0.5 and milky_way else 0.0
+    pixels = with_landscape(with_milky_way(frames[0], band, rng), landscape, glow, rng)
+    described = (f"distortion {100 * corner:+.1f} % at the corner, stars to Hp {limit:.1f}"
+                 + (f", trailed {smear_px:g} px" if smear_px > 0 else "")
+                 + f", landscape {100 * landscape:.0f} % under a glow of {glow:.0f} DN"
+                 + (f", a Milky Way of {band:.0f} DN" if band else ""))
     return pixels, true, np.asarray(truth["rotation_matrices"][0]), described
 
 
@@ -188,15 +194,11 @@ def run(n_sequences: int | None = None, seed: int = 1) -> dict:
 def format_table(result: dict) -> str:
     lines = [f"{result['n_per_field']} photographs a field of view, seed {result['seed']}; load average "
              f"{result['load_average_before']} before, {result['load_average_after']} after",
-             "", f"{'field':<7} {'optics':<8} {'right':>7} {'wrong':>6} {'claimed':>8} {'median as':>10} "
-             f"{'slowest s':>10}"]
+             "", f"{'field':<7} {'optics':<8} {SUMMARY_HEADER}"]
     for field, by_optics in result["summary"].items():
         for optics, s in by_optics.items():
-            median = "-" if s["median_error_arcsec"] is None else f"{s['median_error_arcsec']:.1f}"
-            slowest = "-" if s["slowest_s"] is None else f"{s['slowest_s']:.2f}"
             label = field if field == "all" else f"{field} deg"
-            lines.append(f"{label:<7} {optics:<8} {s['right']:>3}/{s['frames']:<3} {s['wrong']:>6} "
-                         f"{s['claimed']:>8} {median:>10} {slowest:>10}")
+            lines.append(f"{label:<7} {optics:<8} {summary_columns(s)}")
     lines.append(f"(right: identified within {RIGHT_DEG} deg of the image centre's true direction; wrong: identified "
                  f"and over {WRONG_DEG} deg off)")
     return "\n".join(lines)

@@ -28,6 +28,8 @@ sky: twice and half the sampling, turned, cropped off-centre, a dark foreground;
 the operator's alternatives, the optics fit and the image centre; see :mod:`app.bench.floor`).
 ``wide`` (simulated photographs through wide-angle lenses, 40-105 deg, with their field of view, one 5 %
 off, only their lens in EXIF, and none; ``--n`` photographs a field, default 8; see :mod:`app.bench.wide`).
+``trails`` (the same photographs with every star trailed 0-20 px, as from a fixed tripod; ``--n`` a field of
+view and trail, default 4; see :mod:`app.bench.trails`).
 Every figure is measured now, on this machine, in one process (the load
 suite adds the server's), from simulated sequences drawn with ``--seed``.
 """
@@ -43,7 +45,7 @@ import sys
 import time
 
 SUITES = ("extraction", "identification", "sequence", "load", "seeds", "camera", "peer", "frames", "batch",
-          "calibration", "real", "variants", "floor", "wide")
+          "calibration", "real", "variants", "floor", "wide", "trails")
 #: The lost-in-space methods the identification suite can measure (app.identification.methods.METHODS).
 IDENTIFICATION_METHODS = ("bright_pair", "tf")
 

@@ -21,6 +21,10 @@ Steps, per frame:
 3. ``sep.extract`` finds connected pixels ``threshold_sigma`` times that noise above the
    level in the filtered image (deblending); the ``max_candidates`` brightest are kept,
    which bounds every later step whatever the frame holds;
+   a frame whose stars are all trailed alike (:func:`_smear`: a fixed tripod under the turning sky,
+   a spacecraft turning during the exposure) is extracted again without deblending, which cuts a
+   trail's noisy ridge into pieces, and its stars' own a / b raises the elongation limit (step 6);
+   its stars are not split again nor looked for on trails (step 5), and its PSF (step 4) is theirs;
 4. the frame's point-spread function (:func:`_measure_psf`) from its bright, unsaturated,
    isolated blobs: their median *effective area*, isophotal flux over the peak's height
    above the isophote (2 pi sigma^2 for a Gaussian at any brightness, the top's area for
@@ -58,7 +62,8 @@ checks a single bright pixel at (x, y) comes back at (x, y)).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+import math
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -114,6 +119,14 @@ PSF_ELONGATION_FACTOR = 2.0
 RING_POINTS = 32
 RING_SIGMA = 1.0
 RING_FRACTION = 0.1
+#: A frame's stars are trailed when the median a / b of its brightest compact blobs (at most the first
+#: many, at least the second, peaks of the next sigma, none thinner than the next px) exceeds
+#: ``max_elongation``, the elongated ones spread over the next part of the frame's height (:func:`_smear`).
+SMEAR_BLOBS = 30
+SMEAR_MIN_BLOBS = 6
+SMEAR_PEAK_SIGMA = 6.0
+SMEAR_MIN_MINOR_PX = 0.7
+SMEAR_MIN_SPREAD = 0.1
 #: Windowed centroids for blobs whose peak is at least this many sigma high (see :func:`_refine`).
 WINDOW_PEAK_SIGMA = 5.0
 
@@ -193,6 +206,8 @@ class Detections:
     peak_sigma: np.ndarray | None = None
     #: The frame's PSF, None when too few stars were bright enough to measure it.
     psf: PointSpread | None = None
+    #: The median a / b of the frame's stars when they are trailed (:func:`_smear`), else None.
+    smear: float | None = None
 
     def __len__(self) -> int:
         return int(self.xy.shape[0])
@@ -248,15 +263,21 @@ def detect(pixels: np.ndarray, options: DetectionOptions = DetectionOptions(), *
                       if 0 <= x < width and 0 <= y < height
                       and raw[y, x] - data[y, x] > 5.0 * float(sky.pixel_noise_at(np.array([y]), np.array([x]))[0]))
     objects = _brightest(_extract(sep, sub, sky.noise, options), options.max_candidates)
+    smear = _smear(objects, sub, sky, options)
+    if smear is not None:
+        # Every star is a short trail: whole trails, not the pieces deblending cuts a trail's noisy ridge
+        # into, elongated only beyond the stars' own a / b, and never cut again (below).
+        options = replace(options, max_elongation=max(options.max_elongation, PSF_ELONGATION_FACTOR * smear))
+        objects = _brightest(_extract(sep, sub, sky.noise, options, deblend=False), options.max_candidates)
     psf = _measure_psf(objects, sub, sky, saturation, raw, options)
-    objects = _split_blends(sep, sub, sky.median_pixel_noise, objects, options, psf)
-    objects, measured = _stars_on_trails(sep, sub, sky.median_pixel_noise, objects, options, psf)
+    measured = sub
+    if smear is None:  # a trailed frame's PSF is no model of a satellite's trail, nor a sharp star's
+        objects = _split_blends(sep, sub, sky.median_pixel_noise, objects, options, psf)
+        objects, measured = _stars_on_trails(sep, sub, sky.median_pixel_noise, objects, options, psf)
     objects = _brightest(objects, options.max_candidates)
     objects = _merge_fragments(objects, sub, sky, options, psf)
     n = len(objects)
-    xpeak, ypeak = _peak_pixels(objects, sub.shape)
-    peak = sub[ypeak, xpeak].astype(float)
-    local_noise = sky.pixel_noise_at(ypeak, xpeak)
+    xpeak, ypeak, peak, local_noise = _peaks(objects, sub, sky)
     a, b = objects["a"].astype(float), objects["b"].astype(float)
     elongation = np.where(b > 0, a / np.maximum(b, 1e-9), np.inf)
     flags = _classify(sep, objects, sub, raw, sky, psf, saturation, options)
@@ -277,7 +298,7 @@ def detect(pixels: np.ndarray, options: DetectionOptions = DetectionOptions(), *
                       npix=objects["npix"][order].astype(int), elongation=elongation[order],
                       flags=tuple(flags[k] for k in order), background=sky.median_level,
                       noise=sky.median_pixel_noise, still_hot=still_hot,
-                      peak_sigma=(peak / np.maximum(local_noise, 1e-12))[order], psf=psf)
+                      peak_sigma=(peak / np.maximum(local_noise, 1e-12))[order], psf=psf, smear=smear)
 
 
 def _classify(sep, objects, sub: np.ndarray, raw: np.ndarray, sky: _Sky, psf: PointSpread | None,
@@ -307,6 +328,12 @@ def _peak_pixels(objects, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarra
     """Integer (x, y) of each blob's brightest pixel, inside the frame."""
     height, width = shape
     return np.clip(objects["xpeak"].astype(int), 0, width - 1), np.clip(objects["ypeak"].astype(int), 0, height - 1)
+
+
+def _peaks(objects, sub: np.ndarray, sky: _Sky) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each blob's peak pixel (x, y), its height above the sky, and the sky's noise per pixel there."""
+    xpeak, ypeak = _peak_pixels(objects, sub.shape)
+    return xpeak, ypeak, sub[ypeak, xpeak].astype(float), sky.pixel_noise_at(ypeak, xpeak)
 
 
 def _noise_floor(data: np.ndarray) -> float:
@@ -434,11 +461,12 @@ def _interpolate_mesh(mesh: np.ndarray, box: tuple[int, int], shape: tuple[int, 
 
 # --- finding blobs -----------------------------------------------------------------------------------
 
-def _extract(sep, sub: np.ndarray, noise: float | np.ndarray, options: DetectionOptions):
+def _extract(sep, sub: np.ndarray, noise: float | np.ndarray, options: DetectionOptions, *, deblend: bool = True):
     """sep.extract; when its buffers overflow, again with a larger buffer, then at twice the threshold.
 
     ``filter_type="conv"``: the filtered image is compared with ``threshold_sigma`` times ``noise``,
-    the filtered image's own noise (:func:`_sky`), one number or a map.
+    the filtered image's own noise (:func:`_sky`), one number or a map.  ``deblend`` False: a blob's
+    local maxima stay one object.
     """
     attempts = ((SEP_PIXSTACK, 1.0), (SEP_PIXSTACK_LARGE, 1.0), (SEP_PIXSTACK_LARGE, 2.0))
     error = None
@@ -448,13 +476,49 @@ def _extract(sep, sub: np.ndarray, noise: float | np.ndarray, options: Detection
             # clean=False: SExtractor's cleaning treats everything within a bright trail's huge
             # second moments as its wings and drops whole star fields beside a satellite trail.
             return sep.extract(sub, factor * options.threshold_sigma, err=noise, minarea=options.min_area_px,
-                               filter_type="conv", deblend_cont=0.005, clean=False)
+                               filter_type="conv", deblend_cont=0.005 if deblend else 1.0, clean=False)
         except Exception as exc:  # noqa: BLE001 - sep raises plain Exceptions ("internal pixel buffer full")
             error = exc
         finally:
             sep.set_extract_pixstack(SEP_PIXSTACK)
     raise DetectionError(f"too many blobs to separate even at {2 * options.threshold_sigma:g} sigma ({error}); "
                          "is this a star field?")
+
+
+def _smear(objects, sub: np.ndarray, sky: _Sky, options: DetectionOptions) -> float | None:
+    """The stars' a / b when the frame's stars are trailed (a fixed tripod under the turning sky, a
+    spacecraft turning during the exposure), else None.
+
+    A star trailed by L px is an ellipse of minor axis its PSF's sigma and major axis
+    sqrt(sigma^2 + L^2 / 12).  The frame is trailed when the median a / b of its :data:`SMEAR_BLOBS`
+    brightest compact blobs exceeds ``max_elongation``.  Compact: a peak of :data:`SMEAR_PEAK_SIGMA`
+    sigma or more, ``min_area_for_shape_px`` to ``max_area_px`` pixels, b of :data:`SMEAR_MIN_MINOR_PX`
+    or more (no sliver thinner than a PSF), not cut by the border, not a hot pixel, not on something
+    extended (:func:`_on_structure`).  A satellite, an aircraft or a meteor is one blob among them and
+    moves no median.  The elongated ones must also fill the sky's two dimensions (the smaller axis of
+    their spread at least :data:`SMEAR_MIN_SPREAD` of the frame's height): a treeline's gaps or a
+    lit horizon's glints, elongated alike, lie along a line.  Fewer than :data:`SMEAR_MIN_BLOBS`: None.
+    """
+    if len(objects) < SMEAR_MIN_BLOBS:
+        return None
+    xpeak, ypeak, peak, noise = _peaks(objects, sub, sky)
+    a, b = objects["a"].astype(float), objects["b"].astype(float)
+    compact = np.flatnonzero(
+        (peak >= SMEAR_PEAK_SIGMA * noise) & (objects["npix"] >= options.min_area_for_shape_px)
+        & (objects["npix"] <= options.max_area_px) & (b >= SMEAR_MIN_MINOR_PX) & ~_touches_border(objects, sub.shape)
+        & ~_is_hot(objects, sub, sky, options) & ~_on_structure(objects, sub, peak, noise, None))
+    if len(compact) < SMEAR_MIN_BLOBS:
+        return None
+    brightest = compact[np.argsort(-objects["flux"][compact], kind="stable")[:SMEAR_BLOBS]]
+    elongation = a[brightest] / b[brightest]
+    median = float(np.median(elongation))
+    if median <= options.max_elongation:
+        return None
+    trailed = brightest[elongation > options.max_elongation]
+    spread = np.linalg.eigvalsh(np.cov(np.stack([objects["x"][trailed], objects["y"][trailed]]).astype(float)))
+    if math.sqrt(max(float(spread[0]), 0.0)) < SMEAR_MIN_SPREAD * sub.shape[0]:
+        return None
+    return median
 
 
 def _brightest(objects, limit: int):
@@ -619,9 +683,7 @@ def _measure_psf(objects, sub: np.ndarray, sky: _Sky, saturation: float | None, 
         return None
     from scipy.spatial import cKDTree
 
-    xpeak, ypeak = _peak_pixels(objects, sub.shape)
-    peak = sub[ypeak, xpeak].astype(float)
-    noise = sky.pixel_noise_at(ypeak, xpeak)
+    xpeak, ypeak, peak, noise = _peaks(objects, sub, sky)
     a, b = objects["a"].astype(float), objects["b"].astype(float)
     elongation = a / np.maximum(b, 1e-9)
     ok = ((peak >= PSF_PEAK_SIGMA * noise) & (objects["npix"] >= options.min_area_for_shape_px)
