@@ -53,6 +53,8 @@ def test_a_photograph_from_a_fixed_tripod_trailed_14_px_is_identified(tmp_path, 
     answer = solve_ours(frame, sky, frame.fov_deg, tmp_path)
     assert answer["status"] == "identified", answer["notes"]
     assert answer["error_deg"] < 0.02
+    (said,) = [note for note in answer["notes"] if "trailed" in note]
+    assert said.startswith("trailed.jpg: the stars are trailed (a / b ")
 
 
 def test_the_trails_table_counts_right_and_wrong_per_trail_length():

@@ -345,10 +345,14 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
                         "bits": m.bits, "background": round(d.background, 3), "noise": round(d.noise, 4),
                         "detected": len(d), "kept": len(kept),
                         "saturated_kept": int(sum("saturated" in d.flags[k] for k in kept)),
+                        **({"trailed": round(d.smear, 2)} if d.smear is not None else {}),
                         "rejected": rejected})
     frames_sha = frames_content_sha256(sorted({m.sha256 for m in measured}))
     binned = [m for m in measured if m.binned > 1]  # one pass, one size: all frames or none
     notes = ([binning_note(binned[0], len(binned), limits.max_pixels_per_frame)] if binned else []) + zone_notes
+    trailed = [m for m in measured if m.detections.smear is not None]
+    if trailed:
+        notes.append(trailed_note(trailed, len(measured)))
     import sep
 
     doc = {
@@ -377,6 +381,14 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
         raise _relocated(exc, camera_from_sidecar=isinstance(sidecar.camera, (dict, str))) from None
     return FramePass(sequence=sequence, raw_text=dump_json(sequence), hot_map=updated,
                      detections=[m.detections for m in measured], frames_sha256=frames_sha, candidates=candidates)
+
+
+def trailed_note(trailed: list[_Measured], count: int) -> str:
+    """What the frames block says of frames whose stars are trailed alike (:func:`app.frames.detect._smear`)."""
+    where = trailed[0].frame_location if count == 1 else f"{len(trailed)} of the {count} frames"
+    elongation = float(np.median([m.detections.smear for m in trailed]))
+    return (f"{where}: the stars are trailed (a / b {elongation:.1f}: a fixed camera under the turning sky, or a "
+            "camera turning during the exposure); each is detected whole, at its middle (the mid-exposure place)")
 
 
 def binning_note(first: _Measured, count: int, budget: int) -> str:

@@ -501,7 +501,7 @@ def _smear(objects, sub: np.ndarray, sky: _Sky, options: DetectionOptions) -> fl
     """
     if len(objects) < SMEAR_MIN_BLOBS:
         return None
-    xpeak, ypeak, peak, noise = _peaks(objects, sub, sky)
+    _, _, peak, noise = _peaks(objects, sub, sky)
     a, b = objects["a"].astype(float), objects["b"].astype(float)
     compact = np.flatnonzero(
         (peak >= SMEAR_PEAK_SIGMA * noise) & (objects["npix"] >= options.min_area_for_shape_px)
