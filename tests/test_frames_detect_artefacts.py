@@ -360,3 +360,49 @@ def test_round_stars_are_not_called_trailed_under_a_treeline_or_beside_a_satelli
     frame = _with_stars(sky, xy, flux)
     add_trail(frame, np.array([30.0, 560.0]), np.array([770.0, 40.0]), 300_000.0, PSF_SIGMA)
     assert detect(frame).smear is None
+
+
+def _stamped(image: np.ndarray, size: int) -> tuple[np.ndarray, list[tuple[int, int, int, int]]]:
+    """``image`` with a camera's date stamp across its top and a caption down its right side (a turned
+    image's), saturated white as cameras write them, and the boxes (x0, y0, x1, y1) the two cover."""
+    from PIL import ImageDraw, ImageFont
+
+    font = ImageFont.load_default(size=size)
+    canvas = Image.new("L", (WIDTH, HEIGHT), 0)
+    draw = ImageDraw.Draw(canvas)
+    draw.text((20, 15), "2024-08-12 23:14:07  ISO 1600 f/2.8", fill=255, font=font)
+    caption = Image.new("L", (300, size + 10), 0)
+    ImageDraw.Draw(caption).text((0, 0), "(c) J. Smith 2024", fill=255, font=font)
+    canvas.paste(caption.rotate(90, expand=True), (WIDTH - size - 25, 200))
+    ink = np.asarray(canvas, dtype=np.float32)
+    boxes = []
+    for first, last in ((0, WIDTH - size - 40), (WIDTH - size - 40, WIDTH)):  # the stamp's columns, the caption's
+        ys, xs = np.nonzero(ink[:, first:last])
+        boxes.append((int(xs.min()) + first, int(ys.min()), int(xs.max()) + first, int(ys.max())))
+    return np.maximum(image, np.where(ink > 0, 4000.0 * ink / 255.0, image)).astype(np.float32), boxes
+
+
+@pytest.mark.parametrize("size", [16, 32])
+def test_a_date_stamp_and_a_turned_caption_are_no_stars_and_the_stars_stay(size):
+    """A line of text's characters stand side by side, as bright as stars and saturated: a stamped frame's
+    brightest sources were its text (a photograph stamped so was not identified).  They are in a row now,
+    across or down; every star clear of the text is found, and none of the text is a star."""
+    sky, xy, flux = _field(14)
+    stamped, boxes = _stamped(sky, size)
+    clear = np.ones(len(xy), dtype=bool)
+    for x0, y0, x1, y1 in boxes:
+        clear &= ~((xy[:, 0] > x0 - 15) & (xy[:, 0] < x1 + 15) & (xy[:, 1] > y0 - 15) & (xy[:, 1] < y1 + 15))
+    found = detect(_with_stars(stamped, xy[clear], flux[clear]), saturation=4000.0)
+    n_found, false = _score(found, xy[clear])
+    assert n_found == int(clear.sum()) and len(false) == 0, false
+    for x0, y0, x1, y1 in boxes:
+        inside = ((found.xy[:, 0] >= x0 - 2) & (found.xy[:, 0] <= x1 + 2) & (found.xy[:, 1] >= y0 - 2)
+                  & (found.xy[:, 1] <= y1 + 2))
+        assert inside.sum() >= 4 and sum("row" in found.flags[k] for k in np.flatnonzero(inside)) >= 4
+
+
+def test_a_crowded_field_has_no_rows():
+    """300 stars on 800 x 600 px, some of them close pairs and threes: no four of a size stand in a row."""
+    sky, xy, flux = _field(15, n=300)
+    found = detect(_with_stars(sky, xy, flux))
+    assert len(found) >= 250 and not any("row" in flags for flags in found.flags)

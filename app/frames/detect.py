@@ -80,9 +80,9 @@ UNIFORM_NOISE_RATIO = 1.3
 #: A sharp blob is a hot-pixel candidate for the camera's map when its peak is this many sigma high.
 CANDIDATE_SIGMA = 10.0
 #: Flags that make a blob "not a star".
-REJECTING_FLAGS = ("hot_pixel", "elongated", "extended", "border")
+REJECTING_FLAGS = ("hot_pixel", "elongated", "extended", "border", "row")
 #: Every flag a detection may carry.
-FLAGS = ("hot_pixel", "elongated", "extended", "border", "saturated", "edge")
+FLAGS = ("hot_pixel", "elongated", "extended", "border", "row", "saturated", "edge")
 #: sep's internal buffer of object pixels: its default, enough for star fields; sep allocates it on
 #: every call (3 million cost ~150 ms), so a larger one is used only when a frame overflows it.
 SEP_PIXSTACK = 300_000
@@ -127,6 +127,13 @@ SMEAR_MIN_BLOBS = 6
 SMEAR_PEAK_SIGMA = 6.0
 SMEAR_MIN_MINOR_PX = 0.7
 SMEAR_MIN_SPREAD = 0.1
+#: A row (:func:`_in_rows`: text, a treeline's gaps): at least this many blobs side by side, gaps of at most
+#: the next times the lower one's height, heights within the next factor, the whole at least the last
+#: times longer than high.
+ROW_MIN_BLOBS = 4
+ROW_GAP = 1.0
+ROW_HEIGHT_RATIO = 3.0
+ROW_MIN_ASPECT = 3.0
 #: Windowed centroids for blobs whose peak is at least this many sigma high (see :func:`_refine`).
 WINDOW_PEAK_SIGMA = 5.0
 
@@ -320,6 +327,7 @@ def _classify(sep, objects, sub: np.ndarray, raw: np.ndarray, sky: _Sky, psf: Po
     border = cut & (_peak_near_border(xpeak, ypeak, shape, psf) | elongated | extended)
     trunc = (objects["flag"] & sep.OBJ_TRUNC) != 0
     columns = (("hot_pixel", hot), ("elongated", elongated), ("extended", extended), ("border", border),
+               ("row", _in_rows(objects)),
                ("saturated", saturated), ("edge", trunc | cut))
     return [tuple(name for name, column in columns if column[k]) for k in range(len(objects))]
 
@@ -757,6 +765,50 @@ def _on_structure(objects, sub: np.ndarray, peak: np.ndarray, noise: np.ndarray,
     if enough.any():
         level[enough] = np.nanmedian(ring[enough], axis=1)
     return level > np.maximum(RING_SIGMA * noise, RING_FRACTION * peak)
+
+
+def _in_rows(objects) -> np.ndarray:
+    """Blobs standing side by side in a row: the characters of a line of text (a date stamp, a camera's
+    settings, a caption, a watermark), a treeline's gaps along the horizon, a street's lights.
+
+    Side by side: boxes (sep's ``xmin``-``ymax``) of heights within a factor :data:`ROW_HEIGHT_RATIO`,
+    overlapping by at least half the lower one's height, with a gap no wider than :data:`ROW_GAP` times
+    that height (a letter's spacing, a word's).  A chain of :data:`ROW_MIN_BLOBS` or more such blobs (across,
+    or down: a turned image) whose whole is at least :data:`ROW_MIN_ASPECT` times longer than high is a
+    row, with every blob inside its box (a colon's dots, a full stop).  Stars are strewn: four of a size
+    whose boxes touch in a row, each within its own height of the next, is no star field's pattern.  A
+    text's digits are as bright as stars, saturated: the brightest sources of a stamped photograph were its
+    text.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(objects)
+    in_row = np.zeros(n, dtype=bool)
+    if n < ROW_MIN_BLOBS:
+        return in_row
+    for lo_a, hi_a, lo_b, hi_b in (("xmin", "xmax", "ymin", "ymax"), ("ymin", "ymax", "xmin", "xmax")):
+        start, end = objects[lo_a].astype(float), objects[hi_a].astype(float)  # along the row
+        low, high = objects[lo_b].astype(float), objects[hi_b].astype(float)   # across it
+        height = high - low + 1.0
+        lower = np.minimum(height[:, None], height[None, :])
+        overlap = np.minimum(high[:, None], high[None, :]) - np.maximum(low[:, None], low[None, :]) + 1.0
+        gap = np.maximum(start[:, None], start[None, :]) - np.minimum(end[:, None], end[None, :]) - 1.0
+        neighbours = ((overlap >= 0.5 * lower) & (gap <= ROW_GAP * lower)
+                      & (np.maximum(height[:, None], height[None, :]) <= ROW_HEIGHT_RATIO * lower))
+        np.fill_diagonal(neighbours, False)
+        rows, cols = np.nonzero(neighbours)
+        if not len(rows):
+            continue
+        count, label = connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)),
+                                            directed=False)
+        for k in np.flatnonzero(np.bincount(label, minlength=count) >= ROW_MIN_BLOBS):
+            members = label == k
+            first, last = start[members].min(), end[members].max()
+            bottom, top = low[members].min(), high[members].max()
+            if last - first + 1.0 >= ROW_MIN_ASPECT * (top - bottom + 1.0):
+                in_row |= (start >= first) & (end <= last) & (low >= bottom) & (high <= top)
+    return in_row
 
 
 def _touches_border(objects, shape: tuple[int, int]) -> np.ndarray:
