@@ -30,7 +30,7 @@ from app.bench.real import RIGHT_DEG, default_frames_dir, load_frame
 from app.camera import Camera
 from app.extraction import DEFAULT_SIGHTING_SIGMA_PX, assumed_sighting_noise_px
 from app.frames import frames_to_sequence
-from app.identification import IDENTIFIED, Sky, solve_sequence
+from app.identification import IDENTIFIED, NO_MATCH, Sky, solve_sequence
 
 def _copy_png(frame, variant: str) -> bytes:
     stream = io.BytesIO()
@@ -75,3 +75,30 @@ def test_a_copy_of_a_real_frame_is_identified(name, variant, field_of_view_given
     assert field_of_view_given or solved.solution.focal_length_contradiction is None
     centre = solved.solution.candidates[0].centre_radec_deg
     assert _separation_deg(centre, variants.copy_reference(variant, frame)) < RIGHT_DEG
+
+
+@pytest.mark.parametrize("name, field_of_view_given", [("xmas-image4", True), ("feb16-2", False)])
+def test_a_mirrored_real_frame_is_no_match_and_said_to_match_mirrored_where_the_frame_is(name, field_of_view_given):
+    """A rotation cannot mirror: the frame flipped left to right (a FITS file stored bottom-up with no ROWORDER,
+    a flip in processing) matches no sky, and said nothing of why.  Its mirror image, searched once more, is
+    identified, and the note gives its boresight: that of the frame as it is, to 0.05 deg."""
+    folder = default_frames_dir()
+    if not (folder / "README.md").is_file():
+        pytest.fail(f"the real frames are missing: expected them in {folder} (../shared/real-frames beside the "
+                    "repository, or $STARID_REAL_FRAMES)")
+    frame = load_frame(folder / f"{name}.json")
+    pixels = np.asarray(Image.open(frame.image).convert("L"))
+    fov = frame.fov_deg if field_of_view_given else None
+    results = []
+    for image in (pixels, pixels[:, ::-1]):
+        stream = io.BytesIO()
+        Image.fromarray(np.ascontiguousarray(image)).save(stream, format="PNG")
+        results.append(solve_sequence(frames_to_sequence([(f"{name}.png", stream.getvalue())], fov_deg=fov).sequence,
+                                      Sky()).solution)
+    as_it_is, flipped = results
+    assert as_it_is.status == IDENTIFIED and not any("mirrored" in note for note in as_it_is.notes)
+    assert flipped.status == NO_MATCH
+    (said,) = [note for note in flipped.notes if note.startswith("mirrored left to right, the sources are identified")]
+    ra, dec = (float(said.split("RA ")[1].split(" deg")[0]), float(said.split("Dec ")[1].split(" deg")[0]))
+    boresight = as_it_is.candidates[0].radec_roll_deg[:2]
+    assert _separation_deg((ra, dec), boresight) < 0.05

@@ -135,6 +135,13 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
         planets = (lambda: planet_vectors(t)) if with_planets and not sequence.time_assumed else None
         solution = identify(pattern, sequence.camera, t, sky, velocity_km_s=sequence.observer,
                             options=options, planets=planets, method=method)
+        left_s = options.timeout_s - solution.elapsed_s  # both searches within one search's time-out
+        if (solution.status == NO_MATCH and "frames" in sequence.extra and len(pattern) >= 3
+                and left_s >= MIN_MIRROR_SEARCH_S):
+            said = mirrored_match(pattern, sequence.camera, t, sky, velocity_km_s=sequence.observer,
+                                  options=replace(options, timeout_s=left_s), method=method)
+            if said is not None:
+                solution = replace(solution, notes=(*solution.notes, said))
     fits: dict[int, SequenceFit] = {}
     candidates = []
     notes = list(solution.notes)
@@ -173,6 +180,44 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
     solution = replace(solution, candidates=tuple(candidates), status=status, notes=tuple(notes))
     return SolvedSequence(sequence=sequence, extraction=extraction, pattern=pattern, solution=solution,
                           sequence_fits=fits)
+
+
+#: An image that matches nothing is searched mirrored (:func:`mirrored_match`) in what is left of the search's
+#: time-out, when that is at least this (s).
+MIN_MIRROR_SEARCH_S = 0.5
+
+
+def mirrored(pattern: Pattern, camera) -> tuple[Pattern, object]:
+    """``pattern`` and ``camera`` seen in a mirror, left to right: x -> width - 1 - x (and the principal
+    point with it), so each camera-frame vector's x is negated and nothing else changes (the distortion is
+    radial)."""
+    xy = pattern.xy.copy()
+    xy[:, 0] = camera.width - 1 - xy[:, 0]
+    vectors = pattern.vectors * np.array([-1.0, 1.0, 1.0])
+    return replace(pattern, xy=xy, vectors=vectors), replace(camera, cx=camera.width - 1 - camera.cx)
+
+
+def mirrored_match(pattern: Pattern, camera, t, sky: Sky, *, velocity_km_s=None,
+                   options: SearchOptions = SearchOptions(), method: str = "bright_pair") -> str | None:
+    """What to tell of a pattern that matches nothing as it is: whether its mirror image is identified.
+
+    A rotation cannot mirror, so a mirrored image matches no sky (astrometry.net tries both parities for
+    that reason).  Images come mirrored: a FITS file stored bottom-up with no ROWORDER, a flip in some
+    program, a mirror in the optics.  The mirror image is searched with the same options and bounds; when
+    it is identified, the note says where (the answer stays no match: its attitude would be a mirrored
+    camera's), else None.  Only for images (a spot list's sensor is configured once: its no-match frames,
+    the Earth's and noise's, keep their time), and within what the first search left of the time-out.
+    """
+    image, seen_by = mirrored(pattern, camera)
+    found = identify(image, seen_by, t, sky, velocity_km_s=velocity_km_s, options=options, method=method)
+    if found.status != IDENTIFIED:
+        return None
+    best = found.candidates[0]
+    ra, dec, _ = best.radec_roll_deg
+    return (f"mirrored left to right, the sources are identified (boresight RA {ra:.3f} deg, Dec {dec:+.3f} deg, "
+            f"{best.n_matched} stars, P(false) {best.false_match_probability:.1e}): the "
+            "image is mirrored (a FITS file stored bottom-up with no ROWORDER, a flip in processing, a mirror in "
+            "the optics); flip it and solve it again")
 
 
 def image_centre_radec(candidate: Candidate, pattern: Pattern, declared, t, sky: Sky, *,
