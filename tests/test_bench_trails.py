@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from app.bench import trails
-from app.bench.real import RealFrame, solve_ours
-from app.bench.wide import centre_radec_deg, jpeg, photograph
+from app.bench.real import solve_ours
+from app.bench.wide import jpeg, photograph, photographed_frame
 
 
 def test_a_smeared_star_is_a_trail_of_its_length_centred_on_its_place_with_all_its_light():
@@ -47,9 +47,7 @@ def test_a_photograph_from_a_fixed_tripod_trailed_14_px_is_identified(tmp_path, 
                                            milky_way=False)
     path = tmp_path / "trailed.jpg"
     path.write_bytes(jpeg(pixels))
-    ra, dec = centre_radec_deg(true, rotation)
-    frame = RealFrame(name="trailed", image=path, width=true.width, height=true.height, ra_deg=ra, dec_deg=dec,
-                      fov_deg=true.fov_deg[0], time=None)
+    frame = photographed_frame("trailed", path, true, rotation)
     answer = solve_ours(frame, sky, frame.fov_deg, tmp_path)
     assert answer["status"] == "identified", answer["notes"]
     assert answer["error_deg"] < 0.02

@@ -95,8 +95,8 @@ def test_a_photograph_with_its_date_and_settings_stamped_on_it_is_identified(tmp
     60 deg photograph was no match.  The characters stand in rows and are no stars now."""
     from PIL import Image, ImageDraw, ImageFont
 
-    from app.bench.real import RealFrame, solve_ours
-    from app.bench.wide import centre_radec_deg, jpeg, photograph
+    from app.bench.real import solve_ours
+    from app.bench.wide import jpeg, photograph, photographed_frame
 
     pixels, true, rotation, _ = photograph(60.0, np.random.default_rng([1, 75, 60, 1]), milky_way=False)
     image = Image.fromarray(pixels)
@@ -106,9 +106,7 @@ def test_a_photograph_with_its_date_and_settings_stamped_on_it_is_identified(tmp
     draw.text((2200, 1900), "(c) J. Smith", fill=230, font=font)
     path = tmp_path / "stamped.jpg"
     path.write_bytes(jpeg(np.asarray(image)))
-    ra, dec = centre_radec_deg(true, rotation)
-    frame = RealFrame(name="stamped", image=path, width=true.width, height=true.height, ra_deg=ra, dec_deg=dec,
-                      fov_deg=true.fov_deg[0], time=None)
+    frame = photographed_frame("stamped", path, true, rotation)
     answer = solve_ours(frame, sky, None, tmp_path)
     assert answer["status"] == IDENTIFIED, answer["notes"]
     assert answer["error_deg"] < 0.02

@@ -20,9 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from app.bench.real import (RIGHT_DEG, SUMMARY_HEADER, WRONG_DEG, RealFrame, solve_ours, summarise,
-                            summary_columns)
-from app.bench.wide import centre_radec_deg, jpeg, photograph
+from app.bench.real import RIGHT_DEG, SUMMARY_HEADER, WRONG_DEG, solve_ours, summarise, summary_columns
+from app.bench.wide import jpeg, photograph, photographed_frame
 
 FIELDS_DEG = (40.0, 60.0, 90.0)
 #: Trail lengths of the rows, px (0: points).
@@ -46,9 +45,7 @@ def run(n_sequences: int | None = None, seed: int = 1) -> dict:
                     name = f"trailed-{trail:g}px-{fov:g}deg-{i}"
                     path = Path(scratch, f"{name}.jpg")
                     path.write_bytes(jpeg(pixels))
-                    ra, dec = centre_radec_deg(true, rotation)
-                    frame = RealFrame(name=name, image=path, width=true.width, height=true.height, ra_deg=ra,
-                                      dec_deg=dec, fov_deg=true.fov_deg[0], time=None)
+                    frame = photographed_frame(name, path, true, rotation)
                     answer = solve_ours(frame, sky, frame.fov_deg, Path(scratch))
                     rows.append({"name": name, "trail_px": trail, "fov_deg": fov, "photograph": described,
                                  "ours": answer})

@@ -156,6 +156,14 @@ def centre_radec_deg(true_camera, rotation: np.ndarray) -> tuple[float, float]:
     return math.degrees(float(ra[0])), math.degrees(float(dec[0]))
 
 
+def photographed_frame(name: str, image: Path, true_camera, rotation: np.ndarray) -> RealFrame:
+    """A rendered photograph saved as ``image``, as the real-frame benches take a frame: its reference the true
+    direction of its centre pixel and its exact field of view, no time."""
+    ra, dec = centre_radec_deg(true_camera, rotation)
+    return RealFrame(name=name, image=image, width=true_camera.width, height=true_camera.height, ra_deg=ra,
+                     dec_deg=dec, fov_deg=true_camera.fov_deg[0], time=None)
+
+
 def run(n_sequences: int | None = None, seed: int = 1) -> dict:
     from app.identification import Sky
 
@@ -172,10 +180,8 @@ def run(n_sequences: int | None = None, seed: int = 1) -> dict:
                 with_lens, without = Path(scratch, f"{name}-exif.jpg"), Path(scratch, f"{name}.jpg")
                 with_lens.write_bytes(jpeg(pixels, focal_length_35mm(true)))
                 without.write_bytes(jpeg(pixels))
-                ra, dec = centre_radec_deg(true, rotation)
-                exact = true.fov_deg[0]
-                frame = RealFrame(name=name, image=without, width=true.width, height=true.height, ra_deg=ra,
-                                  dec_deg=dec, fov_deg=exact, time=None)
+                frame = photographed_frame(name, without, true, rotation)
+                exact = frame.fov_deg
                 off = exact * (1.05 if i % 2 == 0 else 0.95)
                 given = {"exact": exact, "5 % off": off, "EXIF": None, "none": None}
                 row = {"name": name, "fov_deg": fov, "photograph": described, "ours": {

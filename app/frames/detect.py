@@ -312,9 +312,7 @@ def _classify(sep, objects, sub: np.ndarray, raw: np.ndarray, sky: _Sky, psf: Po
               saturation: float | None, options: DetectionOptions) -> list[tuple[str, ...]]:
     """Each blob's flags (:data:`FLAGS`; see the module's step 6)."""
     shape = sub.shape
-    xpeak, ypeak = _peak_pixels(objects, shape)
-    peak = sub[ypeak, xpeak].astype(float)
-    noise = sky.pixel_noise_at(ypeak, xpeak)
+    xpeak, ypeak, peak, noise = _peaks(objects, sub, sky)
     hot = _is_hot(objects, sub, sky, options)
     saturated = (_max_around(raw, xpeak, ypeak) >= 0.995 * saturation) if saturation is not None \
         else np.zeros(len(objects), dtype=bool)
