@@ -42,7 +42,8 @@ Steps, per frame:
    PSF's, more pixels than a star of its peak covers (:func:`_star_area_limit`, at least
    ``max_area_px``), or lying on something extended,
    :func:`_on_structure`: the Moon, a comet's head and tail, clouds, glare, lit trees,
-   bloomed city lights, a glowing corner), ``border`` (cut by the frame's edge with its
+   bloomed city lights, a glowing corner; or a ring uneven beyond the noise: the edge where a
+   bright sky meets a dark treeline or roof), ``border`` (cut by the frame's edge with its
    peak within the PSF's radius of it, or cut and not point-like: vignetting and read-out
    artefacts hug the border, and a cut star's centroid is pulled inwards anyway),
    ``saturated`` (its peak at the saturation level), ``edge`` (cut by the frame's border);
@@ -115,10 +116,14 @@ PIECE_AREA_RATIO = 0.5
 #: median hides a field's coma and astigmatism (a frame whose median star has a / b = 1.6 has 3 at its edge).
 PSF_ELONGATION_FACTOR = 2.0
 #: The ring around a blob that tells whether it lies on an extended structure (:func:`_on_structure`):
-#: how many pixels, and how bright its median may be, in sigma of the noise and as a part of the peak.
+#: how many pixels, and how bright its median may be, in sigma of the noise and as a part of the peak;
+#: then how uneven it may be (its interquartile range), alike.
 RING_POINTS = 32
 RING_SIGMA = 1.0
 RING_FRACTION = 0.1
+RING_SPREAD_SIGMA = 2.0
+RING_SPREAD_FRACTION = 0.1
+RING_SPREAD_QUANTA = 2.0
 #: A frame's stars are trailed when the median a / b of its brightest compact blobs (at most the first
 #: many, at least the second, peaks of the next sigma, none thinner than the next px) exceeds
 #: ``max_elongation``, the elongated ones spread over the next part of the frame's height (:func:`_smear`).
@@ -136,6 +141,9 @@ ROW_HEIGHT_RATIO = 3.0
 ROW_MIN_ASPECT = 3.0
 #: Windowed centroids for blobs whose peak is at least this many sigma high (see :func:`_refine`).
 WINDOW_PEAK_SIGMA = 5.0
+#: A trail is modelled as a satellite's (:func:`_stars_on_trails`) only when at least this many times longer than
+#: wide: a knot of a treeline's edge is elongated, but its light is no line of even brightness.
+TRAIL_MIN_ASPECT = 3.0
 
 
 class DetectionError(ValueError):
@@ -264,7 +272,8 @@ def detect(pixels: np.ndarray, options: DetectionOptions = DetectionOptions(), *
     data = replace_pixels(raw, hot_pixels or [])
     height, width = data.shape
     box = int(max(8, min(options.background_box_px, min(data.shape) // 2)))
-    sky = _sky(data, box, _noise_floor(data))
+    quantum = _quantum(data)
+    sky = replace(_sky(data, box, _noise_floor(data, quantum)), quantum=quantum)
     sub = np.ascontiguousarray(data - sky.level, dtype=np.float32)
     still_hot = tuple((int(x), int(y)) for x, y in sorted(set(map(tuple, hot_pixels or [])))
                       if 0 <= x < width and 0 <= y < height
@@ -287,7 +296,7 @@ def detect(pixels: np.ndarray, options: DetectionOptions = DetectionOptions(), *
     xpeak, ypeak, peak, local_noise = _peaks(objects, sub, sky)
     a, b = objects["a"].astype(float), objects["b"].astype(float)
     elongation = np.where(b > 0, a / np.maximum(b, 1e-9), np.inf)
-    flags = _classify(sep, objects, sub, raw, sky, psf, saturation, options)
+    flags = _classify(sep, objects, sub, raw, sky, psf, saturation, options, measured)
     xy = np.column_stack([objects["x"], objects["y"]]).astype(float) if n else np.zeros((0, 2))
     flux = objects["flux"].astype(float).copy()
     snr = np.zeros(n)
@@ -309,15 +318,18 @@ def detect(pixels: np.ndarray, options: DetectionOptions = DetectionOptions(), *
 
 
 def _classify(sep, objects, sub: np.ndarray, raw: np.ndarray, sky: _Sky, psf: PointSpread | None,
-              saturation: float | None, options: DetectionOptions) -> list[tuple[str, ...]]:
-    """Each blob's flags (:data:`FLAGS`; see the module's step 6)."""
+              saturation: float | None, options: DetectionOptions,
+              measured: np.ndarray | None = None) -> list[tuple[str, ...]]:
+    """Each blob's flags (:data:`FLAGS`; see the module's step 6).  ``measured``: ``sub`` with the satellites'
+    trails taken out (:func:`_stars_on_trails`), where the ring around a star beside one is judged."""
     shape = sub.shape
     xpeak, ypeak, peak, noise = _peaks(objects, sub, sky)
     hot = _is_hot(objects, sub, sky, options)
     saturated = (_max_around(raw, xpeak, ypeak) >= 0.995 * saturation) if saturation is not None \
         else np.zeros(len(objects), dtype=bool)
     elongated = _is_elongated(objects, options, psf)
-    not_point = _too_large(objects, peak, noise, psf) | _on_structure(objects, sub, peak, noise, psf)
+    not_point = _too_large(objects, peak, noise, psf) | _on_structure(
+        objects, sub if measured is None else measured, peak, noise, psf, quantum=sky.quantum)
     too_many = objects["npix"] > _star_area_limit(options, psf and psf.area_px,
                                                   peak / np.maximum(objects["thresh"], 1e-12), saturated)
     extended = too_many | (~saturated & ~hot & not_point)
@@ -342,13 +354,24 @@ def _peaks(objects, sub: np.ndarray, sky: _Sky) -> tuple[np.ndarray, np.ndarray,
     return xpeak, ypeak, sub[ypeak, xpeak].astype(float), sky.pixel_noise_at(ypeak, xpeak)
 
 
-def _noise_floor(data: np.ndarray) -> float:
-    """Smallest noise assumed: the quantisation of integer data (0.3 units), a tiny fraction of the range else."""
-    sample = data[:: max(1, data.shape[0] // 64), :: max(1, data.shape[1] // 64)]
-    if np.all(sample == np.round(sample)):
-        return 0.3
-    span = float(np.ptp(sample)) if sample.size else 0.0
-    return max(1e-6, 1e-4 * span)
+def _sample(data: np.ndarray) -> np.ndarray:
+    """About 64 x 64 of the frame's pixels, evenly spaced."""
+    return data[:: max(1, data.shape[0] // 64), :: max(1, data.shape[1] // 64)]
+
+
+def _quantum(data: np.ndarray) -> float:
+    """The values' quantisation step: 1 for integer data (judged on a sample), 0 else."""
+    sample = _sample(data)
+    return 1.0 if np.all(sample == np.round(sample)) else 0.0
+
+
+def _noise_floor(data: np.ndarray, quantum: float) -> float:
+    """Smallest noise assumed: the quantisation of integer data (0.3 of a step, about 1 / sqrt 12), a tiny
+    fraction of the range else."""
+    if quantum:
+        return 0.3 * quantum
+    sample = _sample(data)
+    return max(1e-6, 1e-4 * (float(np.ptp(sample)) if sample.size else 0.0))
 
 
 # --- the sky -----------------------------------------------------------------------------------------
@@ -369,6 +392,8 @@ class _Sky:
     #: Medians over the frame's boxes.
     median_level: float
     median_pixel_noise: float
+    #: The values' quantisation step (:func:`_quantum`).
+    quantum: float = 0.0
 
     def pixel_noise_at(self, y: np.ndarray, x: np.ndarray) -> np.ndarray:
         noise = self.pixel_noise
@@ -512,7 +537,8 @@ def _smear(objects, sub: np.ndarray, sky: _Sky, options: DetectionOptions) -> fl
     compact = np.flatnonzero(
         (peak >= SMEAR_PEAK_SIGMA * noise) & (objects["npix"] >= options.min_area_for_shape_px)
         & (objects["npix"] <= options.max_area_px) & (b >= SMEAR_MIN_MINOR_PX) & ~_touches_border(objects, sub.shape)
-        & ~_is_hot(objects, sub, sky, options) & ~_on_structure(objects, sub, peak, noise, None))
+        & ~_is_hot(objects, sub, sky, options)
+        & ~_on_structure(objects, sub, peak, noise, None, quantum=sky.quantum))
     if len(compact) < SMEAR_MIN_BLOBS:
         return None
     brightest = compact[np.argsort(-objects["flux"][compact], kind="stable")[:SMEAR_BLOBS]]
@@ -738,15 +764,28 @@ def _too_large(objects, peak: np.ndarray, noise: np.ndarray, psf: PointSpread | 
 
 
 def _on_structure(objects, sub: np.ndarray, peak: np.ndarray, noise: np.ndarray,
-                  psf: PointSpread | None) -> np.ndarray:
-    """Blobs lying on something extended: the median of a ring around them stands above the sky.
+                  psf: PointSpread | None, *, quantum: float = 0.0) -> np.ndarray:
+    """Blobs lying on something extended: the ring around them stands above the sky, or is uneven.
 
     The ring (:data:`RING_POINTS` pixels at 3 PSF radii, where a star's own light has fallen
-    below 0.1 % of its peak for a Gaussian; 4 times the blob's ``a`` without a PSF) is median
-    taken, so a neighbour covering part of it does not count.  On a comet's tail, the Moon's
-    halo, a cloud or a glowing corner it is as bright as the structure, which the background mesh
-    (64 px boxes) does not follow: above :data:`RING_SIGMA` sigma and :data:`RING_FRACTION` of
-    the blob's peak, the blob is a knot of that structure, or a star that cannot be measured on it.
+    below 0.1 % of its peak for a Gaussian; 4 times the blob's ``a`` without a PSF):
+
+    * its median (a neighbour covering part of it does not count) above :data:`RING_SIGMA` sigma
+      and :data:`RING_FRACTION` of the blob's peak: on a comet's tail, the Moon's halo, a cloud or a
+      glowing corner the ring is as bright as the structure, which the background mesh (64 px
+      boxes) does not follow;
+    * its interquartile range above :data:`RING_SPREAD_SIGMA` sigma, :data:`RING_SPREAD_FRACTION`
+      of the peak and :data:`RING_SPREAD_QUANTA` steps of integer values: where a bright sky meets a
+      dark treeline or roof (the Milky Way setting behind trees), the mesh's level lies between the
+      two, and the sky's noise along the edge, its knots and the gaps between branches stand out as
+      blobs whose ring is part sky, part ground; its median may be either's.  Around a star on flat
+      sky the quartiles are those of the noise (1.35 sigma apart for white noise; 0.9 sigma at the
+      median, 1.4 at the 95th percentile measured on the wide bench's stars, whose sigma is the
+      correlated noise's larger one), and a neighbour on under a quarter of the ring does not move
+      them.  The steps: on a dim 8-bit JPEG whose noise is under a step, a faint star's ring is
+      rounded, and rings with the compression's, to levels two steps apart.
+
+    Either way the blob is a knot of that structure, or a star that cannot be measured on it.
     """
     if not len(objects):
         return np.zeros(0, dtype=bool)
@@ -759,10 +798,12 @@ def _on_structure(objects, sub: np.ndarray, peak: np.ndarray, noise: np.ndarray,
     inside = (x >= 0) & (x < width) & (y >= 0) & (y < height)
     ring = np.where(inside, sub[np.clip(y, 0, height - 1), np.clip(x, 0, width - 1)], np.nan)
     enough = inside.sum(axis=1) >= RING_POINTS // 4
-    level = np.full(len(objects), -np.inf)
+    level, spread = np.full(len(objects), -np.inf), np.zeros(len(objects))
     if enough.any():
-        level[enough] = np.nanmedian(ring[enough], axis=1)
-    return level > np.maximum(RING_SIGMA * noise, RING_FRACTION * peak)
+        lower, level[enough], upper = np.nanpercentile(ring[enough], [25.0, 50.0, 75.0], axis=1)
+        spread[enough] = upper - lower
+    return (level > np.maximum(RING_SIGMA * noise, RING_FRACTION * peak)) | (
+        spread > np.maximum(np.maximum(RING_SPREAD_SIGMA * noise, RING_SPREAD_FRACTION * peak), RING_SPREAD_QUANTA * quantum))
 
 
 def _in_rows(objects) -> np.ndarray:
@@ -944,9 +985,11 @@ def _stars_on_trails(sep, sub: np.ndarray, noise: float, objects, options: Detec
     """Stars merged into a trail's blob, found again: (objects with them added, the image to measure on).
 
     A trail flagged ``elongated`` takes every star it touches with it.  A trail is as narrow as a
-    star (sep's ``b`` at most twice the PSF's sigma, when the PSF is known): a comet's tail, a
-    cloud's edge or a branch is no line of even brightness, and modelled as one it leaves its
-    knots as "stars".  Its model
+    star (sep's ``b`` at most twice the PSF's sigma, when the PSF is known) and at least
+    :data:`TRAIL_MIN_ASPECT` times longer than wide: a comet's tail, a cloud's edge, a branch or a
+    knot of a treeline is no line of even brightness, and modelled as one it leaves its knots as
+    "stars" (and the ring of a blob beside it, judged on the image with the model taken out, even).
+    Its model
     (:func:`_trail_model`) is subtracted and the residual searched at the detection threshold, with
     the trail's own shot noise (the residual's robust spread on it) as the noise there; round
     blobs at least 4 px inside its ends and not found before are stars (appended; the trail stays
@@ -965,6 +1008,8 @@ def _stars_on_trails(sep, sub: np.ndarray, noise: float, objects, options: Detec
     clean = sub.copy()
     found = []
     for trail in _trails(objects, elongated[:options.max_split_per_frame], sub.shape):
+        if trail.half_length < TRAIL_MIN_ASPECT * trail.half_width:
+            continue  # a blob a few times longer than wide, no line of even brightness: a knot, an edge
         model = _trail_model(sub, trail)
         if model is None:
             continue
