@@ -157,6 +157,32 @@ def test_a_bright_sky_over_a_dark_roof_line_makes_no_stars_along_it(seed):
     assert np.all(_nearest(found.xy[found.is_star], clear) < 1.0)
 
 
+@pytest.mark.parametrize("seed", [20, 21, 23])
+def test_the_sky_between_a_treelines_branches_makes_no_stars(seed):
+    """A ragged treeline (dark ground 30 under a sky of 100) with the Milky Way's clouds setting behind it: the
+    sky between the branches stands above the level the mesh puts at the trees, and 1 to 4 blobs a frame
+    stood up as stars 2 px above the ground.  Their apertures take in the dark beside them: no light above the
+    sky (``no_flux``).  The stars a mesh box or more above the trees are found, but for a few in the clouds'
+    deepest troughs (whose apertures hold no light above the level either)."""
+    from scipy.ndimage import gaussian_filter, gaussian_filter1d
+
+    rng = np.random.default_rng(seed)
+    sky, xy, flux = _field(seed)
+    trees = gaussian_filter1d(rng.standard_normal(WIDTH), 2.0)
+    horizon = 450 + 20 * np.sin(np.arange(WIDTH) / 40.0 + 1.0) + 8 * trees / trees.std()
+    ground = ROWS > horizon[None, :]
+    clouds = gaussian_filter(rng.standard_normal(sky.shape), 12.0)
+    band = 150.0 * np.exp(-0.5 * ((COLS - ROWS - 100) / 180.0) ** 2) * np.clip(1 + 0.4 * clouds / clouds.std(), 0, None)
+    frame = np.where(ground, 30.0 + rng.normal(0, 2.0, sky.shape), sky + band).astype(np.float32)
+    line = horizon[np.clip(xy[:, 0].astype(int), 0, WIDTH - 1)]
+    above = xy[:, 1] < line - 25
+    found = detect(_with_stars(frame, xy[above], flux[above]))
+    _, false = _score(found, xy[above])
+    assert len(false) == 0, false
+    clear = xy[above & (xy[:, 1] < line - 64)]
+    assert np.mean(_nearest(found.xy[found.is_star], clear) < 1.0) >= 0.9
+
+
 def test_a_strong_gradient_with_its_own_noise_makes_no_stars():
     """Sky from 100 to 2,400 across the frame, vignetted, its noise the square root of the level (10 to 45):
     every star with a peak 10 times the noise under it is found, none is made up."""

@@ -127,3 +127,20 @@ def test_a_photograph_of_the_milky_way_over_a_treeline_is_identified(tmp_path, s
     answer = solve_ours(photographed_frame("milky-way", path, true, rotation), sky, float(true.fov_deg[0]), tmp_path)
     assert answer["status"] == IDENTIFIED, answer["notes"]
     assert answer["error_deg"] < 0.02
+
+
+def test_a_photograph_of_a_towns_sky_over_a_treeline_is_identified(tmp_path, sky):
+    """60 deg of a town's sky, stars to Hp 3.5 (8 of them found), over trees: the sky between the branches
+    stood above the level the mesh puts at the treeline, and 8 blobs along it were reported after the stars,
+    breaking the pattern's triangles (no match).  Their apertures hold no light above the sky (``no_flux``)."""
+    from app.bench.real import solve_ours
+    from app.bench.wide import jpeg, photograph, photographed_frame
+
+    pixels, true, rotation, described = photograph(60.0, np.random.default_rng([1, 76, 60, 2]), milky_way=False,
+                                                   sky_limit_hp=3.5)
+    assert "Hp 3.5" in described and "landscape" in described
+    path = tmp_path / "town.jpg"
+    path.write_bytes(jpeg(pixels))
+    answer = solve_ours(photographed_frame("town", path, true, rotation), sky, float(true.fov_deg[0]), tmp_path)
+    assert answer["status"] == IDENTIFIED, answer["notes"]
+    assert answer["error_deg"] < 0.02

@@ -62,11 +62,14 @@ MILKY_WAY_DN = (20.0, 60.0)
 DEFAULT_N = 8
 
 
-def photograph(fov_deg: float, rng: np.random.Generator, *, smear_px: float = 0.0, milky_way: bool = True):
+def photograph(fov_deg: float, rng: np.random.Generator, *, smear_px: float = 0.0, milky_way: bool = True,
+               sky_limit_hp: float | None = None):
     """(8-bit pixels, the true camera, the truth's ICRS -> camera rotation, a description) of one photograph.
 
     ``smear_px``: every star trailed over that many pixels in one direction (drawn), as from a fixed tripod
-    (:mod:`app.bench.trails`); ``milky_way`` False: none on any."""
+    (:mod:`app.bench.trails`); ``milky_way`` False: none on any; ``sky_limit_hp``: the faintest star detected
+    (a town's sky of Hp 3.5, say) instead of one drawn from :data:`SKY_LIMIT_HP` (the draw is made anyway, so
+    the rest of the photograph stays the same)."""
     from app import simulate
     from app.camera import Camera
     from app.identification.scale_free import focal_length_for_fov
@@ -76,6 +79,7 @@ def photograph(fov_deg: float, rng: np.random.Generator, *, smear_px: float = 0.
     corner = float(rng.uniform(*CORNER_DISTORTION_AT_105_DEG)) * fov_deg / 105.0
     true = simulate.true_optics(camera, k1=simulate.k1_for_corner_distortion(camera, corner))
     limit = float(rng.uniform(*SKY_LIMIT_HP))
+    limit = limit if sky_limit_hp is None else float(sky_limit_hp)
     # 8 bit: a dark sky of ~25 DN over a bias of 10, its noise ~2 DN; the brightest stars saturate at 255.
     smear = {"smear_px": smear_px, "smear_angle_deg": float(rng.uniform(0.0, 180.0))} if smear_px > 0 else {}
     model = simulate.FrameModel(psf_sigma_px=float(rng.uniform(*PSF_SIGMA_PX)), detection_limit_mag=limit, bits=8,

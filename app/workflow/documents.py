@@ -831,8 +831,9 @@ class FrameRejected(Document):
     y: float
     reason: str = Field(description="hot_pixel, mapped_hot_pixel, elongated (a trail), extended, border (cut by "
                                     "the frame's edge and no whole point source), row (side by side with others: "
-                                    "text, a treeline), not_brightest (a star beyond the brightest reported), "
-                                    "joined by '+' with other flags")
+                                    "text, a treeline), no_flux (no light above the sky in its aperture), "
+                                    "not_brightest (a star beyond the brightest reported), joined by '+' with other "
+                                    "flags")
 
 
 class FrameOverlay(Document):

@@ -22,7 +22,7 @@ const REASONS = {
   hot_pixel: "hot pixel (one sharp pixel)", mapped_hot_pixel: "on a mapped hot pixel", elongated: "elongated (a trail)",
   extended: "extended (glare, Moon, limb)", not_brightest: "a star beyond the brightest reported", saturated: "saturated",
   edge: "cut by the frame's edge", border: "at the frame's border, no whole star",
-  row: "in a row (text, a treeline, lights)",
+  row: "in a row (text, a treeline, lights)", no_flux: "no light above the sky in its aperture",
 };
 const round1 = (v) => Math.round(v * 10) / 10;   // canvas positions as the page shows them to tests
 
