@@ -104,6 +104,39 @@ def test_a_large_png_is_read_strip_by_strip_into_the_same_block_means(monkeypatc
         assert np.array_equal(frame.pixels, block_mean(luminance, 3))
 
 
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_an_exif_orientation_is_read_as_pillows_exif_transpose_shows_it(monkeypatch, orientation):
+    """EXIF ``Orientation`` 1-8 (turned, upside down, mirrored, transposed): the frame's pixels are the image
+    Pillow's own ``exif_transpose`` gives, its width and height that image's (the header's peek too), and a
+    binned frame's blocks are that image's whole blocks."""
+    from PIL import ImageOps
+
+    from app.frames import peek_frame
+
+    rng = np.random.default_rng(orientation)
+    stored = rng.integers(0, 256, size=(61, 101)).astype(np.uint8)
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    stream = io.BytesIO()
+    Image.fromarray(stored).save(stream, format="PNG", exif=exif)
+    upright = np.asarray(ImageOps.exif_transpose(Image.open(io.BytesIO(stream.getvalue()))))
+    frame = next(read_frames(stream.getvalue(), "a.png"))
+    assert np.array_equal(frame.pixels, upright.astype(np.float32))
+    assert (frame.width, frame.height) == upright.shape[::-1] == peek_frame(stream.getvalue(), "a.png")[:2]
+    assert ("orientation_note" in frame.meta) == (orientation != 1)
+    monkeypatch.setenv("STARID_FRAMES_MAX_PIXELS", "1000")  # 101 x 61 -> b = 3: 33 x 20 whole blocks
+    binned = next(read_frames(stream.getvalue(), "a.png"))
+    rows, cols = (33, 20) if orientation >= 5 else (20, 33)
+    whole = block_mean(np.ascontiguousarray(stored[:60, :99]), 3)
+    assert binned.binned == 3 and binned.detection_pixels.shape == (rows, cols)
+    turn = {2: Image.Transpose.FLIP_LEFT_RIGHT, 3: Image.Transpose.ROTATE_180, 4: Image.Transpose.FLIP_TOP_BOTTOM,
+            5: Image.Transpose.TRANSPOSE, 6: Image.Transpose.ROTATE_270, 7: Image.Transpose.TRANSVERSE,
+            8: Image.Transpose.ROTATE_90}  # what exif_transpose does for each
+    image = Image.fromarray(whole, mode="F")
+    assert np.allclose(binned.detection_pixels, np.asarray(image.transpose(turn[orientation]) if orientation > 1
+                                                            else image))
+
+
 # --- detection in the frame's own pixels --------------------------------------------------------------
 
 @pytest.mark.parametrize("b", [2, 3])

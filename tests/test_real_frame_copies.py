@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 import pytest
-from PIL import Image
+from PIL import Image, ImageOps
 
 from app.bench import variants
 from app.bench.real import RIGHT_DEG, default_frames_dir, load_frame
@@ -102,3 +102,37 @@ def test_a_mirrored_real_frame_is_no_match_and_said_to_match_mirrored_where_the_
     ra, dec = (float(said.split("RA ")[1].split(" deg")[0]), float(said.split("Dec ")[1].split(" deg")[0]))
     boresight = as_it_is.candidates[0].radec_roll_deg[:2]
     assert _separation_deg((ra, dec), boresight) < 0.05
+
+
+@pytest.mark.parametrize("orientation, stored", [(6, lambda a: np.rot90(a, 1)), (3, lambda a: a[::-1, ::-1]),
+                                                 (5, lambda a: a.T)], ids=["quarter", "upside-down", "transposed"])
+def test_a_real_frame_stored_turned_with_its_exif_orientation_is_read_upright(orientation, stored):
+    """A phone or camera held upright stores its image turned and says so in EXIF ``Orientation`` (6: turn a
+    quarter clockwise to see it; 3: upside down; 5: transposed).  The frame stored so is read as the upright
+    image, as Pillow's own ``exif_transpose`` shows it: the same sources at the same pixels, the same sky, and
+    a note saying so.  It was read as stored: its pixel positions were not those of the picture the operator
+    sees."""
+    folder = default_frames_dir()
+    if not (folder / "README.md").is_file():
+        pytest.fail(f"the real frames are missing: expected them in {folder} (../shared/real-frames beside the "
+                    "repository, or $STARID_REAL_FRAMES)")
+    frame = load_frame(folder / "xmas-image4.json")
+    upright = np.asarray(Image.open(frame.image).convert("L"))
+    passes = []
+    for pixels, tag in ((upright, None), (stored(upright), orientation)):
+        exif = Image.Exif()
+        if tag is not None:
+            exif[0x0112] = tag
+        stream = io.BytesIO()
+        Image.fromarray(np.ascontiguousarray(pixels)).save(stream, format="PNG", exif=exif)
+        passes.append(frames_to_sequence([("xmas-image4.png", stream.getvalue())], fov_deg=frame.fov_deg))
+    as_it_is, turned = passes
+    assert ImageOps.exif_transpose(Image.open(io.BytesIO(stream.getvalue()))).size == (frame.width, frame.height)
+    (first,), (second,) = as_it_is.sequence.snapshots, turned.sequence.snapshots
+    assert np.allclose(first.xy, second.xy, atol=1e-3) and len(first.xy) >= 10
+    assert any("EXIF Orientation" in note for note in turned.sequence.extra["frames"].get("notes", []))
+    assert not as_it_is.sequence.extra["frames"].get("notes")
+    solutions = [solve_sequence(p.sequence, Sky()).solution for p in passes]
+    assert [s.status for s in solutions] == [IDENTIFIED, IDENTIFIED]
+    assert _separation_deg(solutions[0].candidates[0].radec_roll_deg[:2],
+                           solutions[1].candidates[0].radec_roll_deg[:2]) < 1e-6

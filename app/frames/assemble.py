@@ -256,7 +256,7 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
     if unknown:
         raise ImageError.at("sidecar.frames", f"names file(s) not given: {', '.join(unknown[:5])}")
     measured: list[_Measured] = []
-    zone_notes: list[str] = []
+    file_notes: list[str] = []
     first_meta: dict = {}
     size: tuple[int, int] | None = None
     pixels_total = 0
@@ -298,7 +298,9 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
             measured.append(_Measured(frame.location, short, frame.part, when, time_from, frame.width,
                                       frame.height, frame.bits, found, digest, binned=frame.binned))
             if frame.meta.get("time_note") and time_from == "file":
-                zone_notes.append(frame.meta["time_note"])
+                file_notes.append(frame.meta["time_note"])
+            if frame.meta.get("orientation_note"):
+                file_notes.append(frame.meta["orientation_note"])
     if deadline is not None and time.monotonic() > deadline:
         raise FramesTimeout(f"reading and detecting the frames took longer than {limits.timeout_s:g} s")
     untimed = [m for m in measured if m.time is None]
@@ -349,7 +351,7 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
                         "rejected": rejected})
     frames_sha = frames_content_sha256(sorted({m.sha256 for m in measured}))
     binned = [m for m in measured if m.binned > 1]  # one pass, one size: all frames or none
-    notes = ([binning_note(binned[0], len(binned), limits.max_pixels_per_frame)] if binned else []) + zone_notes
+    notes = ([binning_note(binned[0], len(binned), limits.max_pixels_per_frame)] if binned else []) + file_notes
     trailed = [m for m in measured if m.detections.smear is not None]
     if trailed:
         notes.append(trailed_note(trailed, len(measured)))

@@ -19,7 +19,11 @@ convention*, but cameras write their first read-out (top) row first and say
 so with ``ROWORDER = 'TOP-DOWN'``; a frame with ``ROWORDER = 'BOTTOM-UP'`` is
 flipped.  A missing ROWORDER is taken as TOP-DOWN (what star-camera capture
 software writes).  A mirrored frame is not a rotated sky: identification
-would fail, so this matters.
+would fail, so this matters.  A PNG, JPEG or TIFF whose EXIF (or TIFF) ``Orientation`` says
+how it is to be shown (a phone or camera held upright stores its image turned a quarter) is read as
+that upright image, as Pillow's ``ImageOps.exif_transpose`` shows it and as a gallery does: sources,
+previews and annotations are then in the picture the operator knows, and its width and height are the
+upright image's (a note says so).
 
 Why Pillow (not imageio): it is the library imageio itself uses for these
 formats, already installed with this project (viser -> imageio -> Pillow),
@@ -376,9 +380,45 @@ def _pillow_frames(raw: bytes, name: str, limits: FrameLimits) -> Iterator[Frame
             pixels, integer_values, bits, saturation = _pillow_pixels(image, binned, location)
             when, zone_note = exif_time(image, location)
             meta = {**exif_lens(image, width, height, location), **({"time_note": zone_note} if zone_note else {})}
+            orientation = _orientation(image)
+            if orientation != 1:
+                pixels, (width, height) = _upright(pixels, orientation, binned, (width, height))
+                meta["orientation_note"] = (f"{location}: turned upright as its EXIF Orientation ({orientation}) says; "
+                                            f"pixel positions are the upright image's")
             yield Frame(pixels=pixels, location=location, file=name, part=page if pages > 1 else None,
                         time=when, saturation=saturation, bits=bits, meta=meta, binned=binned,
                         stored_size=(width, height), integer_values=integer_values)
+
+
+#: EXIF and TIFF ``Orientation`` (tag 274): how the stored rows and columns become the upright image, as numpy
+#: operations on the stored array (row 0 at the top).  2, 4, 5 and 7 mirror; 6 and 8 are a phone or camera held
+#: upright (turned a quarter), 3 upside down.
+_ORIENT = {2: lambda a: a[:, ::-1], 3: lambda a: a[::-1, ::-1], 4: lambda a: a[::-1, :], 5: lambda a: a.T,
+           6: lambda a: np.rot90(a, -1), 7: lambda a: a[::-1, ::-1].T, 8: lambda a: np.rot90(a, 1)}
+ORIENTATION_TAG = 0x0112
+
+
+def _orientation(image) -> int:
+    """The image's EXIF or TIFF Orientation, 1 (as stored) when it has none or an unknown one."""
+    try:
+        value = int(image.getexif().get(ORIENTATION_TAG, 1))
+    except Exception:  # noqa: BLE001 - Pillow raises many kinds for a corrupt EXIF block
+        return 1
+    return value if value in _ORIENT else 1
+
+
+def _upright(pixels: np.ndarray, orientation: int, binned: int,
+             size: tuple[int, int]) -> tuple[np.ndarray, tuple[int, int]]:
+    """``pixels`` (the stored image's, or its ``binned`` blocks') as the upright image, and its (width, height).
+
+    Binned frames keep their whole blocks only (the last partial column and row of blocks would otherwise
+    land on the top or the left), and their size is that of the whole blocks."""
+    width, height = size
+    if binned > 1:
+        pixels = pixels[: height // binned, : width // binned]
+        width, height = width // binned * binned, height // binned * binned
+    turned = np.ascontiguousarray(_ORIENT[orientation](pixels))
+    return turned, ((height, width) if orientation >= 5 else (width, height))
 
 
 def _pillow_pixels(image, binned: int, location: str) -> tuple[np.ndarray, bool, int, float | None]:
@@ -513,6 +553,7 @@ def peek_frame(data: bytes, name: str) -> tuple[int, int, dict] | None:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             with Image.open(io.BytesIO(raw)) as image:
-                return int(image.size[0]), int(image.size[1]), {}
+                width, height = int(image.size[0]), int(image.size[1])
+                return (height, width, {}) if _orientation(image) >= 5 else (width, height, {})
     except Exception:  # noqa: BLE001 - a peek only; read_frames says what is wrong
         return None
