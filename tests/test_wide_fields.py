@@ -89,14 +89,23 @@ def test_a_wide_photographs_field_of_view_given_five_per_cent_short_is_searched_
     assert math.degrees(angle_between(solution.candidates[0].rotation_matrix[2], R[2])) < 0.02
 
 
+def _solve_photograph(tmp_path, sky, name: str, pixels: np.ndarray, true, rotation, fov_deg: float | None) -> dict:
+    """A rendered photograph saved as a JPEG and solved as the wide bench solves it (``fov_deg`` None: none given)."""
+    from app.bench.real import solve_ours
+    from app.bench.wide import jpeg, photographed_frame
+
+    path = tmp_path / f"{name}.jpg"
+    path.write_bytes(jpeg(pixels))
+    return solve_ours(photographed_frame(name, path, true, rotation), sky, fov_deg, tmp_path)
+
+
 def test_a_photograph_with_its_date_and_settings_stamped_on_it_is_identified(tmp_path, sky):
     """A camera's stamp across the top ("2024-08-12 23:14:07  ISO 1600  f/2.8  30 s", saturated white, 40 px
     high) and a caption in a corner: 26 to 32 of the 32 sources reported were their characters, and the
     60 deg photograph was no match.  The characters stand in rows and are no stars now."""
     from PIL import Image, ImageDraw, ImageFont
 
-    from app.bench.real import solve_ours
-    from app.bench.wide import jpeg, photograph, photographed_frame
+    from app.bench.wide import photograph
 
     pixels, true, rotation, _ = photograph(60.0, np.random.default_rng([1, 75, 60, 1]), milky_way=False)
     image = Image.fromarray(pixels)
@@ -104,43 +113,28 @@ def test_a_photograph_with_its_date_and_settings_stamped_on_it_is_identified(tmp
     font = ImageFont.load_default(size=40)
     draw.text((60, 60), "2024-08-12 23:14:07  ISO 1600  f/2.8  30 s", fill=255, font=font)
     draw.text((2200, 1900), "(c) J. Smith", fill=230, font=font)
-    path = tmp_path / "stamped.jpg"
-    path.write_bytes(jpeg(np.asarray(image)))
-    frame = photographed_frame("stamped", path, true, rotation)
-    answer = solve_ours(frame, sky, None, tmp_path)
+    answer = _solve_photograph(tmp_path, sky, "stamped", np.asarray(image), true, rotation, None)
     assert answer["status"] == IDENTIFIED, answer["notes"]
     assert answer["error_deg"] < 0.02
 
 
-def test_a_photograph_of_the_milky_way_over_a_treeline_is_identified(tmp_path, sky):
-    """The Milky Way (52 DN at its middle, its clouds +-40 %) down to a ragged treeline under a town's glow,
-    40 deg: where the bright sky meets the trees it leaves knots and spikes whose rings are half sky, half
-    trees.  Their median is the sky's, so they passed as stars: 21 of the 32 sources reported, and the
-    photograph was no match.  Their rings' quartiles span the step, and they are set aside now."""
-    from app.bench.real import solve_ours
-    from app.bench.wide import jpeg, photograph, photographed_frame
+@pytest.mark.parametrize("fov_deg, seed, options, said", [
+    (40.0, [1, 74, 40, 4], {}, "a Milky Way"),
+    (60.0, [1, 76, 60, 2], {"milky_way": False, "sky_limit_hp": 3.5}, "stars to Hp 3.5"),
+], ids=["milky-way", "towns-sky"])
+def test_a_photograph_over_a_treeline_is_identified(tmp_path, sky, fov_deg, seed, options, said):
+    """Where a bright sky meets trees the mesh's level lies between the two, and the edge stood up as stars:
 
-    pixels, true, rotation, described = photograph(40.0, np.random.default_rng([1, 74, 40, 4]))
-    assert "Milky Way" in described and "landscape" in described
-    path = tmp_path / "milky-way.jpg"
-    path.write_bytes(jpeg(pixels))
-    answer = solve_ours(photographed_frame("milky-way", path, true, rotation), sky, float(true.fov_deg[0]), tmp_path)
-    assert answer["status"] == IDENTIFIED, answer["notes"]
-    assert answer["error_deg"] < 0.02
+    * the Milky Way (52 DN at its middle, its clouds +-40 %) setting behind a ragged treeline, 40 deg: knots
+      and spikes whose rings are part sky, part trees, their median the sky's: 21 of the 32 sources
+      reported, and no match.  Their rings' quartiles span the step: uneven, set aside;
+    * a town's sky (stars to Hp 3.5, 8 of them found) over trees, 60 deg: the sky between the branches, 8
+      blobs reported after the stars, broke the pattern's triangles (no match).  Their apertures take in the
+      dark beside them: no light above the sky (``no_flux``)."""
+    from app.bench.wide import photograph
 
-
-def test_a_photograph_of_a_towns_sky_over_a_treeline_is_identified(tmp_path, sky):
-    """60 deg of a town's sky, stars to Hp 3.5 (8 of them found), over trees: the sky between the branches
-    stood above the level the mesh puts at the treeline, and 8 blobs along it were reported after the stars,
-    breaking the pattern's triangles (no match).  Their apertures hold no light above the sky (``no_flux``)."""
-    from app.bench.real import solve_ours
-    from app.bench.wide import jpeg, photograph, photographed_frame
-
-    pixels, true, rotation, described = photograph(60.0, np.random.default_rng([1, 76, 60, 2]), milky_way=False,
-                                                   sky_limit_hp=3.5)
-    assert "Hp 3.5" in described and "landscape" in described
-    path = tmp_path / "town.jpg"
-    path.write_bytes(jpeg(pixels))
-    answer = solve_ours(photographed_frame("town", path, true, rotation), sky, float(true.fov_deg[0]), tmp_path)
+    pixels, true, rotation, described = photograph(fov_deg, np.random.default_rng(seed), **options)
+    assert said in described and "landscape" in described
+    answer = _solve_photograph(tmp_path, sky, "treeline", pixels, true, rotation, float(true.fov_deg[0]))
     assert answer["status"] == IDENTIFIED, answer["notes"]
     assert answer["error_deg"] < 0.02

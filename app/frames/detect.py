@@ -810,8 +810,9 @@ def _on_structure(objects, sub: np.ndarray, peak: np.ndarray, noise: np.ndarray,
     if enough.any():
         lower, level[enough], upper = np.nanpercentile(ring[enough], [25.0, 50.0, 75.0], axis=1)
         spread[enough] = upper - lower
-    return (level > np.maximum(RING_SIGMA * noise, RING_FRACTION * peak)) | (
-        spread > np.maximum(np.maximum(RING_SPREAD_SIGMA * noise, RING_SPREAD_FRACTION * peak), RING_SPREAD_QUANTA * quantum))
+    uneven = np.maximum(np.maximum(RING_SPREAD_SIGMA * noise, RING_SPREAD_FRACTION * peak),
+                        RING_SPREAD_QUANTA * quantum)
+    return (level > np.maximum(RING_SIGMA * noise, RING_FRACTION * peak)) | (spread > uneven)
 
 
 def _in_rows(objects) -> np.ndarray:
