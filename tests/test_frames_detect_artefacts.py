@@ -183,6 +183,24 @@ def test_the_sky_between_a_treelines_branches_makes_no_stars(seed):
     assert np.mean(_nearest(found.xy[found.is_star], clear) < 1.0) >= 0.9
 
 
+def test_a_faint_fields_psf_is_measured_on_its_stars_and_its_knots_are_no_stars():
+    """25 stars of peaks 8 to 14 sigma and three knots of glow (sigma 4 px, 12 sigma): no star reaches the 15
+    sigma the PSF is measured at, so there was none, and the knots, too small to be extended by their pixel
+    count alone, were reported as stars.  At 6 sigma the stars give the PSF (2 pi (sigma^2 + 1/12), within
+    noise), and the knots' effective areas are 9 times it: extended."""
+    rng = np.random.default_rng(17)
+    sky = (100.0 + rng.normal(0.0, 5.0, (HEIGHT, WIDTH))).astype(np.float32)
+    xy = np.column_stack([rng.uniform(30, WIDTH - 30, 25), rng.uniform(30, HEIGHT - 30, 25)])
+    area = 2 * np.pi * (PSF_SIGMA ** 2 + 1 / 12)
+    frame = _with_stars(sky, xy, rng.uniform(40.0, 70.0, 25) * area)
+    add_point_sources(frame, np.array([[150.0, 150.0], [400.0, 500.0], [650.0, 120.0]]), [2 * np.pi * 16 * 60] * 3,
+                      4.0)
+    found = detect(frame)
+    assert found.psf is not None and found.psf.area_px == pytest.approx(area, rel=0.2)
+    n_found, false = _score(found, xy)
+    assert n_found == len(xy) and len(false) == 0, false
+
+
 def test_a_strong_gradient_with_its_own_noise_makes_no_stars():
     """Sky from 100 to 2,400 across the frame, vignetted, its noise the square root of the level (10 to 45):
     every star with a peak 10 times the noise under it is found, none is made up."""

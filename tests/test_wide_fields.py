@@ -121,7 +121,8 @@ def test_a_photograph_with_its_date_and_settings_stamped_on_it_is_identified(tmp
 @pytest.mark.parametrize("fov_deg, seed, options, said", [
     (40.0, [1, 74, 40, 4], {}, "a Milky Way"),
     (60.0, [1, 76, 60, 2], {"milky_way": False, "sky_limit_hp": 3.5}, "stars to Hp 3.5"),
-], ids=["milky-way", "towns-sky"])
+    (90.0, [1, 74, 90, 1], {}, "a Milky Way"),
+], ids=["milky-way", "towns-sky", "milky-way-and-glow"])
 def test_a_photograph_over_a_treeline_is_identified(tmp_path, sky, fov_deg, seed, options, said):
     """Where a bright sky meets trees the mesh's level lies between the two, and the edge stood up as stars:
 
@@ -130,7 +131,11 @@ def test_a_photograph_over_a_treeline_is_identified(tmp_path, sky, fov_deg, seed
       reported, and no match.  Their rings' quartiles span the step: uneven, set aside;
     * a town's sky (stars to Hp 3.5, 8 of them found) over trees, 60 deg: the sky between the branches, 8
       blobs reported after the stars, broke the pattern's triangles (no match).  Their apertures take in the
-      dark beside them: no light above the sky (``no_flux``)."""
+      dark beside them: no light above the sky (``no_flux``);
+    * the Milky Way over a town's glow at 90 deg: a star and two knots of the glow were the only candidates
+      bright enough to measure the PSF on, and it came out 1,900 px^2, which made the clouds' knots
+      star-sized and the apertures 50 px wide (no match).  Candidates whose areas do not agree within a
+      factor of 10 make no PSF; the frame's stars at 6 sigma make one."""
     from app.bench.wide import photograph
 
     pixels, true, rotation, described = photograph(fov_deg, np.random.default_rng(seed), **options)

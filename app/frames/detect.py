@@ -95,10 +95,16 @@ SEP_PIXSTACK_LARGE = 4_000_000
 #: The PSF is measured on blobs whose peak is at least this many sigma high (their effective area is
 #: then known to a few per cent) ...
 PSF_PEAK_SIGMA = 15.0
+#: ... or this many, when fewer than :data:`PSF_MIN_STARS` reach that: the noise then moves a star's effective
+#: area by about 30 %, well within the factor :data:`EXTENDED_AREA_RATIO` the PSF is used with.
+PSF_FALLBACK_SIGMA = 6.0
 #: ... from at least this many of them (fewer: the fixed limits of the options alone) ...
 PSF_MIN_STARS = 3
 #: ... and at most this many, the brightest.
 PSF_MAX_STARS = 50
+#: ... whose effective areas agree within this factor (the smallest and largest, a tenth of them set aside at
+#: each end): a frame's stars share one PSF; the candidates of the real frames agree within 4.
+PSF_AGREEMENT = 10.0
 #: A blob is extended when its effective area exceeds the PSF's this many times (a Gaussian 1.7 times
 #: wider; noise moves a 15-sigma star's area by ~10 %, a 5-sigma one's by ~40 %).
 EXTENDED_AREA_RATIO = 3.0
@@ -289,7 +295,7 @@ def detect(pixels: np.ndarray, options: DetectionOptions = DetectionOptions(), *
         # into, elongated only beyond the stars' own a / b, and never cut again (below).
         options = replace(options, max_elongation=max(options.max_elongation, PSF_ELONGATION_FACTOR * smear))
         objects = _brightest(_extract(sep, sub, sky.noise, options, deblend=False), options.max_candidates)
-    psf = _measure_psf(objects, sub, sky, saturation, raw, options)
+    psf = _measure_psf(objects, sub, sky, saturation, raw, options, fallback=smear is None)
     measured = sub
     if smear is None:  # a trailed frame's PSF is no model of a satellite's trail, nor a sharp star's
         objects = _split_blends(sep, sub, sky.median_pixel_noise, objects, options, psf)
@@ -706,10 +712,13 @@ def _effective_area(objects, peak: np.ndarray, noise: np.ndarray) -> np.ndarray:
 
 
 def _measure_psf(objects, sub: np.ndarray, sky: _Sky, saturation: float | None, raw: np.ndarray,
-                 options: DetectionOptions) -> PointSpread | None:
+                 options: DetectionOptions, *, fallback: bool = True) -> PointSpread | None:
     """The frame's PSF from its best star-like blobs, None when fewer than :data:`PSF_MIN_STARS`.
 
-    Candidates: peak at least :data:`PSF_PEAK_SIGMA` sigma, at least ``min_area_for_shape_px``
+    Candidates: peak at least :data:`PSF_PEAK_SIGMA` sigma (:data:`PSF_FALLBACK_SIGMA` when that leaves no
+    PSF: a bright sky, the Milky Way's clouds inflating the noise, an 8-bit frame whose stars saturate
+    early; 6 of 7 Milky Way photographs of the wide bench looked at had none; not on a trailed frame, whose
+    fainter trails are shorter, and made the longer ones extended), at least ``min_area_for_shape_px``
     pixels and no more than a star's image covers at their own median effective area, unsaturated, not
     cut by the border, no other blob within four times its size, a / b
     below twice ``max_elongation`` (not a trail), and not one or two hot pixels: the second
@@ -717,20 +726,32 @@ def _measure_psf(objects, sub: np.ndarray, sky: _Sky, saturation: float | None, 
     more lights both neighbours on at least one axis; a pair of hot pixels, as bright as stars in
     uncooled sensors and as many, made a PSF of 2 px^2 that called every star extended).  Of the
     :data:`PSF_MAX_STARS` brightest, the median effective area and elongation.  Medians: a few
-    galaxies, knots of a comet or double stars among them do not move it.
+    galaxies, knots of a comet or double stars among them do not move it; but where the candidates
+    do not agree within :data:`PSF_AGREEMENT` they are not one PSF's stars, and there is none.
     """
     if len(objects) < PSF_MIN_STARS:
         return None
+    xpeak, ypeak, peak, noise = _peaks(objects, sub, sky)
+    elongation = objects["a"].astype(float) / np.maximum(objects["b"].astype(float), 1e-9)
+    shaped = ((objects["npix"] >= options.min_area_for_shape_px)
+              & (elongation < 2.0 * options.max_elongation) & ~_touches_border(objects, sub.shape)
+              & (_neighbours(sub, xpeak, ypeak)[:, 1] >= np.maximum(2.5 * noise, options.hot_neighbour_fraction * peak)))
+    if saturation is not None:
+        shaped &= _max_around(raw, xpeak, ypeak) < 0.995 * saturation
+    for sigma in (PSF_PEAK_SIGMA, PSF_FALLBACK_SIGMA) if fallback else (PSF_PEAK_SIGMA,):
+        psf = _psf_of(objects, shaped & (peak >= sigma * noise), peak, noise, elongation, options)
+        if psf is not None:
+            return psf
+    return None
+
+
+def _psf_of(objects, ok: np.ndarray, peak: np.ndarray, noise: np.ndarray, elongation: np.ndarray,
+            options: DetectionOptions) -> PointSpread | None:
+    """The PSF of the candidates ``ok`` (:func:`_measure_psf`): the isolated ones, no larger than a star's image
+    can be, agreeing; None when fewer than :data:`PSF_MIN_STARS` are left or they disagree."""
     from scipy.spatial import cKDTree
 
-    xpeak, ypeak, peak, noise = _peaks(objects, sub, sky)
-    a, b = objects["a"].astype(float), objects["b"].astype(float)
-    elongation = a / np.maximum(b, 1e-9)
-    ok = ((peak >= PSF_PEAK_SIGMA * noise) & (objects["npix"] >= options.min_area_for_shape_px)
-          & (elongation < 2.0 * options.max_elongation) & ~_touches_border(objects, sub.shape)
-          & (_neighbours(sub, xpeak, ypeak)[:, 1] >= np.maximum(2.5 * noise, options.hot_neighbour_fraction * peak)))
-    if saturation is not None:
-        ok &= _max_around(raw, xpeak, ypeak) < 0.995 * saturation
+    a = objects["a"].astype(float)
     if np.count_nonzero(ok) < PSF_MIN_STARS:
         return None
     xy = np.column_stack([objects["x"], objects["y"]])
@@ -748,6 +769,9 @@ def _measure_psf(objects, sub: np.ndarray, sky: _Sky, saturation: float | None, 
         return None
     best = candidates[np.argsort(-objects["flux"][candidates], kind="stable")[:PSF_MAX_STARS]]
     area = _effective_area(objects[best], peak[best], noise[best])
+    ordered, spared = np.sort(area), len(area) // 10
+    if ordered[-1 - spared] > PSF_AGREEMENT * max(ordered[spared], 1e-12):
+        return None  # unlike blobs (a star and two knots of a horizon's glow made a PSF of 1,900 px^2)
     return PointSpread(area_px=float(np.median(area)), elongation=float(np.median(elongation[best])),
                        stars=len(best))
 

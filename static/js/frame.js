@@ -20,7 +20,7 @@ const COLOURS = { rejected: "#ff922b", fainter: "#8b97a8", hot: "#f06595", untra
 // Why a blob is no source, as the operator reads it.
 const REASONS = {
   hot_pixel: "hot pixel (one sharp pixel)", mapped_hot_pixel: "on a mapped hot pixel", elongated: "elongated (a trail)",
-  extended: "extended (glare, Moon, limb)", not_brightest: "a star beyond the brightest reported", saturated: "saturated",
+  extended: "extended (glare, Moon, limb, a treeline's edge)", not_brightest: "a star beyond the brightest reported", saturated: "saturated",
   edge: "cut by the frame's edge", border: "at the frame's border, no whole star",
   row: "in a row (text, a treeline, lights)", no_flux: "no light above the sky in its aperture",
 };
