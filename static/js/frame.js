@@ -78,8 +78,10 @@ export class FrameView {
     api.get(`/api/sequences/${id}/frames`).then((doc) => {
       if (this.seqId !== id) return;
       this.frames = new Map(doc.frames.map((f) => [f.snapshot, f]));
-      this.note(doc.frames.length ? "" : "No frame images are kept of this sequence: its frames were uploaded before " +
-        "previews were kept.");
+      // What the reading said of the frames (turned upright, binned, trailed, a time zone), as plain text.
+      const said = (detail.telemetry.frames.notes || []).join(" ");
+      this.note(doc.frames.length ? said : "No frame images are kept of this sequence: its frames were uploaded " +
+        "before previews were kept.");
       this.resize();
       this.show(this.index);
     }).catch((err) => {

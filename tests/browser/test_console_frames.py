@@ -276,3 +276,34 @@ def test_a_frame_with_no_time_and_no_optics_is_stored_and_a_bad_field_of_view_is
     watched.screenshot("frames-07-fov-found")
     # The only console error allowed is Chromium's own report of the refused (422) request.
     assert [e for e in watched.errors if "status of 422" not in e] == []
+
+
+def test_a_photograph_stored_turned_is_shown_upright_and_the_frame_panel_says_so(server, api, new_page, tmp_path):
+    """A phone held upright stores its picture turned and says so in EXIF ``Orientation`` (6): the frame is read
+    upright, the panel shows it at the upright size, and says why (the notes of the frames' reading were
+    only among a search's notes)."""
+    import io
+
+    from PIL import Image
+
+    frames, _, _ = simulate_frames(np.random.default_rng(519), CAMERA, n_frames=1)
+    exif = Image.Exif()
+    exif[0x0112] = 6  # turn the stored image a quarter clockwise to see it
+    stream = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(np.rot90(frames[0].astype(np.uint16), 1))).save(stream, format="PNG",
+                                                                                           exif=exif)
+    r = httpx.post(server + "/api/frames", files=[("files", ("phone.png", stream.getvalue(), "image/png"))],
+                   data={"fov_deg": f"{CAMERA.fov_deg[0]:.3f}"}, timeout=120)
+    assert r.status_code == 201, r.text
+    seq_id = r.json()["id"]
+
+    watched = open_console(new_page, server)
+    page = watched.page
+    open_sequence(page, seq_id, "phone")
+    wait_for_frame(page, 0)
+    expect_text(page.locator("#frame-caption"), r"· 752×582 px")
+    expect_text(page.locator("#frame-note"), r"phone\.png: turned upright as its EXIF Orientation \(6\) says")
+    assert len(markers(page)) >= 10  # its stars, found in the upright picture
+    page.locator("#frame-card").scroll_into_view_if_needed()
+    watched.screenshot("frames-08-turned-upright")
+    assert watched.errors == []
