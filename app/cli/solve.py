@@ -130,7 +130,7 @@ def print_summary(doc) -> None:
     best = doc.candidates[0] if doc.candidates else None
     if best is not None and best.fov_deg is not None:
         print(f"  field of view: {best.fov_deg:.3f} deg (focal length {best.focal_length_px:.1f} px), "
-              "found from the stars")
+              "fitted to the stars (one given is where the search began)")
     if best is not None and best.centre_ra_deg is not None:  # the table's RA, Dec: the optical axis
         print(f"  image centre: RA {best.centre_ra_deg:.4f} deg, Dec {best.centre_dec_deg:+.4f} deg "
               "(the table's RA, Dec are the boresight's, the optical axis)")
