@@ -282,8 +282,7 @@ def detect(pixels: np.ndarray, options: DetectionOptions = DetectionOptions(), *
     data = replace_pixels(raw, hot_pixels or [])
     height, width = data.shape
     box = int(max(8, min(options.background_box_px, min(data.shape) // 2)))
-    quantum = _quantum(data)
-    sky = replace(_sky(data, box, _noise_floor(data, quantum)), quantum=quantum)
+    sky = _sky(data, box)
     sub = np.ascontiguousarray(data - sky.level, dtype=np.float32)
     still_hot = tuple((int(x), int(y)) for x, y in sorted(set(map(tuple, hot_pixels or [])))
                       if 0 <= x < width and 0 <= y < height
@@ -424,7 +423,7 @@ def _smooth(data: np.ndarray, step: int = 1) -> np.ndarray:
         * np.float32(1.0 / 16.0)
 
 
-def _sky(data: np.ndarray, box: int, floor: float) -> _Sky:
+def _sky(data: np.ndarray, box: int) -> _Sky:
     """Level and noise of the sky, from the filtered image in boxes of about ``box`` px.
 
     Per box, on the filtered image at every second pixel of every second row:
@@ -442,10 +441,13 @@ def _sky(data: np.ndarray, box: int, floor: float) -> _Sky:
       the noise.
 
     The meshes are median-filtered 3 x 3 (a box on a bright object takes its neighbours' level
-    and noise).  ``floor`` is the smallest noise per pixel believed (quantisation of integer data).
+    and noise).  The smallest noise per pixel believed is :func:`_noise_floor` (the quantisation of
+    integer data, :func:`_quantum`).
     """
     from scipy.ndimage import median_filter
 
+    quantum = _quantum(data)
+    floor = _noise_floor(data, quantum)
     height, width = data.shape
     ny, nx = max(1, round(height / box)), max(1, round(width / box))
     step = 2 if min(height // ny, width // nx) >= 16 else 1
@@ -470,7 +472,8 @@ def _sky(data: np.ndarray, box: int, floor: float) -> _Sky:
     noise = typical if noise_mesh.max() <= UNIFORM_NOISE_RATIO * noise_mesh.min() \
         else _interpolate_mesh(noise_mesh, (step * by, step * bx), (height, width))
     return _Sky(level=level, noise=noise, pixel_noise=noise / np.float32(FILTER_NOISE_GAIN),
-                median_level=float(np.median(level_mesh)), median_pixel_noise=typical / FILTER_NOISE_GAIN)
+                median_level=float(np.median(level_mesh)), median_pixel_noise=typical / FILTER_NOISE_GAIN,
+                quantum=quantum)
 
 
 def _core_sigma(filtered: np.ndarray, boxes) -> np.ndarray:
