@@ -33,7 +33,7 @@ cameras (cx = (width - 1)/2) is exactly the half-pixel shift.
 Ours runs in this process: one :class:`~app.identification.Sky`, and
 ``perf_counter`` around :func:`~app.identification.solve_sequence` only
 (extraction included; for 16-snapshot sequences also the sequence fit).
-One warm-up answer each (not counted) before the timed frames; the two are
+Warm-up answers each (not counted, :func:`warm_up_frames`) before the timed frames; the two are
 interleaved frame by frame, so a slow spell of the machine hits both.
 
 Rows: single snapshots (scenario "single") of the 20 deg 752 x 582 camera;
@@ -620,6 +620,24 @@ def _no_match_frame(rng, camera, kind: str):
             return replace(one, snapshots=(snapshot,))
 
 
+def warm_up_frames(camera, seed: int) -> list:
+    """One frame of each row's kind, none of them timed: a nominal sequence, a single snapshot, one seen 5 % long,
+    a sparse field's middle snapshot, 10 random points and the Earth in view.
+
+    Besides each process's first calls, a search pays once per install for what it keeps on disk at first use:
+    the bright triangles (~70 ms, the first frame whose first edge does not settle) and a cell map for each new
+    check radius (30-50 ms, :meth:`app.identification.Sky.near_star_cells`). The rows time a search as it runs
+    after that."""
+    from app.simulate import simulate_sequence, true_optics
+
+    rng = np.random.default_rng([seed, 16, 7])
+    nominal, _ = simulate_sequence(rng, camera, "nominal")
+    single, _ = simulate_sequence(rng, camera, "single")
+    long, _ = simulate_sequence(rng, camera, "single", true_camera=true_optics(camera, focal_error=FOCAL_ERROR))
+    sparse, _ = middle_snapshot(*simulate_sequence(rng, camera, "sparse"))
+    return [nominal, single, long, sparse, _no_match_frame(rng, camera, "noise"), _no_match_frame(rng, camera, "earth")]
+
+
 def run_no_match_row(sky, peer: RestartingPeer, label: str, kind: str, n: int, seed: int) -> dict:
     """``n`` frames in which no star is seen (:func:`_no_match_frame`), ours and the peer's interleaved:
     right = nothing claimed."""
@@ -762,12 +780,10 @@ def run(n_sequences: int = 100, seed: int = 1) -> dict:
         print(f"peer: skipped: {reason}", file=sys.stderr)
         return {"skipped": reason}
     try:
-        # Warm-up (not counted): both pay their first-call costs on a frame of their own.
-        from app.simulate import simulate_sequence
-
-        warm, _ = simulate_sequence(np.random.default_rng([seed, 16, 7]), camera, "nominal")
-        solve_sequence(warm, sky)
-        peer.solve(peer_request(warm.snapshots[len(warm.snapshots) // 2], camera))
+        # Warm-up (not counted): both pay their first-call costs on frames of their own, one of each row's kind.
+        for warm in warm_up_frames(camera, seed):
+            solve_sequence(warm, sky)
+            peer.solve(peer_request(warm.snapshots[len(warm.snapshots) // 2], camera))
         rows = [run_row(sky, peer, "single snapshot", "single", n_sequences, seed),
                 run_row(sky, peer, "single, focal length 5 % off", "single", n_sequences, seed,
                         focal_error=FOCAL_ERROR, fov_max_error=FOCAL_ERROR),
