@@ -171,3 +171,16 @@ def test_a_plain_frame_of_each_group_solves_with_no_time_and_no_field_of_view(sk
     assert out["fov_deg"] == pytest.approx(frame.fov_deg, rel=0.02)
     assert any("field of view was not given" in note for note in out["notes"])
     assert any("no time" in note for note in out["notes"])
+
+
+@pytest.mark.parametrize("factor", [1.05, 1 / 1.05])
+def test_a_narrow_frame_settled_by_its_seventh_edge_is_found_with_its_field_of_view_5_percent_off(sky, tmp_path,
+                                                                                                  factor):
+    """may8-gain40-img7: a 6 deg field whose brightest sources are not Hipparcos's brightest, identified by its
+    7th bright-pair edge at its true focal length. A field of view given by hand is known roughly (10 %), and the
+    focal lengths around it are searched with as many edges as it is first (was 3 there: no match 5 % off)."""
+    frame = real.load_frame(real.default_frames_dir() / "may8-gain40-img7.json")
+    out = real.solve_ours(frame, sky, frame.fov_deg * factor, tmp_path, time_from_reference=True)
+    assert out["status"] == "identified", out["notes"]
+    assert out["error_deg"] <= real.RIGHT_DEG
+    assert out["fov_deg"] == pytest.approx(frame.fov_deg, rel=0.01)

@@ -146,3 +146,29 @@ def test_random_points_are_no_match_from_fewer_hypotheses_and_the_notes_say_what
         declared_only = identify(noise, CAMERA, t, sky, options=dataclasses.replace(OPTIONS, search_focal_length=False))
         tried = lambda s: int(s.notes[0].split()[0]) - int(declared_only.notes[0].split()[0])  # noqa: E731
         assert before.status == NO_MATCH and 0 < tried(solution) < 0.6 * tried(before)
+
+
+def test_a_focal_length_known_roughly_has_its_neighbours_searched_as_far_as_itself_first(sky):
+    """A calibrated camera (a tolerance within DEFAULT_FOCAL_LENGTH_TOLERANCE) has the other focal lengths
+    searched with focal_search_features pattern edges; a focal length known only roughly (a field of view given
+    by hand: 10 % and more) with rough_focal_search_features, as many as the declared one gets first. The notes
+    of random points, which search everything there is, say how far each went."""
+    from app.camera import DEFAULT_FOCAL_LENGTH_TOLERANCE
+
+    rng = np.random.default_rng(7)
+    pattern, t, _ = _simulated(sky, 1, 0.0)
+    xy = np.column_stack([rng.uniform(0, CAMERA.width - 1, 10), rng.uniform(0, CAMERA.height - 1, 10)])
+    noise = dataclasses.replace(pattern, xy=xy, vectors=CAMERA.pixels_to_vectors(xy), sigma_px=np.full(10, 0.3),
+                                brightness=rng.uniform(50, 250, 10), track_ids=np.arange(10))
+    searched = {}
+    for tolerance in (DEFAULT_FOCAL_LENGTH_TOLERANCE, 0.12):
+        camera = dataclasses.replace(CAMERA, focal_length_tolerance=tolerance)
+        solution = identify(noise, camera, t, sky)
+        assert solution.status == NO_MATCH
+        steps = len(focal_lengths_to_try(camera, xy))
+        said = solution.notes[-1]
+        assert f"at the {steps - 1} other focal lengths within {tolerance:.1%}" in said
+        searched[tolerance] = int(said.split(", and its first ")[1].split()[0])
+    assert searched == {DEFAULT_FOCAL_LENGTH_TOLERANCE: OPTIONS.focal_search_features,
+                        0.12: OPTIONS.rough_focal_search_features}
+    assert OPTIONS.rough_focal_search_features == OPTIONS.declared_features_first > OPTIONS.focal_search_features
