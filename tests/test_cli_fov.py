@@ -165,3 +165,23 @@ def test_upload_sends_a_folder_of_frames_as_one_pass_with_its_sidecar(live_serve
     line, = capsys.readouterr().out.splitlines()
     assert line.startswith(f"{folder}: created id=1 sequence_id=png-pass")
     assert ctx.storage.get_sequence(1).n_snapshots == 3
+
+
+def test_solve_prints_no_empty_table_for_an_image_without_stars_and_says_why(tmp_path, session_sky, capsys):
+    """An overcast frame (noise only): the text answer says there is no candidate, instead of a table header with
+    nothing under it, and the note says nothing stood out of the sky."""
+    import io
+
+    from PIL import Image
+
+    out = io.BytesIO()
+    Image.fromarray((40 + np.random.default_rng(4).normal(0, 2, (300, 400))).astype(np.uint8)).save(out, "PNG")
+    path = tmp_path / "overcast.png"
+    path.write_bytes(out.getvalue())
+    assert cli_main(["solve", "--fov-deg", "20", str(path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == f"{path}: overcast  no_match  (attitudes at snapshot 0, the reference)"
+    assert lines[1] == "  no candidate (the notes say why)"
+    assert not any("RA deg" in line for line in lines)
+    assert ("  note: overcast.png: no star-like source (nothing stands out of the sky's noise); a pattern needs at "
+            "least 3") in lines

@@ -121,3 +121,43 @@ def test_the_command_line_solves_fits_files_and_folders_and_says_invalid_for_bad
     assert docs[3]["error"].startswith(f"{bad_folder}: invalid image: sidecar.frames[0].time")
     extract = _cli("extract", "--json", str(tmp_path / "fits-pass.fits"))
     assert extract.returncode == 0 and json.loads(extract.stdout)["status"] == "ok"
+
+
+def test_a_frame_with_too_few_star_like_sources_says_what_it_saw_and_why_they_were_set_aside():
+    """An overcast sky (nothing stands out of its noise) and two broad glows with one hot pixel (detected, and set
+    aside as extended and as a hot pixel): the frames block says so in words an operator reads as "nothing like a
+    star here", beside the search's "the pattern has 0 point(s)"; a frame with stars says nothing of the kind."""
+    import io
+    import re
+
+    from PIL import Image
+
+    def png(pixels) -> bytes:
+        out = io.BytesIO()
+        Image.fromarray(np.clip(pixels, 0, 255).astype(np.uint8)).save(out, format="PNG")
+        return out.getvalue()
+
+    y, x = np.mgrid[0:300, 0:400]
+    rng = np.random.default_rng(3)
+    overcast = 40.0 + rng.normal(0, 2, x.shape)
+    glows = 20.0 + rng.normal(0, 2, x.shape)
+    for cx, cy in ((100, 150), (280, 100)):
+        glows += 150 * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * 25.0 ** 2))
+    glows[60, 60] = 250  # one pixel alone: a hot pixel
+
+    def notes(name, pixels):
+        sequence = frames_to_sequence([(name, png(pixels))], fov_deg=20.0).sequence
+        assert sequence.snapshots[0].n_sources == 0
+        return [n for n in sequence.extra["frames"].get("notes", []) if "star-like" in n]
+
+    assert notes("overcast.png", overcast) == [
+        "overcast.png: no star-like source (nothing stands out of the sky's noise); a pattern needs at least 3"]
+    (said,) = notes("glows.png", glows)
+    found = re.fullmatch(r"glows\.png: no star-like source \((\d+) blob\(s\) detected, set aside as extended \((\d+)\), "
+                         r"hot_pixel \(1\)\); a pattern needs at least 3", said)
+    assert found, said
+    blobs, extended = int(found[1]), int(found[2])
+    assert blobs >= 3 and extended == blobs - 1  # each glow one blob or more, every one set aside
+    starry = frames_to_sequence([("stars.png", frame_png_bytes(simulate_frames(np.random.default_rng(5), CAMERA,
+                                                                                n_frames=1)[0][0]))], fov_deg=20.0)
+    assert not [n for n in starry.sequence.extra["frames"].get("notes", []) if "star-like" in n]

@@ -124,9 +124,12 @@ def print_summary(doc) -> None:
     if doc.error:
         print(indented_error(doc))
         return
-    print(f"  {'rank':>4} {'RA deg':>10} {'Dec deg':>9} {'roll deg':>9} {'matched':>7} {'rms as':>7} "
-          f"{'dev px/pt':>9} {'P(false)':>9}  stars")
-    _print_candidates(doc.candidates)
+    if doc.candidates:
+        print(f"  {'rank':>4} {'RA deg':>10} {'Dec deg':>9} {'roll deg':>9} {'matched':>7} {'rms as':>7} "
+              f"{'dev px/pt':>9} {'P(false)':>9}  stars")
+        _print_candidates(doc.candidates)
+    else:
+        print("  no candidate (the notes say why)")
     best = doc.candidates[0] if doc.candidates else None
     if best is not None and best.fov_deg is not None:
         print(f"  field of view: {best.fov_deg:.3f} deg (focal length {best.focal_length_px:.1f} px), "

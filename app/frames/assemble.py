@@ -30,6 +30,7 @@ import json
 import math
 import re
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from datetime import datetime
 
@@ -63,6 +64,8 @@ FOV_BOUNDS_DEG = (0.1, 120.0)
 UNKNOWN_OPTICS_NOMINAL_FOV_DEG = 20.0
 #: Rejected blobs listed per frame in the ``frames`` block (the brightest).
 MAX_REJECTED_LISTED = 32
+#: The fewest sources a frame must keep to make a pattern (:func:`app.identification.identify` needs 3).
+MIN_PATTERN_SOURCES = 3
 _SIDECAR_KEYS = ("format", "sequence_id", "spacecraft", "camera", "fov_deg", "frames", "max_sources",
                  "threshold_sigma", "velocity_km_s")
 _SIDECAR_FRAME_KEYS = ("file", "time", "part")
@@ -355,6 +358,9 @@ def frames_to_sequence(files: list[tuple[str, bytes]], *, sidecar: Sidecar | Non
     trailed = [m for m in measured if m.detections.smear is not None]
     if trailed:
         notes.append(trailed_note(trailed, len(measured)))
+    few = [(m, r) for m, r in zip(measured, reports) if r["kept"] < MIN_PATTERN_SOURCES]
+    if few:
+        notes.append(few_sources_note(*few[0], len(few)))
     import sep
 
     doc = {
@@ -391,6 +397,23 @@ def trailed_note(trailed: list[_Measured], count: int) -> str:
     elongation = float(np.median([m.detections.smear for m in trailed]))
     return (f"{where}: the stars are trailed (a / b {elongation:.1f}: a fixed camera under the turning sky, or a "
             "camera turning during the exposure); each is detected whole, at its middle (the mid-exposure place)")
+
+
+def few_sources_note(first: _Measured, report: dict, count: int) -> str:
+    """What the frames block says of frames that kept fewer star-like sources than a pattern needs (``count`` of
+    them, ``first`` with its ``report``): how many were detected and why the rest were set aside, so that an
+    operator reads "nothing like a star here" rather than a pattern too small."""
+    where = first.frame_location + (f" and {count - 1} other frame(s)" if count > 1 else "")
+    reasons = Counter(flag for flags in first.detections.flags for flag in flags if flag in REJECTING_FLAGS)
+    kept = report["kept"]
+    found = "no star-like source" if kept == 0 else f"{kept} star-like source{'s' * (kept != 1)}"
+    if not report["detected"]:
+        seen = "nothing stands out of the sky's noise"
+    else:
+        seen = (f"{report['detected']} blob(s) detected"
+                + (", set aside as " + ", ".join(f"{reason} ({n})" for reason, n in reasons.most_common())
+                   if reasons else ""))
+    return f"{where}: {found} ({seen}); a pattern needs at least {MIN_PATTERN_SOURCES}"
 
 
 def binning_note(first: _Measured, count: int, budget: int) -> str:
