@@ -66,6 +66,28 @@ def test_422_invalid_telemetry_has_located_problems(env, sample_dir):
     _error(client.post("/api/sequences", files={"other": (None, "text")}), 422)
 
 
+def test_422_an_image_or_no_body_sent_as_telemetry_is_said_to_be_one(env):
+    """A PNG (or FITS) posted to the telemetry endpoint is named an image, with where images go (it read as
+    'not valid UTF-8 text: byte 0x89 at offset 0'); a POST without any body is said to have none (it read as 'the
+    file is empty'); an empty file sent as a file is still 'the file is empty'."""
+    client, _ = env
+    png = b"\x89PNG\r\n\x1a\n" + bytes(64)
+    for r in (client.post("/api/sequences", files={"file": ("sky.png", png, "image/png")}),
+              client.post("/api/sequences", content=b"SIMPLE  =                    T" + bytes(50),
+                          headers={"Content-Type": "text/plain"})):
+        doc = _error(r, 422)
+        assert "an image (FITS, PNG, JPEG or TIFF), not telemetry: send images to POST /api/frames" in doc["detail"]
+        assert doc["problems"] == [{"location": "body.file",
+                                    "message": "an image, not telemetry: send it to POST /api/frames"}]
+    assert _error(client.post("/api/sequences", files={"file": ("sky.png", png, "image/png")}), 422)[
+        "detail"].startswith("sky.png: an image")
+    doc = _error(client.post("/api/sequences"), 422)
+    assert doc["detail"].startswith("the request has no body") and doc["problems"] == [
+        {"location": "body", "message": "no body"}]
+    doc = _error(client.post("/api/sequences", content=b"", headers={"Content-Type": "application/json"}), 422)
+    assert "the file is empty" in doc["detail"]
+
+
 def test_415_unsupported_media_type(env):
     client, _ = env
     _error(client.post("/api/sequences", content=b"<xml/>", headers={"Content-Type": "application/xml"}), 415)

@@ -14,6 +14,7 @@ from app.api.routes.common import (ID_LIMITS, attachment, compute_within, get_co
                                    read_body_limited, replay_request, search_after_answer, too_large, work_deadline,
                                    writer)
 from app.api.schemas import ConfirmRequest, PatternEdit, PatternReset, SearchRequest, ShortText
+from app.frames import looks_like_image
 from app.storage import SEQUENCE_ORDERS
 from app.workflow import AppContext, archive, confirm as confirming, queue, search as searching
 from app.workflow.documents import (AttitudeDocument, CandidateView, PatternDocument, SearchDocument, SequenceDetail,
@@ -66,7 +67,23 @@ async def _upload_bytes(request: Request, limit: int) -> tuple[bytes, str | None
     if media_type and media_type not in RAW_TYPES:
         raise ApiError(415, f"unsupported media type {media_type!r}: send multipart/form-data with a 'file' "
                             f"field, or the file itself as application/json, text/csv or text/plain")
-    return await read_body_limited(request, limit), None
+    data = await read_body_limited(request, limit)
+    if not data and not media_type:  # not an empty file: no file at all
+        raise ApiError(422, "the request has no body: send the telemetry as the multipart 'file' field, or the file "
+                            "itself as the body (application/json, text/csv or text/plain)",
+                       problems=[{"location": "body", "message": "no body"}])
+    return data, None
+
+
+def _refuse_an_image(data: bytes, name: str | None) -> None:
+    """An image sent as telemetry is said to be one, with where images go (its bytes read as text said only
+    'not valid UTF-8 text: byte 0x89 at offset 0')."""
+    if looks_like_image("", data[:16]):
+        where = f"{name}: " if name else ""
+        raise ApiError(422, f"{where}an image (FITS, PNG, JPEG or TIFF), not telemetry: send images to "
+                            "POST /api/frames, which finds the stars in them",
+                       problems=[{"location": "body.file", "message": "an image, not telemetry: send it to "
+                                                                       "POST /api/frames"}])
 
 
 @router.post("", status_code=201, openapi_extra=_UPLOAD_BODY, response_model=UploadDocument,
@@ -80,6 +97,7 @@ async def upload(request: Request, background: BackgroundTasks,
     data, form_name = await _upload_bytes(request, ctx.settings.max_upload_bytes)
     deadline = work_deadline(ctx)  # the time-out runs from here, as a search's does
     name, lane = archive.clean_filename(form_name or filename), archive.parse_lane(data)
+    _refuse_an_image(data, name)
     if lane is None:
         upload = await run_in_threadpool(archive.parse_upload, ctx, data, name)
     else:  # a large file is validated in a worker: its parsing holds none of the server's threads
