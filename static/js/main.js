@@ -536,7 +536,10 @@ function replacedBy(searchId) {
 function announceChange(what) {
   const notice = $("change-notice");
   notice.hidden = false;   // shown first: a live region's new words are read only when it is shown
-  $("change-notice-text").textContent = `Changed by another console: ${what}.`;
+  // It lies over the header card and so hides the sequence's name: it says whose it is.
+  const d = state.detail;
+  const whose = d ? ` on ${d.sequence_id || d.filename || "sequence"} (#${d.id})` : "";
+  $("change-notice-text").textContent = `Changed by another console${whose}: ${what}.`;
   cancelSteps();
   $("comment").value = "";   // it was about what was shown before, as the closed step's reason was
 }

@@ -391,6 +391,9 @@ def test_a_confirmation_refused_for_a_replaced_search_shows_the_new_search_whole
     n_new = len(second["candidates"])
     expect_text(page.locator("#cand-rank"), f"rank 1 of {n_new}")
     expect_text(page.locator("#change-notice"), f"a new search \\(#{second['search_id']}\\) replaced the candidates")
+    # It lies over the header card, hiding the sequence's name: it names the sequence itself.
+    expect_text(page.locator("#change-notice"), f"Changed by another console on 10-narrow-12deg-ghosts-replaced "
+                                                f"\\(#{seq_id}\\): a new search")
     # The notice belongs at the top of the workspace, the Confirm step further down: it is held in view, under the
     # top bar (the page is not scrolled up to it).
     expect_in_viewport(page.locator("#change-notice"))
@@ -519,10 +522,11 @@ def test_a_change_notice_moves_nothing_the_operator_clicks(server, api, new_page
     expect_in_viewport(notice)
     box = notice.bounding_box()
     assert box["y"] >= topbar["y"] + topbar["height"]   # held just under the top bar, not under it
-    # ... and as tall as its words (one line here), not the header card's height, over whatever is there.
+    # ... and as tall as its words (one or two lines here, with the sequence's name), not the header card's height,
+    # over whatever is there.
     lines = notice.evaluate("e => { const s = getComputedStyle(e); return (e.clientHeight - parseFloat(s.paddingTop)"
                             " - parseFloat(s.paddingBottom)) / parseFloat(s.lineHeight); }")
-    assert lines < 1.5, f"held over the page, the notice is {lines:.1f} lines high"
+    assert lines < 2.5 and abs(lines - round(lines)) < 0.2, f"held over the page, the notice is {lines:.1f} lines high"
     for sel in ("#cand-prev", "#cand-next", "#confirm", "#reject-open"):
         assert not boxes_overlap(box, page.locator(sel).bounding_box()), f"the notice lies over {sel}"
     watched.screenshot(f"19-change-notice-scrolled-{width}")
