@@ -104,6 +104,12 @@ def test_apm_parses_and_its_quaternion_is_the_candidate_rotation(confirmed, name
     assert _rotation_angle_deg(M, truth["rotation_matrices"][ref]) < 0.05
     # The other direction of the quaternion would be a different attitude: the check above discriminates.
     assert _rotation_angle_deg(M.T, truth["rotation_matrices"][ref]) > 1.0
+    # Its quality in the reader's terms: the matched stars and their RMS residual; the seed's deviation is named a
+    # sum over the pattern's points (read alone, "deviation 1388 arcsec" looked like a pointing error).
+    best = search["candidates"][0]
+    comments = " ".join(line[len("COMMENT "):] for line in apm_text.splitlines() if line.startswith("COMMENT "))
+    assert (f"{best['n_matched']} stars matched, residual {best['rms_arcsec']:.1f} arcsec RMS; deviation "
+            f"{best['deviation_arcsec']} arcsec summed over the pattern's points") in comments
 
 
 @pytest.mark.parametrize("name", SAMPLES)

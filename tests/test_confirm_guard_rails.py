@@ -110,6 +110,11 @@ def test_a_non_credible_candidate_needs_a_reason_and_keeps_it(env):
     # Comments are wrapped between words at the KVN line length: read them back as one text.
     comments = " ".join(line[len("COMMENT "):] for line in apm.splitlines() if line.startswith("COMMENT "))
     assert "operator override" in comments and reason in comments
+    # ... and so do the AEM (the bulk export's segments are its text) and the ACM: whoever reads one alone sees it.
+    for url in (stored["aem_url"], stored["apm_url"].replace("/apm", "/acm")):
+        text = client.get(url).text
+        said = " ".join(line[len("COMMENT "):] for line in text.splitlines() if line.strip().startswith("COMMENT "))
+        assert "operator override" in said and reason in said, url
     assert _attitude_count(client) == before + 1
     audit = client.get(f"/api/sequences/{sid}/review").json()["audit"]
     assert [(e["kind"], e["id"], e["reason"], e["current"]) for e in audit] == [("confirmed", stored["id"], reason, True)]

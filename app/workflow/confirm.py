@@ -76,20 +76,32 @@ def _uncertainty_comments(candidate: CandidateDocument) -> list[str]:
     return out
 
 
+def _quality(candidate: CandidateDocument) -> str:
+    """A candidate's quality in a message's reader's terms: the matched stars and their RMS residual, and the
+    seed's deviation named a sum over the pattern (read alone, "deviation 1388 arcsec" looked like a pointing
+    error)."""
+    rms = "" if candidate.rms_arcsec is None else f"{candidate.rms_arcsec:.1f} arcsec RMS; "
+    return (f"{candidate.n_matched} stars matched, residual {rms}deviation {candidate.deviation_arcsec} arcsec summed "
+            f"over the pattern's points (the seed's measure, not a pointing error), false-match probability "
+            f"{candidate.false_match_probability}")
+
+
+def _verdict_comments(override_reason: str | None, overridden: list[str] | None, comment: str | None) -> list[str]:
+    """Why an operator confirmed a candidate that was not the credible best, and their comment: every message of a
+    confirmation carries them, so that whoever reads one alone sees it."""
+    return ([f"Confirmed by operator override ({'; '.join(overridden)}): {override_reason}"] if overridden else []) \
+        + ([f"Operator comment: {comment}"] if comment else [])
+
+
 def render_apm(row: SequenceRow, candidate: CandidateDocument, epoch: datetime, operator: str,
                confirmed_at: datetime, comment: str | None, override_reason: str | None = None,
                overridden: list[str] | None = None, time_assumed: bool = False) -> str:
     name, object_id = _object_names(row)
     comments = [*([TIME_ASSUMED_COMMENT] if time_assumed else []), f"Star pattern identification of sequence {object_id} (archive id {row.id}), "
                 f"candidate rank {candidate.rank}",
-                f"Confirmed by {operator}; deviation {candidate.deviation_arcsec} arcsec, "
-                f"false-match probability {candidate.false_match_probability}",
-                *_uncertainty_comments(candidate), CAMERA_FRAME_COMMENT]
-    if overridden:
-        # Whoever reads the APM alone must see that this attitude was not the credible best.
-        comments.append(f"Confirmed by operator override ({'; '.join(overridden)}): {override_reason}")
-    if comment:
-        comments.append(f"Operator comment: {comment}")
+                f"Confirmed by {operator}; {_quality(candidate)}",
+                *_uncertainty_comments(candidate), CAMERA_FRAME_COMMENT,
+                *_verdict_comments(override_reason, overridden, comment)]
     return apm_kvn(epoch=epoch, quaternion_xyzw=candidate.unit_quaternion, originator=ORIGINATOR,
                    object_name=name, object_id=object_id, comments=comments, creation_date=confirmed_at)
 
@@ -117,7 +129,8 @@ def attitude_per_snapshot(item: LoadedSequence, candidate: CandidateDocument) ->
 
 
 def render_aem(row: SequenceRow, item: LoadedSequence, candidate: CandidateDocument, operator: str,
-               confirmed_at: datetime) -> str | None:
+               confirmed_at: datetime, comment: str | None = None, override_reason: str | None = None,
+               overridden: list[str] | None = None) -> str | None:
     times, rotations = attitude_per_snapshot(item, candidate)
     if not times:
         return None
@@ -125,7 +138,8 @@ def render_aem(row: SequenceRow, item: LoadedSequence, candidate: CandidateDocum
     return aem_kvn(epochs=times, quaternions_xyzw=[quaternion_from_rotation(R) for R in rotations],
                    originator=ORIGINATOR, object_name=name, object_id=object_id, creation_date=confirmed_at,
                    comments=[*_time_comments(item.sequence), f"Attitude of each snapshot of sequence {object_id} (archive id {row.id}) from "
-                             f"candidate rank {candidate.rank} confirmed by {operator}", CAMERA_FRAME_COMMENT])
+                             f"candidate rank {candidate.rank} confirmed by {operator}", CAMERA_FRAME_COMMENT,
+                             *_verdict_comments(override_reason, overridden, comment)])
 
 
 def render_acm(row: SequenceRow, item: LoadedSequence, candidate: CandidateDocument, *, epoch: datetime,
@@ -156,18 +170,14 @@ def render_acm(row: SequenceRow, item: LoadedSequence, candidate: CandidateDocum
         source="GROUND STAR PATTERN IDENTIFICATION", number_states=7 if fit is not None else 4,
         cov_type="ANGLE" if covariance is not None else None, rate_states="ANGVEL" if fit is not None else None,
         sensors=(sensor,),
-        comments=(f"Identified by {method} (search {search_id}, candidate rank {candidate.rank}): deviation "
-                  f"{candidate.deviation_arcsec} arcsec, false-match probability {candidate.false_match_probability}",
+        comments=(f"Identified by {method} (search {search_id}, candidate rank {candidate.rank}): {_quality(candidate)}",
                   "Each snapshot's attitude solves Wahba's problem (SVD, Davenport's q-method equivalent); "
                   + (f"the sequence's attitude and body rate are fitted over {fit.snapshots_used} snapshots by "
                      f"batch least squares (reduced chi-square {fit.chi2_reduced})" if fit is not None
                      else "no body rate was fitted")))
     comments = [*_time_comments(item.sequence), f"Star pattern identification of sequence {object_id} (archive id "
-                f"{row.id}), candidate rank {candidate.rank}, confirmed by {operator}", CAMERA_FRAME_COMMENT]
-    if overridden:
-        comments.append(f"Confirmed by operator override ({'; '.join(overridden)}): {override_reason}")
-    if comment:
-        comments.append(f"Operator comment: {comment}")
+                f"{row.id}), candidate rank {candidate.rank}, confirmed by {operator}", CAMERA_FRAME_COMMENT,
+                *_verdict_comments(override_reason, overridden, comment)]
     return acm_kvn(
         epochs=times, quaternions_xyzw=[quaternion_from_rotation(R) for R in rotations], originator=ORIGINATOR,
         object_name=name, rate_deg_s=None if fit is None else fit.rate_deg_s, covariance=covariance,
@@ -228,7 +238,7 @@ def record_confirmation(ctx: AppContext, seq_id: int, rank: int, operator: str, 
     confirmed_at = datetime.now(timezone.utc)
     apm = render_apm(row, candidate, epoch, operator, confirmed_at, comment, override_reason, overridden,
                      time_assumed=item.sequence.time_assumed)
-    aem = render_aem(row, item, candidate, operator, confirmed_at)
+    aem = render_aem(row, item, candidate, operator, confirmed_at, comment, override_reason, overridden)
     acm = render_acm(row, item, candidate, epoch=epoch, method=result.method, search_id=search.id, operator=operator,
                      confirmed_at=confirmed_at, comment=comment, override_reason=override_reason, overridden=overridden)
     # The pattern of the search, which later edits may have replaced as the current one.
