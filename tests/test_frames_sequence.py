@@ -118,7 +118,13 @@ def test_the_command_line_solves_fits_files_and_folders_and_says_invalid_for_bad
         error = np.degrees(angle_between(np.asarray(doc["candidates"][0]["rotation_matrix"])[2], R[2]))
         assert error < 0.1
     assert docs[2]["error"].startswith(f"{tmp_path / 'broken.png'}: invalid image: broken.png: not a readable image")
-    assert docs[3]["error"].startswith(f"{bad_folder}: invalid image: sidecar.frames[0].time")
+    # A sidecar found beside the images (not given) is named in its problems: a user who never wrote one asks which.
+    assert docs[3]["error"].startswith(f"{bad_folder}: invalid image: frames.json.frames[0].time")
+    (tmp_path / "alone.png").write_bytes((tmp_path / "png-pass" / "frame-00.png").read_bytes())
+    (tmp_path / "alone.frames.json").write_bytes(b"")
+    empty = _cli("solve", "--json", str(tmp_path / "alone.png"))
+    said = json.loads(empty.stdout)["error"]
+    assert said == f"{tmp_path / 'alone.png'}: invalid image: alone.frames.json: the file is empty"
     extract = _cli("extract", "--json", str(tmp_path / "fits-pass.fits"))
     assert extract.returncode == 0 and json.loads(extract.stdout)["status"] == "ok"
 
@@ -153,8 +159,8 @@ def test_a_frame_with_too_few_star_like_sources_says_what_it_saw_and_why_they_we
     assert notes("overcast.png", overcast) == [
         "overcast.png: no star-like source (nothing stands out of the sky's noise); a pattern needs at least 3"]
     (said,) = notes("glows.png", glows)
-    found = re.fullmatch(r"glows\.png: no star-like source \((\d+) blob\(s\) detected, set aside as extended \((\d+)\), "
-                         r"hot_pixel \(1\)\); a pattern needs at least 3", said)
+    found = re.fullmatch(r"glows\.png: no star-like source \((\d+) blob\(s\) detected, set aside as "
+                         r"extended \((\d+)\), hot_pixel \(1\)\); a pattern needs at least 3", said)
     assert found, said
     blobs, extended = int(found[1]), int(found[2])
     assert blobs >= 3 and extended == blobs - 1  # each glow one blob or more, every one set aside

@@ -116,7 +116,10 @@ def _sidecar_time(value, loc: str, problems: ProblemCollector) -> datetime | Non
 
 
 def parse_sidecar(data: bytes | str, name: str = "sidecar") -> Sidecar:
-    """Validate a sidecar; ImageError with problems located as ``sidecar.frames[2].time``."""
+    """Validate a sidecar; ImageError with problems located as ``sidecar.frames[2].time`` (``name``: the
+    sidecar's file name where one was found beside the images, its form field's otherwise)."""
+    if not data.strip():
+        raise ImageError.at(name, "the file is empty")
     try:
         text = data.decode("utf-8") if isinstance(data, (bytes, bytearray)) else data
         doc = json.loads(text)

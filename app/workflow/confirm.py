@@ -170,7 +170,8 @@ def render_acm(row: SequenceRow, item: LoadedSequence, candidate: CandidateDocum
         source="GROUND STAR PATTERN IDENTIFICATION", number_states=7 if fit is not None else 4,
         cov_type="ANGLE" if covariance is not None else None, rate_states="ANGVEL" if fit is not None else None,
         sensors=(sensor,),
-        comments=(f"Identified by {method} (search {search_id}, candidate rank {candidate.rank}): {_quality(candidate)}",
+        comments=(f"Identified by {method} (search {search_id}, candidate rank {candidate.rank}): "
+                  f"{_quality(candidate)}",
                   "Each snapshot's attitude solves Wahba's problem (SVD, Davenport's q-method equivalent); "
                   + (f"the sequence's attitude and body rate are fitted over {fit.snapshots_used} snapshots by "
                      f"batch least squares (reduced chi-square {fit.chi2_reduced})" if fit is not None

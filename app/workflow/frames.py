@@ -527,7 +527,8 @@ def frames_sequence_from_path(path: str, *, fov_deg: float | None = None,
         if sidecar_path.is_file():
             if sidecar_path.stat().st_size > 1024 * 1024:
                 raise ImageError.at("sidecar", "the sidecar is larger than 1 MiB")
-            sidecar = parse_sidecar(sidecar_path.read_bytes())
+            # Found beside the image, not given: its problems name it (a user who never wrote one asks "which?").
+            sidecar = parse_sidecar(sidecar_path.read_bytes(), name=sidecar_path.name)
             if only is not None:
                 sidecar = dataclasses.replace(sidecar, sequence_id=None,
                                               times={k: t for k, t in sidecar.times.items() if k[0] == only})
