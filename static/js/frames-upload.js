@@ -6,8 +6,8 @@ import { $ } from "./dom.js";
 // The server's image endings (app/frames/images.py ALL_SUFFIXES), lower case.
 export const IMAGE_SUFFIXES = [".fits", ".fit", ".fts", ".fits.gz", ".fit.gz", ".png", ".jpg", ".jpeg", ".tif", ".tiff"];
 // A folder's sidecar, or a single image's <stem>.frames.json (as the CLI finds them).
-const FOLDER_SIDECAR = "frames.json";
-const SIDECAR_SUFFIX = ".frames.json";
+export const FOLDER_SIDECAR = "frames.json";
+export const SIDECAR_SUFFIX = ".frames.json";
 export const FOV_MIN_DEG = 0.1, FOV_MAX_DEG = 120;
 
 export const isImage = (file) => IMAGE_SUFFIXES.some((s) => file.name.toLowerCase().endsWith(s));

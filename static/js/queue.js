@@ -1,7 +1,7 @@
 // The work queue side of the console: uploads (searched automatically when asked), the sequence
 // list (filter, search, order: what needs an operator first), confirmed attitudes and the bulk AEM.
 import * as api from "./api.js";
-import { frameFields, isImage, isSidecar, uploadFrames } from "./frames-upload.js";
+import { FOLDER_SIDECAR, SIDECAR_SUFFIX, frameFields, isImage, isSidecar, uploadFrames } from "./frames-upload.js";
 import { $, el, toast, errorText, fmt, fmtTime, plural, store, stored } from "./dom.js";
 import { state } from "./state.js";
 
@@ -64,11 +64,15 @@ async function uploadFiles(files) {
   for (const file of skipped) skippedLine(list, file.name, "skipped: a simulator's truth file (the answer), not telemetry");
   const results = [];
   // One at a time: the server validates and extracts each; the list shows each result next to its file.
+  // A JSON dropped with images may have been meant as their sidecar: if it is no telemetry, say how one is named.
+  const sidecarHint = images.length ? "Dropped with images: a JSON is read as their sidecar only when named " +
+    `${FOLDER_SIDECAR} or IMAGE${SIDECAR_SUFFIX} (format tubsat-frames/1); this one was read as telemetry.` : null;
   for (const file of spotLists) {
     results.push(await uploadLine(list, { file: file.name }, file.name,
       (progress) => api.uploadFile(file, progress, { search }),
       (status, body) => [status === 201 ? `stored as #${body.id}: ${body.pattern.points.length} pattern points`
-        : `already stored as #${body.id}`, queued(search, status, body)]));
+        : `already stored as #${body.id}`, queued(search, status, body)], null,
+      file.name.toLowerCase().endsWith(".json") ? sidecarHint : null));
   }
   if (!images.length) {
     for (const file of sidecars) skippedLine(list, file.name, "skipped: a frames sidecar, but no images were dropped with it");
@@ -114,8 +118,9 @@ export function noteSearched(sequences) {
 
 // One line of the upload list: the name, a progress bar, then the result or the error with its
 // located problems. send(progress) resolves {status, body}; describe(status, body) gives the result's
-// parts (text, the queued search's span); resolves {id, created} or null (failed).
-async function uploadLine(list, dataset, name, send, describe, waiting = null) {
+// parts (text, the queued search's span); resolves {id, created} or null (failed), with ``hintOnError`` under
+// the error.
+async function uploadLine(list, dataset, name, send, describe, waiting = null, hintOnError = null) {
   const bar = el("progress", { max: 1, value: 0 });
   const result = el("div", {}, "uploading...");
   list.prepend(el("li", { class: "upload-item", dataset }, el("div", { class: "name", title: name }, name), bar, result));
@@ -137,6 +142,7 @@ async function uploadLine(list, dataset, name, send, describe, waiting = null) {
     // (replaceChildren would print a null as the text "null": only the nodes there are.)
     result.replaceChildren(el("div", {}, err.headline ?? err.detail), ...(err.problems.length ? [el("ul", { class: "problems" },
       err.problems.map((p) => el("li", {}, el("code", {}, p.location), ": ", p.message)))] : []));
+    if (hintOnError) result.after(el("div", { class: "upload-note" }, hintOnError));
     return null;
   }
 }

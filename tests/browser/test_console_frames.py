@@ -235,6 +235,33 @@ def test_dropped_frames_and_their_sidecar_are_one_pass(server, api, new_page, tm
     assert not watched.errors, watched.errors
 
 
+def test_a_json_dropped_with_images_but_not_named_as_their_sidecar_says_how_one_is_named(server, api, new_page,
+                                                                                          tmp_path):
+    """An operator trial dropped sky.png with sky.json (its reference, not a sidecar): the JSON went as telemetry and
+    failed with "snapshots: missing" alone. Its line now also says how a sidecar is named; a spot list dropped with
+    the same images is stored as before (the hint only follows a JSON that failed)."""
+    frames, times, _ = simulate_frames(np.random.default_rng(518), CAMERA, n_frames=1)
+    image = tmp_path / "sky.png"
+    image.write_bytes(frame_png_bytes(frames[0]))
+    meant = tmp_path / "sky.json"
+    meant.write_text(json.dumps(frames_sidecar(["sky.png"], times, CAMERA, sequence_id="sky-meant")))
+    spot = Path(__file__).resolve().parents[2] / "sample_telemetry" / "01-clean.json"
+    watched = open_console(new_page, server)
+    page = watched.page
+    page.set_input_files("#file-input", [str(image), str(meant), str(spot)])
+    line = page.locator(".upload-item[data-file='sky.json']")
+    expect_text(line, "invalid telemetry")
+    expect_text(line.locator(".upload-note"), "a JSON is read as their sidecar only when named frames.json or "
+                                              "IMAGE.frames.json \\(format tubsat-frames/1\\); this one was read as "
+                                              "telemetry")
+    spot_line = page.locator(f".upload-item[data-file='{spot.name}']")
+    expect_text(spot_line, r"(stored|already stored) as #\d+")
+    assert spot_line.locator(".upload-note").count() == 0
+    expect_text(page.locator(".upload-item[data-kind='frames']"), r"1 frame → #\d+")
+    # Chromium reports the refused upload (422) in the console; nothing else may be there.
+    assert [e for e in watched.errors if "status of 422" not in e] == [], watched.errors
+
+
 def test_a_frame_with_no_time_and_no_optics_is_stored_and_a_bad_field_of_view_is_located(server, api, new_page,
                                                                                          tmp_path):
     """Issue 26: a plain image (no sidecar, no time, no field of view) is stored, its time assumed and its field
