@@ -406,7 +406,7 @@ def few_sources_note(first: _Measured, report: dict, count: int) -> str:
     """What the frames block says of frames that kept fewer star-like sources than a pattern needs (``count`` of
     them, ``first`` with its ``report``): how many were detected and why the rest were set aside, so that an
     operator reads "nothing like a star here" rather than a pattern too small."""
-    where = first.frame_location + (f" and {count - 1} other frame(s)" if count > 1 else "")
+    others = f"; {count - 1} other frame(s) kept fewer than {MIN_PATTERN_SOURCES} too" if count > 1 else ""
     reasons = Counter(flag for flags in first.detections.flags for flag in flags if flag in REJECTING_FLAGS)
     kept = report["kept"]
     found = "no star-like source" if kept == 0 else f"{kept} star-like source{'s' * (kept != 1)}"
@@ -416,7 +416,7 @@ def few_sources_note(first: _Measured, report: dict, count: int) -> str:
         seen = (f"{report['detected']} blob(s) detected"
                 + (", set aside as " + ", ".join(f"{reason} ({n})" for reason, n in reasons.most_common())
                    if reasons else ""))
-    return f"{where}: {found} ({seen}); a pattern needs at least {MIN_PATTERN_SOURCES}"
+    return f"{first.frame_location}: {found} ({seen}); a pattern needs at least {MIN_PATTERN_SOURCES}{others}"
 
 
 def binning_note(first: _Measured, count: int, budget: int) -> str:
