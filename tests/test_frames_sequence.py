@@ -164,6 +164,10 @@ def test_a_frame_with_too_few_star_like_sources_says_what_it_saw_and_why_they_we
     assert found, said
     blobs, extended = int(found[1]), int(found[2])
     assert blobs >= 3 and extended == blobs - 1  # each glow one blob or more, every one set aside
+    pass_of_two = frames_to_sequence([("a.png", png(overcast)), ("b.png", png(overcast[::-1]))], fov_deg=20.0)
+    assert [n for n in pass_of_two.sequence.extra["frames"]["notes"] if "star-like" in n] == [
+        "a.png: no star-like source (nothing stands out of the sky's noise); a pattern needs at least 3; 1 other "
+        "frame(s) kept fewer than 3 too"]
     starry = frames_to_sequence([("stars.png", frame_png_bytes(simulate_frames(np.random.default_rng(5), CAMERA,
                                                                                 n_frames=1)[0][0]))], fov_deg=20.0)
     assert not [n for n in starry.sequence.extra["frames"].get("notes", []) if "star-like" in n]
