@@ -7,8 +7,10 @@ import json
 import math
 import warnings
 
+import numpy as np
 import pytest
 
+from app.attitude import rotation_from_radec_roll
 from app.bench import real
 
 
@@ -184,3 +186,39 @@ def test_a_narrow_frame_settled_by_its_seventh_edge_is_found_with_its_field_of_v
     assert out["status"] == "identified", out["notes"]
     assert out["error_deg"] <= real.RIGHT_DEG
     assert out["fov_deg"] == pytest.approx(frame.fov_deg, rel=0.01)
+
+
+def test_half_fit_pulls_are_one_for_an_honest_sigma_and_twice_that_for_half_of_it():
+    """Simulated matches: 12 stars over a 20 deg field, each seen with independent errors of a known sigma. The
+    sigma Wahba's covariance states from that is honest, and the halves' pulls have an RMS of 1 over many draws
+    (both splits); a sigma stated half as large doubles them; an error the halves share (every star on the left
+    shifted alike) shows far more in the sides split than in the alternate one."""
+    from app.attitude import wahba_covariance
+    from app.camera import CAMERAS
+
+    camera = CAMERAS["tubsat-752x582-20deg"]
+    rng = np.random.default_rng(11)
+    noise = 2e-4  # rad, per axis per star
+    pulls = {"honest": [], "half": [], "shared": []}
+    for _ in range(400):
+        xy = rng.uniform([0, 0], [camera.width - 1, camera.height - 1], size=(12, 2))
+        body_true = camera.pixels_to_vectors(xy)
+        R = rotation_from_radec_roll(*rng.uniform([0, -80, 0], [360, 80, 360]))
+        stars = body_true @ R  # R maps stars to the camera: body = stars @ R.T
+        seen = body_true + rng.normal(0, noise, body_true.shape)
+        seen /= np.linalg.norm(seen, axis=1, keepdims=True)
+        cov = wahba_covariance(seen, np.full(12, noise))
+        sigma = math.sqrt((cov[0, 0] + cov[1, 1]) / 2)
+        pulls["honest"].append(real.half_fit_pulls(seen, stars, sigma, xy[:, 0]))
+        pulls["half"].append(real.half_fit_pulls(seen, stars, sigma / 2, xy[:, 0]))
+        left = xy[:, 0] < np.median(xy[:, 0])
+        shifted = seen + np.where(left[:, None], [4 * noise, 0.0, 0.0], 0.0)
+        shifted /= np.linalg.norm(shifted, axis=1, keepdims=True)
+        pulls["shared"].append(real.half_fit_pulls(shifted, stars, sigma, xy[:, 0]))
+    rms = {case: {split: math.sqrt(np.mean([p[split] ** 2 for p in ps])) for split in ("sides", "alternate")}
+           for case, ps in pulls.items()}
+    assert rms["honest"]["sides"] == pytest.approx(1.0, abs=0.12)
+    assert rms["honest"]["alternate"] == pytest.approx(1.0, abs=0.12)
+    assert rms["half"]["sides"] == pytest.approx(2.0, abs=0.25)
+    assert rms["half"]["alternate"] == pytest.approx(2.0, abs=0.25)
+    assert rms["shared"]["sides"] > 3.0 and rms["shared"]["sides"] > 1.5 * rms["shared"]["alternate"]

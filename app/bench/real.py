@@ -76,10 +76,13 @@ from pathlib import Path
 
 import numpy as np
 
-from app.attitude import angle_between
+from app.attitude import angle_between, solve_wahba, wahba_covariance
 from app.bench.peer import PeerError
 from app.catalogue import radec_to_vectors
 from app.frames.assemble import FOV_FOCAL_TOLERANCE
+
+#: Fewest matched stars whose halves are fitted apart (:func:`half_fit_pulls`): 3 a half at least.
+HALF_FIT_MIN_STARS = 6
 
 #: The optics a frame is solved under: name -> factor on the exact field of view (None: none given).
 OPTICS = {"exact": 1.0, "long": 1.05, "short": 0.95, "none": None}
@@ -301,6 +304,58 @@ def solve_ours(frame: RealFrame, sky, fov_deg: float | None, folder: Path, *,
             "seconds": round(seconds, 4), "notes": notes}
 
 
+def half_fit_pulls(body: np.ndarray, stars: np.ndarray, sigma_cross_rad: float, x_px: np.ndarray) -> dict:
+    """How honest a stated cross-boresight 1-sigma is, from the answer's own stars: they are fitted in two halves
+    (the left and right of the image, and every other star), and the two boresights' separation is divided by
+    the separation the stated sigma predicts.
+
+    ``body`` (n, 3) camera-frame directions of the matched points, ``stars`` (n, 3) their stars' directions,
+    ``x_px`` their columns. The stated sigma says what each star's error is: ``s`` such that Wahba's covariance
+    of all n with sigma ``s`` each gives ``sigma_cross_rad``; each half's covariance is then Wahba's with the same
+    ``s`` (its own geometry), and the two boresights' difference (a 2-vector in the first half's camera frame)
+    has the sum of the two covariances' cross-boresight blocks. The pull is its length over the square root of
+    that block's trace: about 1 in RMS when the stated sigma is honest and the errors independent. Sides (left,
+    right) also catch errors that the two halves of the image share (an unmodelled distortion, a centroid bias
+    across the field) and the interleaved split does not: a sides pull well above the interleaved one says the
+    errors are correlated across the field and a sigma from the residuals alone is too small.
+    """
+    n = len(body)
+    unit = wahba_covariance(body, np.ones(n))
+    per_star = sigma_cross_rad / math.sqrt((unit[0, 0] + unit[1, 1]) / 2)
+    out = {}
+    for split, first in (("sides", x_px < np.median(x_px)), ("alternate", np.arange(n) % 2 == 0)):
+        halves = (first, ~first)
+        a, b = (solve_wahba(body[h], stars[h]) for h in halves)
+        d = (a @ b[2])[:2]  # the second boresight in the first's camera frame: its x, y are the angles apart
+        cov = sum(wahba_covariance(body[h], np.full(int(h.sum()), per_star)) for h in halves)
+        out[split] = float(np.hypot(*d) / math.sqrt(cov[0, 0] + cov[1, 1]))
+    return out
+
+
+def half_fits_of(frame: RealFrame, sky, folder: Path, *, time_from_reference: bool) -> dict | None:
+    """:func:`half_fit_pulls` of the first candidate of ``frame`` solved with its exact field of view, when it is
+    identified with :data:`HALF_FIT_MIN_STARS` stars or more and states a sigma; else None."""
+    from app.identification import IDENTIFIED, solve_sequence
+    from app.workflow.files import telemetry_files
+
+    path = str(stage(frame, folder, time_from_reference=time_from_reference))
+    ((_, sequence, error),) = list(telemetry_files([path], fov_deg=frame.fov_deg))
+    if error is not None:
+        return None
+    solved = solve_sequence(sequence, sky)
+    best = solved.solution.candidates[0] if solved.solution.candidates else None
+    if (solved.solution.status != IDENTIFIED or best.n_matched < HALF_FIT_MIN_STARS
+            or best.sigma_cross_boresight_arcsec is None):
+        return None
+    camera = best.camera or sequence.camera
+    xy = solved.pattern.xy[[m.pattern_index for m in best.matches]]
+    stars = sky.for_camera(camera).apparent_vectors_of([m.hip for m in best.matches], solved.reference_time,
+                                                       sequence.observer)
+    return {"n": best.n_matched, "sigma_arcsec": best.sigma_cross_boresight_arcsec,
+            **half_fit_pulls(camera.pixels_to_vectors(xy), stars, best.sigma_cross_boresight_arcsec
+                             / ARCSEC_PER_RADIAN, xy[:, 0])}
+
+
 def _unanswered(status: str, seconds: float | None) -> dict:
     return {"status": status, "claimed": False, "ra_deg": None, "dec_deg": None, "error_deg": None,
             "fov_deg": None, "seconds": None if seconds is None else round(seconds, 4)}
@@ -397,6 +452,7 @@ def run(n_sequences: int | None = None, seed: int = 1, frames_dir: str | Path | 
                             print(f"real: {peer_failed}", file=sys.stderr)
                     if peer is not None and peer_failed is not None:
                         row["peer"][optics] = {**_unanswered("ERROR", None), "notes": [peer_failed]}
+                row["half_fits"] = half_fits_of(frame, sky, scratch, time_from_reference=time_from_reference)
                 print(f"real: {frame.name}: " + ", ".join(f"{o} {r['status']}" for o, r in row["ours"].items()),
                       file=sys.stderr)
                 rows.append(row)
@@ -413,7 +469,15 @@ def run(n_sequences: int | None = None, seed: int = 1, frames_dir: str | Path | 
                      if peer is not None else {"measured": False, "note": peer_note}),
             "warm_up_s": warm_up["seconds"], "frames": rows, "summary": summary,
             "invalid_reasons": invalid_reasons(rows), "goals": goals(summary),
+            "half_fits": summarise_half_fits(rows),
             "load_average_before": load_before, "load_average_after": round(os.getloadavg()[0], 2)}
+
+
+def summarise_half_fits(rows: list[dict]) -> dict:
+    """The RMS of each split's pulls over the frames that had them (:func:`half_fit_pulls`)."""
+    fits = [r["half_fits"] for r in rows if r.get("half_fits")]
+    return {"frames": len(fits), **{split: math.sqrt(statistics.fmean([f[split] ** 2 for f in fits])) if fits
+                                    else None for split in ("sides", "alternate")}}
 
 
 def invalid_reasons(rows: list[dict]) -> dict:
@@ -503,6 +567,12 @@ def format_table(result: dict) -> str:
     for optics, reasons in result["invalid_reasons"].items():
         for reason, count in reasons.items():
             lines.append(f"ours {OPTICS_LABELS[optics]}: {count} invalid: {reason}")
+    halves = result.get("half_fits")
+    if halves and halves["frames"]:
+        lines += ["", f"stated sigma against our own half fits ({halves['frames']} frames identified with their exact "
+                      f"field of view and {HALF_FIT_MIN_STARS}+ stars): RMS pull {halves['sides']:.2f} between the "
+                      f"image's left and right halves, {halves['alternate']:.2f} between every other star (1 = honest; "
+                      "sides above alternate: errors shared across the field)"]
     verdicts = (f"{goal} {'met' if met else 'NOT met'}" for goal, met in result["goals"].items())
     lines += ["", "real-sky goals: " + ", ".join(verdicts)]
     return "\n".join(lines)
