@@ -143,3 +143,54 @@ def test_a_photograph_over_a_treeline_is_identified(tmp_path, sky, fov_deg, seed
     answer = _solve_photograph(tmp_path, sky, "treeline", pixels, true, rotation, float(true.fov_deg[0]))
     assert answer["status"] == IDENTIFIED, answer["notes"]
     assert answer["error_deg"] < 0.02
+
+
+@pytest.mark.parametrize("case, given", [("the lens's angle for the left half", 60.0), ("another lens's", 40.0)])
+def test_a_field_of_view_given_by_hand_that_fits_nothing_is_set_aside_and_said_to(tmp_path, sky, case, given):
+    """A photograph's owner gives the angle of the lens (or of another lens) for a crop: nothing is identified within
+    that field of view's tolerance, and the stars alone would be. The photograph is searched again without it, its
+    first search's hypotheses counted, and identified where the stars put it, with a note that the field of view
+    given did not fit and what they fit. (Before: no match, with nothing said of the field of view.)"""
+    from app.bench.wide import photograph
+    from app.camera import Camera
+
+    pixels, true, rotation, _ = photograph(60.0, np.random.default_rng([1, 75, 60, 2]), milky_way=False)
+    if case.endswith("left half"):
+        width = true.width // 2
+        pixels = np.ascontiguousarray(pixels[:, :width])
+        true = Camera(width, true.height, true.focal_length_px, true.cx, true.cy, k1=true.k1, k2=true.k2)
+    answer = _solve_photograph(tmp_path, sky, "given-wrong", pixels, true, rotation, given)
+    assert answer["status"] == IDENTIFIED, answer["notes"]
+    assert answer["error_deg"] < 0.1  # right (app.bench.real.RIGHT_DEG); the crop's axis is a quarter off its centre
+    assert answer["fov_deg"] == pytest.approx(true.fov_deg[0], rel=0.05)
+    (said,) = [n for n in answer["notes"] if n.startswith(f"the field of view given, {given:.1f} deg, fits nothing")]
+    assert f"the stars fit {answer['fov_deg']:.2f} deg" in said and "searched again without it" in said
+    assert abs(focal_length_for_fov(true.width, given) / true.focal_length_px - 1) > 0.2  # far outside its tolerance
+
+
+def test_a_calibrated_cameras_focal_length_is_never_set_aside(sky):
+    """A camera declared to 5 % (a calibration, not a hand's guess) whose focal length is 15 % wrong: the search
+    never leaves the declaration (a wrong camera model must not turn into an identification elsewhere), and says
+    what the stars fit instead."""
+    import json
+
+    from app.camera import CAMERAS
+    from app.frames import frames_to_sequence, parse_sidecar
+    from app.identification import solve_sequence
+    from app.identification.scale_free import NOT_GIVEN
+    from app.simulate import frame_png_bytes, simulate_frames, true_optics
+
+    camera = CAMERAS["tubsat-752x582-20deg"]
+    frames, times, _ = simulate_frames(np.random.default_rng(31), camera, n_frames=1,
+                                       true_camera=true_optics(camera, focal_error=0.15))
+    sidecar = {"format": "tubsat-frames/1",
+               "camera": {"focal_length_px": camera.focal_length_px, "cx": camera.cx, "cy": camera.cy,
+                          "focal_length_tolerance": 0.05},
+               "frames": [{"file": "f.png", "time": times[0].isoformat().replace("+00:00", "Z")}]}
+    sequence = frames_to_sequence([("f.png", frame_png_bytes(frames[0]))],
+                                  sidecar=parse_sidecar(json.dumps(sidecar))).sequence
+    assert sequence.camera.focal_tolerance == pytest.approx(0.05)
+    solved = solve_sequence(sequence, sky)
+    assert solved.solution.status != IDENTIFIED
+    assert not any("searched again without it" in n or n.startswith(NOT_GIVEN) for n in solved.solution.notes)
+    assert solved.solution.focal_length_contradiction is not None

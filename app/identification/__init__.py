@@ -27,6 +27,7 @@ from app.attitude.sequence import SequenceFit, fit_constant_rate, rate_from_moti
 from app.attitude.wahba import cross_boresight_and_roll_sigma
 from app.camera_fit import Calibration, CameraAttitudeFit, default_priors, parameters_for
 from app.camera_fit import calibrate as calibrate_camera
+from app.camera import DEFAULT_FOCAL_LENGTH_TOLERANCE
 from app.catalogue import vectors_to_radec
 from app.compiled import warm_up
 from app.extraction import Extraction, Pattern, extract
@@ -36,6 +37,7 @@ from app.identification.methods import METHODS, Method
 from app.identification.near_prior import identify_near_prior
 from app.identification.optics import ADOPT_PROBABILITY, HINT_PROBABILITY, departs
 from app.identification.options import SearchOptions
+from app.identification.scale_free import NOT_GIVEN
 from app.identification.result import (AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, FocalLengthContradiction,
                                        PlanetMatch, Solution, StarMatch)
 from app.identification.sightings import (claimed_once, identified_sightings, observations, sighting_noise_px,
@@ -135,9 +137,17 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
         planets = (lambda: planet_vectors(t)) if with_planets and not sequence.time_assumed else None
         solution = identify(pattern, sequence.camera, t, sky, velocity_km_s=sequence.observer,
                             options=options, planets=planets, method=method)
-        left_s = options.timeout_s - solution.elapsed_s  # both searches within one search's time-out
+        # Every further search within what the first left of one search's time-out.
+        left_s = options.timeout_s - solution.elapsed_s
+        if (solution.status != IDENTIFIED and "frames" in sequence.extra and len(pattern) >= 3
+                and given_by_hand(sequence.camera) and left_s >= MIN_SECOND_SEARCH_S):
+            solution = without_the_field_of_view(solution, pattern, sequence.camera, t, sky,
+                                                 velocity_km_s=sequence.observer,
+                                                 options=replace(options, timeout_s=left_s), planets=planets,
+                                                 method=method)
+            left_s = options.timeout_s - solution.elapsed_s
         if (solution.status == NO_MATCH and "frames" in sequence.extra and len(pattern) >= 3
-                and left_s >= MIN_MIRROR_SEARCH_S):
+                and left_s >= MIN_SECOND_SEARCH_S):
             said = mirrored_match(pattern, sequence.camera, t, sky, velocity_km_s=sequence.observer,
                                   options=replace(options, timeout_s=left_s), method=method)
             if said is not None:
@@ -182,9 +192,48 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
                           sequence_fits=fits)
 
 
-#: An image that matches nothing is searched mirrored (:func:`mirrored_match`) in what is left of the search's
-#: time-out, when that is at least this (s).
-MIN_MIRROR_SEARCH_S = 0.5
+#: An image whose field of view given by hand identifies nothing is searched without it
+#: (:func:`without_the_field_of_view`), and one that matches nothing mirrored (:func:`mirrored_match`), in what
+#: is left of the search's time-out, when that is at least this (s).
+MIN_SECOND_SEARCH_S = 0.5
+
+
+def given_by_hand(camera) -> bool:
+    """Whether ``camera``'s focal length is only roughly known: a tolerance wider than a calibrated camera's
+    (:data:`app.camera.DEFAULT_FOCAL_LENGTH_TOLERANCE`), as a field of view given by hand or read from a file's
+    header has (:data:`app.frames.assemble.FOV_FOCAL_TOLERANCE`)."""
+    return not camera.focal_length_unknown and camera.focal_tolerance > DEFAULT_FOCAL_LENGTH_TOLERANCE
+
+
+def without_the_field_of_view(first: Solution, pattern: Pattern, camera, t, sky: Sky, *, velocity_km_s=None,
+                              options: SearchOptions = SearchOptions(), planets=None,
+                              method: str = "bright_pair") -> Solution:
+    """``first``, an image's answer with the field of view it was given by hand, or the image identified
+    without it, whichever is better.
+
+    A field of view given by hand can be plainly wrong: a photograph cropped or turned keeps its lens's angle
+    in its owner's mind (a crop of half the width spans half the angle), another lens's, a guess. Within its
+    tolerance nothing is identified then, though the stars alone would be: the pattern is searched again as if
+    no field of view had been given (:mod:`.scale_free`), the first search's hypotheses counted in the
+    false-match probability. Only an ``identified`` answer replaces the first, with a note saying the field of
+    view given did not fit and what the stars fit; otherwise the first stays, and a note says what the second
+    search found.
+    """
+    free = replace(camera, focal_length_unknown=True, focal_length_tolerance=None)
+    found = identify(pattern, free, t, sky, velocity_km_s=velocity_km_s, options=options, planets=planets,
+                     method=method, hypotheses_before=first.n_hypotheses)
+    given = camera.fov_deg[0]
+    elapsed = first.elapsed_s + found.elapsed_s
+    if found.status != IDENTIFIED:
+        return replace(first, elapsed_s=elapsed, n_hypotheses=max(first.n_hypotheses, found.n_hypotheses),
+                       notes=(*first.notes, f"searched again without the field of view given ({given:.1f} deg): "
+                                            f"{found.status.replace('_', ' ')} there too"))
+    fitted = found.candidates[0].camera
+    said = (f"the field of view given, {given:.1f} deg, fits nothing identified"
+            + (f"; the stars fit {fitted.fov_deg[0]:.2f} deg" if fitted is not None else "")
+            + " (check it: a cropped or turned image spans another angle than its lens); searched again without it")
+    how, *rest = found.notes  # the search over scales: what it searched, after its own opening words
+    return replace(found, elapsed_s=elapsed, notes=(f"{said}: {how.removeprefix(NOT_GIVEN)}", *rest))
 
 
 def mirrored(pattern: Pattern, camera) -> tuple[Pattern, object]:

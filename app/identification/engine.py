@@ -81,7 +81,8 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
                         notes=(f"the pattern has {m_all} point(s); at least 3 are needed",))
     if camera.focal_length_unknown:
         return identify_unknown_scale(pattern, camera, t, sky, velocity_km_s=velocity_km_s, options=options,
-                                      planets=planets, method=method, identify=identify)
+                                      planets=planets, method=method, identify=identify,
+                                      hypotheses_before=hypotheses_before)
     sky = sky.for_camera(camera)  # a narrow field needs fainter stars
     started = _time.perf_counter()
     declared = prepare_pattern(pattern, camera, t, sky, velocity_km_s, options)

@@ -98,6 +98,10 @@ class Band:
         return (self.high_px - self.low_px) / (self.high_px + self.low_px)
 
 
+#: How the notes of a search over scales begin (:func:`identify_unknown_scale`).
+NOT_GIVEN = "the field of view was not given: "
+
+
 def focal_length_for_fov(width_px: int, fov_deg: float) -> float:
     """The pinhole focal length (pixels) at which ``width_px`` spans ``fov_deg`` horizontally."""
     return (width_px / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
@@ -123,12 +127,13 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
                            options: SearchOptions = SearchOptions(),
                            planets: Callable[[], dict[str, np.ndarray]] | None = None,
                            method: str = "bright_pair",
-                           identify: Callable[..., Solution]) -> Solution:
+                           identify: Callable[..., Solution], hypotheses_before: int = 0) -> Solution:
     """Identify ``pattern`` (see :func:`app.identification.engine.identify`) seen by ``camera``, whose focal
     length is unknown (``camera.focal_length_unknown``): the scale searched band by band (module doc).
 
     ``identify`` is the engine's own function (passed in: the engine calls this one), run at the focal length
-    a band's triangles fit.
+    a band's triangles fit; ``hypotheses_before`` counts those a caller tried for this pattern already (a field
+    of view given that fitted nothing): they enter the false-match probability.
     """
     searched_bands = bands(camera.width)
     nominals = [replace(camera.known_at(band.middle_px, band.tolerance), mag_limit=None) for band in searched_bands]
@@ -138,7 +143,7 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
     # before the clock starts: a first narrow field must not lose its search to the building.
     band_skies = [sky.for_camera(nominal) for nominal in nominals]
     started = _time.perf_counter()
-    tried = 0
+    tried = hypotheses_before
     searched: list[str] = []
     best: Solution | None = None
 
@@ -213,7 +218,7 @@ def identify_unknown_scale(pattern, camera: Camera, t: datetime, sky: Sky, *, ve
             if solution.status == IDENTIFIED:
                 break
     elapsed = _time.perf_counter() - started
-    note = "the field of view was not given: " + hint_note
+    note = NOT_GIVEN + hint_note
     if searched:
         note += (f"searched {FOV_RANGE_DEG[0]:g}-{FOV_RANGE_DEG[1]:g} deg by the shapes of the pattern's bright "
                  "triangles, widest first (" + "; ".join(searched) + ")")
