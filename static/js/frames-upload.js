@@ -4,13 +4,16 @@ import { ApiError, uploadForm } from "./api.js";
 import { $ } from "./dom.js";
 
 // The server's image endings (app/frames/images.py ALL_SUFFIXES), lower case.
-export const IMAGE_SUFFIXES = [".fits", ".fit", ".fts", ".fits.gz", ".fit.gz", ".png", ".jpg", ".jpeg", ".tif", ".tiff"];
+const FITS_SUFFIXES = [".fits", ".fit", ".fts", ".fits.gz", ".fit.gz"];
+export const IMAGE_SUFFIXES = [...FITS_SUFFIXES, ".png", ".jpg", ".jpeg", ".tif", ".tiff"];
 // A folder's sidecar, or a single image's <stem>.frames.json (as the CLI finds them).
 export const FOLDER_SIDECAR = "frames.json";
 export const SIDECAR_SUFFIX = ".frames.json";
 export const FOV_MIN_DEG = 0.1, FOV_MAX_DEG = 120;
 
 export const isImage = (file) => IMAGE_SUFFIXES.some((s) => file.name.toLowerCase().endsWith(s));
+// FITS frames carry their times: a drop of them is a camera's pass even without a frames.json.
+export const isFits = (file) => FITS_SUFFIXES.some((s) => file.name.toLowerCase().endsWith(s));
 export const isSidecar = (file) => {
   const name = file.name.toLowerCase();
   return name === FOLDER_SIDECAR || name.endsWith(SIDECAR_SUFFIX);

@@ -1,7 +1,7 @@
 // The work queue side of the console: uploads (searched automatically when asked), the sequence
 // list (filter, search, order: what needs an operator first), confirmed attitudes and the bulk AEM.
 import * as api from "./api.js";
-import { FOLDER_SIDECAR, SIDECAR_SUFFIX, frameFields, isImage, isSidecar, uploadFrames } from "./frames-upload.js";
+import { FOLDER_SIDECAR, SIDECAR_SUFFIX, frameFields, isFits, isImage, isSidecar, uploadFrames } from "./frames-upload.js";
 import { $, el, toast, errorText, fmt, fmtTime, plural, store, stored } from "./dom.js";
 import { state } from "./state.js";
 
@@ -76,12 +76,17 @@ async function uploadFiles(files) {
   }
   if (!images.length) {
     for (const file of sidecars) skippedLine(list, file.name, "skipped: a frames sidecar, but no images were dropped with it");
-  } else {
+  } else if (sidecars.length || images.every(isFits)) {
     results.push(await uploadPass(list, images, sidecars, search));
+  } else {
+    // Photographs chosen together are so many photographs (as `solve a.jpg b.jpg` takes them), not one pass
+    // of a camera: two skies taken for one made every star a ghost and the pass no match (a photograph
+    // trial). A pass comes with its frames.json, or as FITS frames, which carry their times.
+    for (const image of images) results.push(await uploadPass(list, [image], [], search));
   }
   const done = results.filter((r) => r !== null), failures = results.length - done.length;
   const note = skipped.length ? `; ${plural(skipped.length, "truth file")} skipped` : "";
-  // A pass of frames counts as one upload, beside the spot-list files.
+  // A pass of frames (or each photograph) counts as one upload, beside the spot-list files.
   const unit = images.length ? "upload" : "file";
   toast(failures ? `${done.length} of ${results.length} ${unit}s stored${note}; see the errors next to the files`
     : `${plural(done.length, unit)} stored${note}`, failures ? "error" : "ok");   // not "1 upload uploaded"

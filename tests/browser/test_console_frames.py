@@ -262,6 +262,29 @@ def test_a_json_dropped_with_images_but_not_named_as_their_sidecar_says_how_one_
     assert [e for e in watched.errors if "status of 422" not in e] == [], watched.errors
 
 
+def test_photographs_chosen_together_are_so_many_photographs_each_identified(server, api, new_page, tmp_path):
+    """Two photographs of two skies chosen at once (a photograph trial): they went up as one pass of a camera, every
+    star a ghost, no match. Without a frames.json (and not FITS) each is its own upload, as `solve a.jpg b.jpg`
+    takes them, and each is identified on its own sky."""
+    names = []
+    for seed, name in ((601, "sky-a.png"), (602, "sky-b.png")):
+        frames, _, _ = simulate_frames(np.random.default_rng(seed), CAMERA, n_frames=1)
+        (tmp_path / name).write_bytes(frame_png_bytes(frames[0]))
+        names.append(name)
+    before = {s["id"] for s in all_sequences(api)}
+    watched = open_console(new_page, server)
+    page = watched.page
+    page.fill("#upload-fov", f"{CAMERA.fov_deg[0]:.4f}")
+    page.set_input_files("#file-input", [str(tmp_path / n) for n in names])
+    for name in names:
+        line = page.locator(f".upload-item[data-kind='frames'][data-file='{name}']")
+        expect_text(line, r"1 frame → #\d+ sky-[ab], \d+ sources, searched: identified", timeout=60_000)
+    new = [s for s in all_sequences(api) if s["id"] not in before]
+    assert sorted(s["sequence_id"] for s in new) == ["sky-a", "sky-b"]
+    assert all(s["n_snapshots"] == 1 and s["status"] == "identified" for s in new), new
+    assert not watched.errors, watched.errors
+
+
 def test_a_frame_with_no_time_and_no_optics_is_stored_and_a_bad_field_of_view_is_located(server, api, new_page,
                                                                                          tmp_path):
     """Issue 26: a plain image (no sidecar, no time, no field of view) is stored, its time assumed and its field
