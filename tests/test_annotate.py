@@ -189,7 +189,9 @@ def test_solve_annotate_writes_the_real_frame_with_its_stars_where_astrometry_ne
         {"format": "tubsat-frames/1", "frames": [{"file": "feb16-2.png", "time": "2018-02-16T06:00:00Z"}]}))
     out = tmp_path / "annotated.png"
     assert cli_main(["solve", "--json", *optics, "--annotate", str(out), str(frame)]) == 0
-    doc = json.loads(capsys.readouterr().out)
+    said = capsys.readouterr()
+    doc = json.loads(said.out)
+    assert f"--annotate: wrote {out} ({frame} with the first candidate's stars named)" in said.err  # not silent
     assert doc["status"] == "identified"
     image = _png(out.read_bytes())
     assert image.size == (1392, 1040) and image.mode == "RGB"

@@ -185,3 +185,16 @@ def test_solve_prints_no_empty_table_for_an_image_without_stars_and_says_why(tmp
     assert not any("RA deg" in line for line in lines)
     assert ("  note: overcast.png: no star-like source (nothing stands out of the sky's noise); a pattern needs at "
             "least 3") in lines
+
+
+def test_the_field_of_view_line_says_where_the_search_began_only_when_one_was_given(bare_pass, session_sky, capsys):
+    """The text answer's "field of view: ... fitted to the stars" adds "(one given is where the search began)" only
+    when one was given (a photograph trial read it under a search that had none)."""
+    path, _ = bare_pass
+    assert cli_main(["solve", str(path)]) == 0
+    (line,) = [x for x in capsys.readouterr().out.splitlines() if x.startswith("  field of view:")]
+    assert line.endswith("fitted to the stars")
+    assert cli_main(["solve", "--fov-deg", f"{FOV:.4f}", str(path)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert [x for x in out if x.startswith("  field of view:")][0].endswith(
+        "fitted to the stars (one given is where the search began)")

@@ -66,4 +66,5 @@ class Annotator:
             self.status = 2
             return doc
         self.written = path
+        print(f"--annotate: wrote {self.out} ({path} with the first candidate's stars named)", file=sys.stderr)
         return doc

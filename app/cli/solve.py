@@ -131,9 +131,12 @@ def print_summary(doc) -> None:
     else:
         print("  no candidate (the notes say why)")
     best = doc.candidates[0] if doc.candidates else None
-    if best is not None and best.fov_deg is not None:
+    if best is not None and best.fov_deg is not None and doc.status != "no_match":  # a chance fit's optics: noise
+        from app.identification.scale_free import NOT_GIVEN
+
+        given = not any(note.startswith(NOT_GIVEN) for note in doc.notes)
         print(f"  field of view: {best.fov_deg:.3f} deg (focal length {best.focal_length_px:.1f} px), "
-              "fitted to the stars (one given is where the search began)")
+              "fitted to the stars" + (" (one given is where the search began)" if given else ""))
     if best is not None and best.centre_ra_deg is not None:  # the table's RA, Dec: the optical axis
         print(f"  image centre: RA {best.centre_ra_deg:.4f} deg, Dec {best.centre_dec_deg:+.4f} deg "
               "(the table's RA, Dec are the boresight's, the optical axis)")
