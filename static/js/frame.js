@@ -154,7 +154,11 @@ export class FrameView {
     const { width, height } = this.sensor();
     const cssWidth = Math.max(200, Math.floor(this.canvas.parentElement.clientWidth));
     const cssHeight = Math.min(MAX_HEIGHT_PX, Math.round(cssWidth * height / width));
-    if (this.canvas.width === cssWidth && this.canvas.height === cssHeight) return;
+    if (this.canvas.width === cssWidth && this.canvas.height === cssHeight) {
+      // The same size: a new sequence's frames are still shown whole, not at the last one's zoom and place.
+      if (this.fitted) this.fit();
+      return;
+    }
     // Keep the sensor point at the centre where it was.
     const cx = (this.canvas.width / 2 - this.ox) / this.zoom, cy = (this.canvas.height / 2 - this.oy) / this.zoom;
     this.canvas.width = cssWidth;

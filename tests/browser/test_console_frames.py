@@ -166,6 +166,25 @@ def test_the_frame_panel_shows_zooms_follows_and_edits(server, api, new_page):
     assert not watched.errors, watched.errors
 
 
+def test_another_sequence_of_frames_opens_whole_not_at_the_last_ones_zoom(server, api, new_page):
+    """A photograph trial zoomed into one pass and opened another of the same size: it showed a corner of it at the
+    first one's zoom. A sequence opened is fitted whole."""
+    first, second = upload_pass(server, "zoom-first", 521), upload_pass(server, "zoom-second", 522)
+    watched = open_console(new_page, server)
+    page = watched.page
+    canvas = page.locator("#frame-canvas")
+    open_sequence(page, first["id"], "zoom-first")
+    wait_for_frame(page, int(canvas.get_attribute("data-snapshot")))
+    fitted = float(canvas.get_attribute("data-zoom"))
+    page.click("#frame-zoom-in")
+    page.click("#frame-zoom-in")
+    assert float(canvas.get_attribute("data-zoom")) > 1.9 * fitted
+    open_sequence(page, second["id"], "zoom-second")
+    wait_for_frame(page, int(canvas.get_attribute("data-snapshot")))
+    page.wait_for_function(f"Math.abs(Number(document.getElementById('frame-canvas').dataset.zoom) - {fitted}) < 1e-6")
+    assert not watched.errors, watched.errors
+
+
 def test_the_frame_panel_fits_1024_pixel_screens_and_stays_away_from_spot_lists(server, api, new_page):
     doc = upload_pass(server, "frames-narrow", 516)
     watched = open_console(new_page, server, 1024, 768)
