@@ -462,6 +462,10 @@ function drawCandidate() {
       (c.planets.length ? `, and ${c.planets.length} to ${c.planets.map((p) => p.name).join(", ")} (a planet: no catalogue star, ` +
         "so the deviation counts its point as unmatched)" : ""),
       "pattern points with a catalogue star (a planet explains a point without one)"],
+    ...(c.rms_arcsec === null || c.rms_arcsec === undefined ? [] : [["residual",
+      `${fmt(c.rms_arcsec, 1)}″ RMS over the ${c.n_matched} matched stars`,
+      "how far the matched stars lie from where this attitude puts them: the answer's precision (the deviation " +
+      "above also counts the points that no star explains, faint stars beyond the catalogue among them)"]]),
     ["RA, Dec", `${c.ra_deg.toFixed(4)}°, ${c.dec_deg.toFixed(4)}°`, "boresight"],
     ["roll", `${c.roll_deg.toFixed(4)}°`, "position angle of the image's up direction, from north through east"],
     ["field", `${view.sky.center.constellation}, ${sequenceTime(view.reference_time, state.detail?.telemetry)}`,

@@ -242,6 +242,10 @@ def test_operator_flow(server, api, new_page):
     ra, dec = (float(v) for v in re.search(r"([\d.]+)°, (-?[\d.]+)°", facts).groups())
     truth_ra, truth_dec, _ = TRUTH["radec_roll_deg"][search["reference_snapshot"]]
     assert abs(ra - truth_ra) < 0.05 and abs(dec - truth_dec) < 0.05
+    # The answer's precision in a reader's terms beside the seed's deviation (which counts unmatched points too).
+    best = search["candidates"][0]
+    rms, matched = re.search(r"([\d.]+)″ RMS over the (\d+) matched stars", facts).groups()
+    assert abs(float(rms) - best["rms_arcsec"]) <= 0.05 and int(matched) == best["n_matched"]
     page.mouse.move(0, 0)
     watched.screenshot("03-candidate-rank1")
 
