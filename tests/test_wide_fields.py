@@ -194,3 +194,28 @@ def test_a_calibrated_cameras_focal_length_is_never_set_aside(sky):
     assert solved.solution.status != IDENTIFIED
     assert not any("searched again without it" in n or n.startswith(NOT_GIVEN) for n in solved.solution.notes)
     assert solved.solution.focal_length_contradiction is not None
+
+
+def test_random_points_given_a_field_of_view_are_searched_without_it_too_and_say_so(sky):
+    """Twelve star-like spots scattered at random, given a field of view by hand: nothing is identified with it or
+    without it; the answer stays the first search's, and its notes say the second search was made and found
+    nothing."""
+    import io
+
+    from PIL import Image
+
+    from app.frames import frames_to_sequence
+    from app.identification import NO_MATCH, solve_sequence
+
+    rng = np.random.default_rng(41)
+    y, x = np.mgrid[0:600, 0:800]
+    pixels = 20.0 + rng.normal(0, 2, x.shape)
+    for cx, cy, peak in zip(rng.uniform(20, 780, 12), rng.uniform(20, 580, 12), rng.uniform(80, 200, 12)):
+        pixels += peak * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * 1.3 ** 2))
+    out = io.BytesIO()
+    Image.fromarray(np.clip(pixels, 0, 255).astype(np.uint8)).save(out, format="PNG")
+    sequence = frames_to_sequence([("random.png", out.getvalue())], fov_deg=20.0).sequence
+    assert sequence.snapshots[0].n_sources >= 10
+    solved = solve_sequence(sequence, sky)
+    assert solved.solution.status == NO_MATCH
+    assert "searched again without the field of view given (20.0 deg): no match there" in solved.solution.notes

@@ -25,9 +25,9 @@ from scipy.special import chdtri
 from app.attitude import propagate
 from app.attitude.sequence import SequenceFit, fit_constant_rate, rate_from_motion, wahba_per_snapshot
 from app.attitude.wahba import cross_boresight_and_roll_sigma
+from app.camera import DEFAULT_FOCAL_LENGTH_TOLERANCE
 from app.camera_fit import Calibration, CameraAttitudeFit, default_priors, parameters_for
 from app.camera_fit import calibrate as calibrate_camera
-from app.camera import DEFAULT_FOCAL_LENGTH_TOLERANCE
 from app.catalogue import vectors_to_radec
 from app.compiled import warm_up
 from app.extraction import Extraction, Pattern, extract
@@ -37,9 +37,9 @@ from app.identification.methods import METHODS, Method
 from app.identification.near_prior import identify_near_prior
 from app.identification.optics import ADOPT_PROBABILITY, HINT_PROBABILITY, departs
 from app.identification.options import SearchOptions
-from app.identification.scale_free import NOT_GIVEN
 from app.identification.result import (AMBIGUOUS, IDENTIFIED, NO_MATCH, Candidate, FocalLengthContradiction,
                                        PlanetMatch, Solution, StarMatch)
+from app.identification.scale_free import NOT_GIVEN
 from app.identification.sightings import (claimed_once, identified_sightings, observations, sighting_noise_px,
                                           source_match_tolerance_rad, sources_field, stars_at)
 from app.identification.sky import Sky
@@ -227,7 +227,7 @@ def without_the_field_of_view(first: Solution, pattern: Pattern, camera, t, sky:
     if found.status != IDENTIFIED:
         return replace(first, elapsed_s=elapsed, n_hypotheses=max(first.n_hypotheses, found.n_hypotheses),
                        notes=(*first.notes, f"searched again without the field of view given ({given:.1f} deg): "
-                                            f"{found.status.replace('_', ' ')} there too"))
+                                            f"{found.status.replace('_', ' ')} there"))
     fitted = found.candidates[0].camera
     said = (f"the field of view given, {given:.1f} deg, fits nothing identified"
             + (f"; the stars fit {fitted.fov_deg[0]:.2f} deg" if fitted is not None else "")
