@@ -44,6 +44,26 @@ def special_file(path: str | os.PathLike) -> str | None:
     return next((kind for is_kind, kind in SPECIAL_FILES if is_kind(mode)), None)
 
 
+def passes_of_folder(entries: list[Path]) -> list[list[Path]]:
+    """The passes of frames among a folder's files (``entries``, in name order): all its images as one pass when
+    it holds a ``frames.json`` or only FITS frames (a camera's pass: FITS carry their times), else each picture a
+    pass of its own (photographs kept together, as ``solve a.jpg b.jpg`` and the console take them: two skies read
+    as one pass made every star a ghost, and a folder of unrelated photographs no match at all)."""
+    images = [p for p in entries if p.name.lower().endswith(IMAGE_SUFFIXES)]
+    if not images:
+        return []
+    if any(p.name == FOLDER_SIDECAR for p in entries) or all(p.name.lower().endswith(FITS_SUFFIXES) for p in images):
+        return [images]
+    return [[p] for p in images]
+
+
+def is_image_sidecar(path: Path, entries: list[Path]) -> bool:
+    """Whether ``path`` is the ``<stem>.frames.json`` of one of ``entries``' images (read with it, never a spot
+    list)."""
+    return path.name.endswith(SIDECAR_SUFFIX) and any(
+        p.name.lower().endswith(IMAGE_SUFFIXES) and image_sidecar(p) == path for p in entries)
+
+
 def image_sidecar(image: Path) -> Path:
     """A single image's own sidecar, ``<stem>.frames.json`` beside it (the stem: the name less its image
     suffix, ``.fits.gz`` whole)."""

@@ -54,7 +54,7 @@ from pathlib import Path
 
 # What files are, by name and kind: the rule every interface follows (a standard-library module).
 from app.filenames import (FOLDER_SIDECAR, IMAGE_SUFFIXES, SPOT_LIST_SUFFIXES, TRUTH_SUFFIX, image_sidecar,
-                           special_file)
+                           is_image_sidecar, passes_of_folder, special_file)
 from app.timefmt import parse_utc_time, utc_text  # standard library only, as app.filenames
 
 #: --fov-deg's bounds (the API's fov_deg field).
@@ -153,8 +153,9 @@ def inputs(paths: list[str]) -> tuple[list[Path | FramePass], list[Path]]:
     directory in name order, leaving out ``*.truth.json`` files, named or in a directory (a shell glob such
     as ``sample_telemetry/*.json`` names them), as ``solve`` does.
 
-    An explicit image file is a :class:`FramePass` of its own; a directory holding images gives one
-    :class:`FramePass` of them all (its ``frames.json`` the sidecar), before its spot-list files.
+    An explicit image file is a :class:`FramePass` of its own; a directory holding images gives its passes
+    (:func:`app.filenames.passes_of_folder`: one :class:`FramePass` of them all with its ``frames.json``, or one
+    a photograph with its own sidecar), before its spot-list files.
     """
     files: list[Path | FramePass] = []
     truth: list[Path] = []
@@ -162,21 +163,29 @@ def inputs(paths: list[str]) -> tuple[list[Path | FramePass], list[Path]]:
         path = Path(raw)
         if path.is_dir():
             entries = sorted(p for p in path.iterdir() if p.is_file())
-            images = tuple(p for p in entries if is_image(p))
+            passes = passes_of_folder(entries)
             sidecar = path / FOLDER_SIDECAR
-            if images:
-                files.append(FramePass(path, images, sidecar if sidecar.is_file() else None))
-            spot_lists = [p for p in entries
-                          if p.suffix.lower() in SPOT_LIST_SUFFIXES and not (images and p.name == FOLDER_SIDECAR)]
+            if len(passes) == 1:
+                files.append(FramePass(path, tuple(passes[0]), sidecar if sidecar.is_file() else None))
+            else:
+                files += [_picture(image) for (image,) in passes]
+            spot_lists = [p for p in entries if p.suffix.lower() in SPOT_LIST_SUFFIXES
+                          and not (passes and p.name == FOLDER_SIDECAR) and not is_image_sidecar(p, entries)]
             truth += [p for p in spot_lists if p.name.lower().endswith(TRUTH_SUFFIX)]
             files += [p for p in spot_lists if not p.name.lower().endswith(TRUTH_SUFFIX)]
         elif is_image(path):
-            files.append(FramePass(path, (path,), sidecar if (sidecar := image_sidecar(path)).is_file() else None))
+            files.append(_picture(path))
         elif path.name.lower().endswith(TRUTH_SUFFIX):
             truth.append(path)
         else:
             files.append(path)
     return files, truth
+
+
+def _picture(image: Path) -> FramePass:
+    """One image as a pass of its own, with its ``<stem>.frames.json`` when there is one."""
+    sidecar = image_sidecar(image)
+    return FramePass(image, (image,), sidecar if sidecar.is_file() else None)
 
 
 def truth_note(count: int) -> str:

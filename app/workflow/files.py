@@ -16,7 +16,8 @@ from pathlib import Path
 
 from app.attitude import rotation_angle_between
 from app.extraction import extract
-from app.filenames import FOLDER_SIDECAR, SPOT_LIST_SUFFIXES, TRUTH_SUFFIX, image_sidecar, special_file
+from app.filenames import (FOLDER_SIDECAR, SPOT_LIST_SUFFIXES, TRUTH_SUFFIX, image_sidecar, is_image_sidecar,
+                           passes_of_folder, special_file)
 from app.frames.times import time_notes
 from app.identification import NO_MATCH, Prior, SearchOptions, Sky, solve_sequence, source_stars
 from app.telemetry import Sequence
@@ -35,13 +36,12 @@ EMPTY_FOLDER = "the folder holds no telemetry (.json, .csv) and no frames (FITS,
 def input_files(paths: list[str]) -> tuple[list[str], list[str]]:
     """``(inputs, truth files left out)`` of the command line's files and folders, in order.
 
-    A file is an input as given; a folder holding images is one pass of frames (read with its
-    ``frames.json``), then its spot-list files in name order; ``*.truth.json`` files are left out
-    (a shell glob such as ``sample_telemetry/*.json`` takes them in).  A folder with nothing to
-    read stays an input, so that it is reported (:data:`EMPTY_FOLDER`).
+    A file is an input as given; a folder holding images gives its passes of frames
+    (:func:`app.filenames.passes_of_folder`: the folder as one pass, read with its ``frames.json``, or each
+    photograph alone), then its spot-list files in name order; ``*.truth.json`` files are left out (a shell
+    glob such as ``sample_telemetry/*.json`` takes them in), and so are the sidecars read with the frames.  A
+    folder with nothing to read stays an input, so that it is reported (:data:`EMPTY_FOLDER`).
     """
-    from app.workflow.frames import is_frames_path
-
     inputs, truth = [], []
     for raw in paths:
         folder = Path(raw)
@@ -53,11 +53,12 @@ def input_files(paths: list[str]) -> tuple[list[str], list[str]]:
         except OSError:
             inputs.append(raw)  # reported when read
             continue
-        frames = is_frames_path(raw)
+        passes = passes_of_folder(entries)
         spot_lists = [p for p in entries if p.suffix.lower() in SPOT_LIST_SUFFIXES
-                      and not (frames and p.name == FOLDER_SIDECAR)]
+                      and not (passes and p.name == FOLDER_SIDECAR) and not is_image_sidecar(p, entries)]
         truth += [str(p) for p in spot_lists if p.name.lower().endswith(TRUTH_SUFFIX)]
-        found = ([raw] if frames else []) + [str(p) for p in spot_lists if not p.name.lower().endswith(TRUTH_SUFFIX)]
+        frames = [raw] if len(passes) == 1 else [str(image) for (image,) in passes]  # the folder, or each photograph
+        found = frames + [str(p) for p in spot_lists if not p.name.lower().endswith(TRUTH_SUFFIX)]
         inputs += found or [raw]
     return inputs, truth
 
