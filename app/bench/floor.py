@@ -15,13 +15,19 @@ Figures: CPU time (``process_time``) per frame, median and p95, and each search'
 default's; every stripped search must name the default's best answer (the same status and attitude
 within 1 arcsec), which the suite counts.  The peer bench (:mod:`app.bench.peer`) holds the ratios to
 cedar-solve; this suite says which of them the search itself can reach.
+
+Then where the default's time goes: the same frames solved once more by the default search with a wall-clock
+timer around each of the functions :data:`STAGES` names (wrapped where they are called from for this pass only,
+then put back), mean ms per frame; the search's own Python is what ``identify`` spends outside its stages.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import time
+from collections import defaultdict
 
 import numpy as np
 
@@ -38,6 +44,71 @@ SEARCHES = (
     ("... and no image centre", SearchOptions(max_candidates=1, max_refinements=3, fit_optics=False,
                                               image_centre=False)),
 )
+
+
+#: (module, function, what it does), timed where the search calls it; ``identify``'s own stages first.
+STAGES = (
+    ("app.identification.engine", "build_candidate", "building and scoring the candidates an operator steps through"),
+    ("app.identification.engine", "refine_many", "refining the best hypotheses"),
+    ("app.identification.engine", "check_pair_hypotheses", "checking the first edge's hypotheses as they are made"),
+    ("app.identification.engine", "refine_optics", "the optics fit of the candidates"),
+    ("app.identification.engine", "prepare_pattern", "the pattern and the star field of its hour"),
+    ("app.identification.hypotheses", "ordered_pattern_edges", "the pattern's Delaunay edges"),
+    ("app.identification.hypotheses", "bright_pair_hypotheses", "generating the hypotheses' rows"),
+    ("app.identification.engine", "focal_estimate", "the bright triangles' focal-length lookup"),
+    ("app.identification", "image_centre_radec", "the image centre's fit"),
+    ("app.identification", "extract", "extraction"),
+    ("app.identification", "fit_sequence", "the sequence fit"),
+    ("app.identification", "fit_sequence_camera", "the sequence's optics over every snapshot"),
+)
+#: The stages above that run inside the search (``identify``): the rest of its time is its own Python.
+IN_IDENTIFY = 8
+
+
+@contextlib.contextmanager
+def _stage_timers(spent: dict):
+    """Each of :data:`STAGES` (and ``identify``) wrapped with a timer adding its wall seconds to ``spent``, then put
+    back as it was."""
+    import importlib
+
+    targets = [(importlib.import_module(m), f, label) for m, f, label in STAGES]
+    targets.append((importlib.import_module("app.identification"), "identify", "identify"))
+    originals = [(module, name, getattr(module, name)) for module, name, _ in targets]
+
+    def timed(function, label):
+        def wrapper(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return function(*args, **kwargs)
+            finally:
+                spent[label] += time.perf_counter() - t0
+        return wrapper
+
+    try:
+        for (module, name, label), (_, _, function) in zip(targets, originals):
+            setattr(module, name, timed(function, label))
+        yield spent
+    finally:
+        for module, name, function in originals:
+            setattr(module, name, function)
+
+
+def stage_split(sequences, sky) -> dict:
+    """Mean wall ms per frame of each of :data:`STAGES` in the default search of ``sequences``, the search's own
+    Python (``identify`` less its stages) and the total."""
+    spent = defaultdict(float)
+    total = 0.0
+    with _stage_timers(spent):
+        for sequence in sequences:
+            t0 = time.perf_counter()
+            solve_sequence(sequence, sky)
+            total += time.perf_counter() - t0
+    n = len(sequences)
+    inside = sum(spent[label] for _, _, label in STAGES[:IN_IDENTIFY])
+    return {"stages": [{"stage": label, "function": f"{module.rsplit('.', 1)[-1]}.{name}",
+                        "ms": round(spent[label] / n * 1e3, 3)} for module, name, label in STAGES],
+            "search_python_ms": round(max(0.0, spent["identify"] - inside) / n * 1e3, 3),
+            "total_ms": round(total / n * 1e3, 3)}
 
 
 def _solve(sequence, sky, options: SearchOptions):
@@ -62,7 +133,7 @@ def run(n_sequences: int = 100, seed: int = 1) -> dict:
     camera = CAMERAS[CAMERA_NAME]
     sky = Sky()
     load_before = round(os.getloadavg()[0], 2)
-    rows = {}
+    rows, splits = {}, {}
     for scenario, n in (("single", n_sequences), ("nominal", max(1, n_sequences * 3 // 5))):
         rng = np.random.default_rng([seed, 16, 0, scenario == "single"])
         sequences = [simulate_sequence(rng, camera, scenario)[0] for _ in range(n)]
@@ -82,8 +153,9 @@ def run(n_sequences: int = 100, seed: int = 1) -> dict:
                            "p95_ms": round(float(np.percentile(times[label], 95)), 2),
                            "of_default": round(float(np.median(times[label])) / default_median, 2),
                            "same_answer": same[label]} for label, _ in SEARCHES]
-    return {"camera": CAMERA_NAME, "seed": seed, "rows": rows, "load_average_before": load_before,
-            "load_average_after": round(os.getloadavg()[0], 2)}
+        splits[scenario] = stage_split(sequences, sky)
+    return {"camera": CAMERA_NAME, "seed": seed, "rows": rows, "stage_split": splits,
+            "load_average_before": load_before, "load_average_after": round(os.getloadavg()[0], 2)}
 
 
 def format_table(result: dict) -> str:
@@ -97,4 +169,19 @@ def format_table(result: dict) -> str:
                          f"{r['of_default']:>11.2f} {r['same_answer']:>8}/{r['n']}")
     lines.append("(same answer: the default's status and best attitude within 1 arcsec; the peer's times are "
                  "in bench --suite peer)")
+    splits = result.get("stage_split", {})
+    if splits:
+        single, sequence = splits["single"], splits.get("nominal")
+
+        def row(label: str, a: float, b: float | None) -> str:
+            return f"{label:<88} {a:>7.2f} {b if b is not None else float('nan'):>9.2f}"
+
+        lines += ["", "where the default's time goes (wall ms per frame, mean; a timer around each function):",
+                  f"{'stage':<88} {'single':>7} {'sequence':>9}"]
+        for k, stage in enumerate(single["stages"]):
+            lines.append(row(f"{stage['stage']} ({stage['function']})", stage["ms"],
+                             sequence["stages"][k]["ms"] if sequence else None))
+        lines.append(row("the search's own Python (identify less its stages)", single["search_python_ms"],
+                         sequence["search_python_ms"] if sequence else None))
+        lines.append(row("total", single["total_ms"], sequence["total_ms"] if sequence else None))
     return "\n".join(lines)
