@@ -231,9 +231,11 @@ def without_the_field_of_view(first: Solution, pattern: Pattern, camera, t, sky:
     fitted = found.candidates[0].camera
     said = (f"the field of view given, {given:.1f} deg, fits nothing identified"
             + (f"; the stars fit {fitted.fov_deg[0]:.2f} deg" if fitted is not None else "")
-            + " (check it: a cropped or turned image spans another angle than its lens); searched again without it")
+            + " (check it: a cropped or turned image spans another angle than its lens)")
     how, *rest = found.notes  # the search over scales: what it searched, after its own opening words
-    return replace(found, elapsed_s=elapsed, notes=(f"{said}: {how.removeprefix(NOT_GIVEN)}", *rest))
+    # Two notes: the one an operator must read first stays short (the search's account is long).
+    return replace(found, elapsed_s=elapsed,
+                   notes=(said, f"searched again without it: {how.removeprefix(NOT_GIVEN)}", *rest))
 
 
 def mirrored(pattern: Pattern, camera) -> tuple[Pattern, object]:
