@@ -153,6 +153,13 @@ class Camera:
         return float(self.focal_length_tolerance)
 
     @property
+    def focal_length_rough(self) -> bool:
+        """Whether the focal length is known only roughly: declared with a tolerance wider than a calibrated
+        camera's (:data:`DEFAULT_FOCAL_LENGTH_TOLERANCE`), as a field of view given by hand or read from a file's
+        header is (``app.frames.assemble.FOV_FOCAL_TOLERANCE``: 10 % and more)."""
+        return not self.focal_length_unknown and self.focal_tolerance > DEFAULT_FOCAL_LENGTH_TOLERANCE
+
+    @property
     def corner_radius(self) -> float:
         """Normalised (pinhole) radius of the sensor corner farthest from the principal point.
 

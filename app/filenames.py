@@ -57,11 +57,10 @@ def passes_of_folder(entries: list[Path]) -> list[list[Path]]:
     return [[p] for p in images]
 
 
-def is_image_sidecar(path: Path, entries: list[Path]) -> bool:
-    """Whether ``path`` is the ``<stem>.frames.json`` of one of ``entries``' images (read with it, never a spot
-    list)."""
-    return path.name.endswith(SIDECAR_SUFFIX) and any(
-        p.name.lower().endswith(IMAGE_SUFFIXES) and image_sidecar(p) == path for p in entries)
+def image_sidecars(entries: list[Path]) -> set[Path]:
+    """The ``<stem>.frames.json`` of each of ``entries``' images, present or not (read with their image, never as
+    spot lists)."""
+    return {image_sidecar(p) for p in entries if p.name.lower().endswith(IMAGE_SUFFIXES)}
 
 
 def image_sidecar(image: Path) -> Path:

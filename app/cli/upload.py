@@ -54,7 +54,7 @@ from pathlib import Path
 
 # What files are, by name and kind: the rule every interface follows (a standard-library module).
 from app.filenames import (FOLDER_SIDECAR, IMAGE_SUFFIXES, SPOT_LIST_SUFFIXES, TRUTH_SUFFIX, image_sidecar,
-                           is_image_sidecar, passes_of_folder, special_file)
+                           image_sidecars, passes_of_folder, special_file)
 from app.timefmt import parse_utc_time, utc_text  # standard library only, as app.filenames
 
 #: --fov-deg's bounds (the API's fov_deg field).
@@ -163,14 +163,14 @@ def inputs(paths: list[str]) -> tuple[list[Path | FramePass], list[Path]]:
         path = Path(raw)
         if path.is_dir():
             entries = sorted(p for p in path.iterdir() if p.is_file())
-            passes = passes_of_folder(entries)
+            passes, sidecars = passes_of_folder(entries), image_sidecars(entries)
             sidecar = path / FOLDER_SIDECAR
             if len(passes) == 1:
                 files.append(FramePass(path, tuple(passes[0]), sidecar if sidecar.is_file() else None))
             else:
                 files += [_picture(image) for (image,) in passes]
             spot_lists = [p for p in entries if p.suffix.lower() in SPOT_LIST_SUFFIXES
-                          and not (passes and p.name == FOLDER_SIDECAR) and not is_image_sidecar(p, entries)]
+                          and not (passes and p.name == FOLDER_SIDECAR) and p not in sidecars]
             truth += [p for p in spot_lists if p.name.lower().endswith(TRUTH_SUFFIX)]
             files += [p for p in spot_lists if not p.name.lower().endswith(TRUTH_SUFFIX)]
         elif is_image(path):

@@ -25,7 +25,6 @@ from scipy.special import chdtri
 from app.attitude import propagate
 from app.attitude.sequence import SequenceFit, fit_constant_rate, rate_from_motion, wahba_per_snapshot
 from app.attitude.wahba import cross_boresight_and_roll_sigma
-from app.camera import DEFAULT_FOCAL_LENGTH_TOLERANCE
 from app.camera_fit import Calibration, CameraAttitudeFit, default_priors, parameters_for
 from app.camera_fit import calibrate as calibrate_camera
 from app.catalogue import vectors_to_radec
@@ -140,7 +139,7 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
         # Every further search within what the first left of one search's time-out.
         left_s = options.timeout_s - solution.elapsed_s
         if (solution.status != IDENTIFIED and "frames" in sequence.extra and len(pattern) >= 3
-                and given_by_hand(sequence.camera) and left_s >= MIN_SECOND_SEARCH_S):
+                and sequence.camera.focal_length_rough and left_s >= MIN_SECOND_SEARCH_S):
             solution = without_the_field_of_view(solution, pattern, sequence.camera, t, sky,
                                                  velocity_km_s=sequence.observer,
                                                  options=replace(options, timeout_s=left_s), planets=planets,
@@ -196,13 +195,6 @@ def solve_sequence(sequence: Sequence, sky: Sky, *, options: SearchOptions = Sea
 #: (:func:`without_the_field_of_view`), and one that matches nothing mirrored (:func:`mirrored_match`), in what
 #: is left of the search's time-out, when that is at least this (s).
 MIN_SECOND_SEARCH_S = 0.5
-
-
-def given_by_hand(camera) -> bool:
-    """Whether ``camera``'s focal length is only roughly known: a tolerance wider than a calibrated camera's
-    (:data:`app.camera.DEFAULT_FOCAL_LENGTH_TOLERANCE`), as a field of view given by hand or read from a file's
-    header has (:data:`app.frames.assemble.FOV_FOCAL_TOLERANCE`)."""
-    return not camera.focal_length_unknown and camera.focal_tolerance > DEFAULT_FOCAL_LENGTH_TOLERANCE
 
 
 def without_the_field_of_view(first: Solution, pattern: Pattern, camera, t, sky: Sky, *, velocity_km_s=None,

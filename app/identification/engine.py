@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 
 from app.attitude import rotation_angles_between
-from app.camera import DEFAULT_FOCAL_LENGTH_TOLERANCE, Camera
+from app.camera import Camera
 from app.compiled import warm_up
 from app.identification.candidates import PreparedPattern, build_candidate, prepare_pattern, with_optics_uncertainty
 from app.identification.focal_estimate import FocalEstimate, check_radius_px, focal_estimate
@@ -175,8 +175,8 @@ def identify(pattern, camera: Camera, t: datetime, sky: Sky, *, velocity_km_s=No
             yield estimate.focal_length_px, options.focal_search_features
         yield None, options.declared_features_first
         if METHODS[method].focal_scan:
-            rough = camera.focal_tolerance > DEFAULT_FOCAL_LENGTH_TOLERANCE
-            yield SCAN, options.rough_focal_search_features if rough else options.focal_search_features
+            yield SCAN, (options.rough_focal_search_features if camera.focal_length_rough
+                         else options.focal_search_features)
         else:
             yield from ((f, 1) for f in searched)
             yield from ((f, options.focal_search_features) for f in searched)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from app.attitude import rotation_angle_between
 from app.extraction import extract
-from app.filenames import (FOLDER_SIDECAR, SPOT_LIST_SUFFIXES, TRUTH_SUFFIX, image_sidecar, is_image_sidecar,
+from app.filenames import (FOLDER_SIDECAR, SPOT_LIST_SUFFIXES, TRUTH_SUFFIX, image_sidecar, image_sidecars,
                            passes_of_folder, special_file)
 from app.frames.times import time_notes
 from app.identification import NO_MATCH, Prior, SearchOptions, Sky, solve_sequence, source_stars
@@ -53,9 +53,9 @@ def input_files(paths: list[str]) -> tuple[list[str], list[str]]:
         except OSError:
             inputs.append(raw)  # reported when read
             continue
-        passes = passes_of_folder(entries)
+        passes, sidecars = passes_of_folder(entries), image_sidecars(entries)
         spot_lists = [p for p in entries if p.suffix.lower() in SPOT_LIST_SUFFIXES
-                      and not (passes and p.name == FOLDER_SIDECAR) and not is_image_sidecar(p, entries)]
+                      and not (passes and p.name == FOLDER_SIDECAR) and p not in sidecars]
         truth += [str(p) for p in spot_lists if p.name.lower().endswith(TRUTH_SUFFIX)]
         frames = [raw] if len(passes) == 1 else [str(image) for (image,) in passes]  # the folder, or each photograph
         found = frames + [str(p) for p in spot_lists if not p.name.lower().endswith(TRUTH_SUFFIX)]
